@@ -1,0 +1,237 @@
+"""The offline evaluation: score a dataset the way the constellation paper
+did, centralized and/or decentralized with N robots, and report PR/AUC
+against ground truth, the byte model and the load per range holder.
+
+``main(settings)`` does the work and returns the summary; the CLI only parses
+arguments into :class:`EvaluationSettings`. Output files are described in
+docs/output-format.md.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from tqdm import tqdm
+
+from swarmrec.core.association import build_table
+from swarmrec.core.presets import get_preset
+from swarmrec.core.types import ConstellationSequence, Trajectory
+from swarmrec.datasets.constellations import label_counts, read_constellations
+from swarmrec.datasets.labels import COCO_NAMES, read_label_names
+from swarmrec.datasets.tum import read_trajectory
+from swarmrec.errors import ConfigError
+from swarmrec.evaluation.bandwidth import holder_load, paper_byte_model
+from swarmrec.evaluation.groundtruth import Rules, ground_truth
+from swarmrec.evaluation.pr import PRCurve, precision_recall
+from swarmrec.evaluation.scoring import ScoreMatrix, score_centralized, score_decentralized, split_frames
+
+__all__ = ["EvaluationSettings", "load_dataset", "main"]
+
+Mode = Literal["centralized", "decentralized", "both"]
+
+#: Above this many frames the dense N x N protocol would need several GB.
+MAX_DENSE_FRAMES = 12_000
+
+
+@dataclass(frozen=True)
+class EvaluationSettings:
+    """Everything one evaluation needs; validated on construction."""
+
+    dataset: str = "synthetic"
+    seed: int = 0
+    frames: int | None = None
+    labels: Path | None = None
+    groundtruth: Path | None = None
+    gt_rules: Rules = "none"
+    mode: Mode = "both"
+    robots: int = 10
+    preset: str = "paper"
+    out: Path = Path("runs/evaluate")
+    plots: bool = True
+    progress: bool = True
+    preset_overrides: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("centralized", "decentralized", "both"):
+            raise ConfigError(f"mode must be centralized, decentralized or both, got {self.mode!r}")
+        if self.robots < 1:
+            raise ConfigError(f"robots must be >= 1, got {self.robots}")
+        if self.frames is not None and self.frames < 1:
+            raise ConfigError(f"frames must be >= 1, got {self.frames}")
+        if self.gt_rules not in ("none", "tum-fr3-office"):
+            raise ConfigError(f"gt_rules must be none or tum-fr3-office, got {self.gt_rules!r}")
+        get_preset(self.preset)  # fails early with the list of known presets
+
+
+def load_dataset(settings: EvaluationSettings) -> tuple[ConstellationSequence, Trajectory | None]:
+    """The sequence to evaluate and, when known, its ground-truth trajectory.
+
+    ``dataset="synthetic"`` generates the built-in office world (with its
+    poses). A path is a folder or .zip of constellation files; a
+    ``groundtruth.txt`` beside the constellations is used when no
+    ``--groundtruth`` is given.
+    """
+    if settings.dataset == "synthetic":
+        from swarmrec.synthetic import OfficeConfig, generate_office
+
+        config = OfficeConfig(seed=settings.seed)
+        if settings.frames is not None:
+            config = OfficeConfig(seed=settings.seed, n_frames=settings.frames)
+        ds = generate_office(config)
+        return ds.sequence, ds.trajectory
+    path = Path(settings.dataset)
+    names = read_label_names(settings.labels) if settings.labels else COCO_NAMES
+    seq = read_constellations(path, names)
+    if settings.frames is not None:
+        seq = seq.subset(range(min(settings.frames, len(seq))))
+    gt_path = settings.groundtruth
+    if gt_path is None and path.is_dir() and (path / "groundtruth.txt").is_file():
+        gt_path = path / "groundtruth.txt"
+    return seq, read_trajectory(gt_path) if gt_path else None
+
+
+@contextmanager
+def _bar(enabled: bool, total: int, desc: str) -> Iterator[Any]:
+    with tqdm(total=total, desc=desc, unit="frame", disable=not enabled, leave=False) as bar:
+        yield bar
+
+
+def _write_scores(path: Path, matrix: ScoreMatrix, seq: ConstellationSequence, robots: int) -> None:
+    owner = np.zeros(len(seq), np.int64)
+    for r, block in enumerate(split_frames(len(seq), robots)):
+        owner[block.start : block.stop] = r
+    keep = matrix.outside_exclusion()
+    np.savez_compressed(
+        path,
+        frame_i=matrix.pairs_i[keep].astype(np.uint32),
+        frame_j=matrix.pairs_j[keep].astype(np.uint32),
+        score=matrix.scores[keep],
+        frame_ids=np.array(seq.frame_ids),
+        robot=owner,
+        ignored=matrix.ignored,
+        exclusion=np.array(matrix.exclusion),
+    )
+
+
+def _write_best(path: Path, seq: ConstellationSequence, dense: np.ndarray, curve: PRCurve | None) -> None:
+    best = np.argmax(dense, axis=1)
+    with path.open("w", newline="", encoding="utf-8") as f:
+        out = csv.writer(f)
+        out.writerow(["frame", "frame_id", "best_frame", "best_frame_id", "score", "true_closure"])
+        for i, j in enumerate(best.tolist()):
+            truth = "" if curve is None else int(curve.true_positive[i])
+            out.writerow([i, seq.frame_ids[i], j, seq.frame_ids[j], f"{dense[i, j]:.6f}", truth])
+
+
+def main(settings: EvaluationSettings) -> dict[str, Any]:
+    """Run the evaluation, write its files under ``settings.out``, return the summary."""
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    seq, trajectory = load_dataset(settings)
+    timings["load_s"] = time.perf_counter() - t0
+    if len(seq) > MAX_DENSE_FRAMES:
+        raise ConfigError(
+            f"{len(seq)} frames: the paper's protocol keeps an N x N matrix; use --frames to "
+            f"evaluate at most {MAX_DENSE_FRAMES}"
+        )
+    preset = get_preset(settings.preset).with_(**settings.preset_overrides)
+    out = settings.out
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    table = build_table(seq.constellations, seq.n_labels)
+    timings["prepare_s"] = time.perf_counter() - t0
+    counts = label_counts(seq.constellations, seq.n_labels)
+    summary: dict[str, Any] = {
+        "dataset": {
+            "name": seq.name,
+            "source": settings.dataset,
+            "frames": len(seq),
+            "labels": seq.n_labels,
+            "ignored_frames": int(np.count_nonzero(np.diff(table.offsets) < preset.min_objects)),
+            "skipped": dict(seq.skipped),
+            "groundtruth": trajectory is not None,
+        },
+        "preset": asdict(preset),
+        "results": {},
+    }
+    gt = None
+    if trajectory is not None:
+        t0 = time.perf_counter()
+        gt = ground_truth(seq, trajectory, exclusion=preset.exclusion, rules=settings.gt_rules)
+        timings["groundtruth_s"] = time.perf_counter() - t0
+    else:
+        summary["dataset"]["groundtruth_note"] = (
+            "no trajectory: pair scores are written but precision-recall needs --groundtruth"
+        )
+    curves: dict[str, PRCurve] = {}
+    runs: list[tuple[str, ScoreMatrix, int]] = []
+    if settings.mode in ("centralized", "both"):
+        t0 = time.perf_counter()
+        with _bar(settings.progress, len(seq), "centralized") as bar:
+            matrix = score_centralized(seq, preset, table=table, progress=bar.update)
+        timings["centralized_s"] = time.perf_counter() - t0
+        runs.append(("centralized", matrix, 1))
+    if settings.mode in ("decentralized", "both"):
+        load_prior = None
+        if preset.ranges == "balanced":
+            # Oracle prior: how many frames of this dataset hold each label.
+            load_prior = np.count_nonzero(table.desc, axis=0).astype(np.float64)
+        t0 = time.perf_counter()
+        steps = max(len(split_frames(len(seq), settings.robots)[0]) - 1, 0)
+        with _bar(settings.progress, steps, f"decentralized x{settings.robots}") as bar:
+            run = score_decentralized(
+                seq, settings.robots, preset, table=table, label_load=load_prior, progress=bar.update
+            )
+        timings["decentralized_s"] = time.perf_counter() - t0
+        runs.append((f"decentralized_{settings.robots}", run.matrix, settings.robots))
+        load = holder_load(run)
+        summary["bandwidth"] = {
+            "paper_byte_model_per_query": paper_byte_model(run, preset.n_fq).to_dict(),
+            "holder_load": load.to_dict(),
+        }
+        if settings.plots:
+            from swarmrec.evaluation.plots import plot_holder_load
+
+            plot_holder_load(load, counts, seq.label_names, out / "holder_load.png")
+    for name, matrix, robots in runs:
+        dense = matrix.dense()
+        keep = matrix.outside_exclusion()
+        result: dict[str, Any] = {
+            "checked_pairs": int(np.count_nonzero(keep)),
+            "positive_pairs": int(np.count_nonzero(matrix.scores[keep] > 0)),
+        }
+        curve = None
+        if gt is not None:
+            curve = precision_recall(dense, gt.closures)
+            curves[name] = curve
+            result.update({"auc": curve.auc, "frames_with_true_closure": curve.relevant})
+        summary["results"][name] = result
+        _write_scores(out / f"scores_{name}.npz", matrix, seq, robots)
+        _write_best(out / f"best_matches_{name}.csv", seq, dense, curve)
+        if settings.plots:
+            from swarmrec.evaluation.plots import plot_similarity
+
+            plot_similarity(dense, f"{seq.name}: {name.replace('_', ' ')} robots", out / f"similarity_{name}.png")
+    if settings.plots and curves:
+        from swarmrec.evaluation.plots import plot_pr
+
+        plot_pr(curves, out / "precision_recall.png")
+    summary["timings"] = timings
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default) + "\n")
+    return summary
+
+
+def _json_default(value: object) -> object:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")

@@ -1,0 +1,83 @@
+"""Figures of an evaluation: similarity matrix, PR curves, holder load."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only: never needs a display
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import numpy.typing as npt  # noqa: E402
+
+from swarmrec.evaluation.bandwidth import HolderLoad  # noqa: E402
+from swarmrec.evaluation.pr import PRCurve  # noqa: E402
+
+__all__ = ["plot_holder_load", "plot_pr", "plot_similarity"]
+
+
+def plot_similarity(
+    dense: npt.NDArray[np.float64], title: str, path: Path, best_threshold: float = 0.25
+) -> None:
+    """Scores as an image (negative sentinels shown as 0), with each frame's
+    best match above ``best_threshold`` marked, as in the paper's Fig. 4."""
+    fig, ax = plt.subplots(figsize=(5.5, 5))
+    img = ax.imshow(np.clip(dense, 0.0, 1.0), cmap="viridis", vmin=0, vmax=1, interpolation="nearest")
+    best = np.argmax(dense, axis=1)
+    score = dense[np.arange(dense.shape[0]), best]
+    keep = score > best_threshold
+    ax.scatter(best[keep], np.flatnonzero(keep), s=2, c="red", label=f"best match > {best_threshold}")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("frame")
+    ax.set_title(title)
+    ax.legend(loc="upper right", fontsize=7, markerscale=4)
+    fig.colorbar(img, ax=ax, fraction=0.046, label="score")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_pr(curves: dict[str, PRCurve], path: Path) -> None:
+    """Precision over recall, one line per mode, AUC in the legend (paper Fig. 5)."""
+    fig, ax = plt.subplots(figsize=(5, 4))
+    for name, curve in curves.items():
+        ax.plot(curve.recall, curve.precision, label=f"{name}, AUC = {curve.auc:.4f}")
+    ax.set_xlabel("recall")
+    ax.set_ylabel("precision")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1.05)
+    ax.grid(alpha=0.4)
+    ax.legend(loc="lower left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_holder_load(
+    load: HolderLoad, label_counts: npt.NDArray[np.int64], label_names: tuple[str, ...], path: Path
+) -> None:
+    """Left: share of each label among detected objects, coloured by holder
+    (paper Fig. 6). Right: partial queries received by each holder."""
+    n_holders = len(load.partial_queries)
+    colors = plt.get_cmap("tab10" if n_holders <= 10 else "tab20")
+    holder = np.repeat(np.arange(n_holders), np.diff(load.bounds))
+    share = 100.0 * label_counts / max(int(label_counts.sum()), 1)
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.6), gridspec_kw={"width_ratios": [2, 1]})
+    left.bar(np.arange(len(share)), share, color=[colors(h % colors.N) for h in holder], width=0.9)
+    for idx in np.argsort(-share)[:5]:
+        if share[idx] > 0:
+            left.annotate(label_names[idx], (idx, share[idx]), fontsize=7, ha="center", va="bottom")
+    left.set_xlabel("label index")
+    left.set_ylabel("% of detected objects")
+    left.set_title("labels, coloured by range holder")
+    right.bar(np.arange(n_holders), load.partial_queries, color=[colors(h % colors.N) for h in range(n_holders)])
+    mean = float(np.mean(load.partial_queries))
+    right.axhline(mean, color="k", ls="--", lw=1, label=f"mean; busiest/mean = {load.balance_ratio:.2f}")
+    right.set_xlabel("range holder")
+    right.set_ylabel("partial queries received")
+    right.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

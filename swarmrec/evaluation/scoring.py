@@ -1,0 +1,275 @@
+"""Offline scoring of a sequence, centralized and decentralized (N robots).
+
+Both produce a :class:`ScoreMatrix`: every pair that was fully checked with
+its score, in the dense convention of the published evaluation so results
+compare entry by entry:
+
+* ``-1`` for pairs within the exclusion window (``|i - j| <= exclusion``),
+* ``-2`` for pairs involving an ignored frame (fewer than ``min_objects``
+  objects) — in the decentralized case only for ignored frames that queried,
+  i.e. not a robot's first frame, as in the scripts,
+* the full score for checked pairs, ``0`` for pairs never checked.
+
+The decentralized mode simulates the two-step query in lock-step, exactly as
+REFERENCE_NOTES.md describes: the sequence is cut into ``n`` consecutive
+sub-trajectories of ``ceil(N / n)`` frames; at step ``t`` every robot queries
+with its ``t``-th frame against the frames ``t' < t`` of every robot; each
+range holder returns up to ``n_ret`` candidates; the querying robot verifies
+the candidates of the ``n_fq`` robots that returned most, plus its own.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from swarmrec.core.association import FrameTable, build_table, score_pairs
+from swarmrec.core.presets import Preset
+from swarmrec.core.ranges import balanced_ranges, even_ranges, validate_bounds
+from swarmrec.core.selection import select_candidates_many, select_robots
+from swarmrec.core.types import ConstellationSequence
+
+__all__ = [
+    "DecentralizedRun",
+    "ScoreMatrix",
+    "label_bounds",
+    "score_centralized",
+    "score_decentralized",
+    "split_frames",
+]
+
+IntArray = npt.NDArray[np.int64]
+FloatArray = npt.NDArray[np.float64]
+Progress = Callable[[int], None]
+
+# The published scripts add this to every partial-score denominator; it
+# changes the order of equal fractions (2/4 ranks above 1/2), so it is kept.
+PARTIAL_EPSILON = 1e-12
+
+
+@dataclass(frozen=True, eq=False)
+class ScoreMatrix:
+    """Scores of every checked pair of an N-frame sequence."""
+
+    pairs_i: IntArray  # i < j
+    pairs_j: IntArray
+    scores: FloatArray
+    n_frames: int
+    exclusion: int
+    ignored: npt.NDArray[np.bool_]  # frames with too few objects
+    #: Ignored frames whose pairs the scripts mark -2 (all ignored frames when centralized).
+    ignored_marked: npt.NDArray[np.bool_]
+
+    def outside_exclusion(self) -> npt.NDArray[np.bool_]:
+        """Mask of the checked pairs that are loop-closure candidates: a robot may
+        verify its own recent frames, but pairs within the exclusion window never count."""
+        return np.asarray(self.pairs_j - self.pairs_i > self.exclusion)
+
+    def dense(self) -> FloatArray:
+        """The (N, N) matrix in the published convention (see module doc)."""
+        n = self.n_frames
+        m = np.zeros((n, n))
+        m[self.pairs_i, self.pairs_j] = self.scores
+        m[self.pairs_j, self.pairs_i] = self.scores
+        marked = np.flatnonzero(self.ignored_marked)
+        m[marked, :] = -2.0
+        m[:, marked] = -2.0
+        idx = np.arange(n)
+        m[np.abs(idx[:, None] - idx[None, :]) <= self.exclusion] = -1.0
+        return m
+
+
+def _valid_frames(table: FrameTable, preset: Preset) -> npt.NDArray[np.bool_]:
+    sizes = np.diff(table.offsets)
+    return np.asarray(sizes >= preset.min_objects)
+
+
+def score_centralized(
+    seq: ConstellationSequence,
+    preset: Preset,
+    *,
+    table: FrameTable | None = None,
+    progress: Progress | None = None,
+) -> ScoreMatrix:
+    """Score every pair of valid frames more than ``exclusion`` frames apart."""
+    table = table or build_table(seq.constellations, seq.n_labels)
+    valid = _valid_frames(table, preset)
+    n = len(seq)
+    chunks_i: list[IntArray] = []
+    chunks_j: list[IntArray] = []
+    chunks_s: list[FloatArray] = []
+    # Row by row keeps memory at O(N) per step and lets the bar move.
+    valid_idx = np.flatnonzero(valid)
+    for i in valid_idx:
+        j = valid_idx[valid_idx > i + preset.exclusion]
+        if j.shape[0]:
+            ii = np.full(j.shape[0], i, np.int64)
+            chunks_i.append(ii)
+            chunks_j.append(j.astype(np.int64))
+            chunks_s.append(
+                score_pairs(
+                    table, ii, j, d=preset.d, min_common=preset.min_common,
+                    same_label_only=preset.same_label_only,
+                )  # fmt: skip
+            )
+        if progress:
+            progress(1)
+    if progress:
+        progress(n - valid_idx.shape[0])
+    return ScoreMatrix(
+        pairs_i=np.concatenate(chunks_i) if chunks_i else np.zeros(0, np.int64),
+        pairs_j=np.concatenate(chunks_j) if chunks_j else np.zeros(0, np.int64),
+        scores=np.concatenate(chunks_s) if chunks_s else np.zeros(0),
+        n_frames=n,
+        exclusion=preset.exclusion,
+        ignored=~valid,
+        ignored_marked=~valid,
+    )
+
+
+def split_frames(n_frames: int, n_robots: int) -> list[range]:
+    """The frames of each robot: consecutive blocks of ``ceil(N / n)`` frames,
+    the last one shorter (possibly empty when n does not divide well)."""
+    per = math.ceil(n_frames / n_robots)
+    return [range(min(r * per, n_frames), min((r + 1) * per, n_frames)) for r in range(n_robots)]
+
+
+def label_bounds(preset: Preset, n_labels: int, n_holders: int, label_load: FloatArray | None) -> IntArray:
+    """Label range boundaries for ``preset`` (``label_load`` for 'balanced')."""
+    if preset.ranges == "even":
+        return even_ranges(n_labels, n_holders)
+    if label_load is None:
+        raise ValueError("balanced label ranges need a label load (label frequencies)")
+    return validate_bounds(balanced_ranges(label_load, n_holders), n_labels)
+
+
+@dataclass(frozen=True, eq=False)
+class DecentralizedRun:
+    """A decentralized evaluation: its scores and what was sent."""
+
+    matrix: ScoreMatrix
+    n_robots: int
+    frames_per_robot: int
+    bounds: IntArray
+    #: (n_robots, frames_per_robot, n_labels) descriptors as the robots share them
+    #: (zeros for ignored frames and for the padding of the last robot).
+    descriptors: FloatArray
+    #: candidates[(r, t)] = global frame indices returned by every range, in range order.
+    candidate_counts: IntArray  # (n_robots, frames_per_robot) candidates returned per query
+    checked_robots: dict[tuple[int, int], IntArray] = field(repr=False)
+    partial_descriptors_per_holder: IntArray = field(repr=False)  # (R,)
+    labels_per_holder: IntArray = field(repr=False)  # (R,) non-zero bins received
+    objects_per_holder: IntArray = field(repr=False)  # (R,) objects of the holder's labels
+
+
+def score_decentralized(
+    seq: ConstellationSequence,
+    n_robots: int,
+    preset: Preset,
+    *,
+    table: FrameTable | None = None,
+    label_load: FloatArray | None = None,
+    bounds: IntArray | None = None,
+    progress: Progress | None = None,
+) -> DecentralizedRun:
+    """Simulate the two-step decentralized query with ``n_robots`` robots."""
+    table = table or build_table(seq.constellations, seq.n_labels)
+    valid = _valid_frames(table, preset)
+    n, n_labels = len(seq), seq.n_labels
+    blocks = split_frames(n, n_robots)
+    per = math.ceil(n / n_robots)
+    if bounds is None:
+        bounds = label_bounds(preset, n_labels, n_robots, label_load)
+    bounds = validate_bounds(bounds, n_labels)
+    n_ranges = bounds.shape[0] - 1
+    # Shared descriptors, float64 as in the scripts (their sums are exact integers).
+    sem = np.zeros((n_robots, per, n_labels))
+    for r, block in enumerate(blocks):
+        for t, g in enumerate(block):
+            if valid[g]:
+                sem[r, t] = table.desc[g]
+    # Range membership as a matrix: a product with it sums each range's bins.
+    member = np.zeros((n_labels, n_ranges))
+    for k in range(n_ranges):
+        member[bounds[k] : bounds[k + 1], k] = 1.0
+    sem_part = sem @ member  # (n_robots, per, R)
+
+    cand_count = np.zeros((n_robots, per), np.int64)
+    checked: dict[tuple[int, int], IntArray] = {}
+    pair_i: list[int] = []
+    pair_j: list[int] = []
+    for t in range(1, per):
+        query_part = sem_part[:, t]  # (n, R)
+        act_q, act_k = np.nonzero(query_part > 0)
+        selected: dict[tuple[int, int], IntArray] = {}
+        if act_q.shape[0]:
+            # Only the bins some query holds can have a non-zero minimum.
+            bins = np.flatnonzero(sem[:, t].any(axis=0))
+            stored = sem[:, :t, bins]  # (n, t, m)
+            queries = sem[:, t, bins]  # (n, m)
+            common_all = np.minimum(stored[None], queries[:, None, None, :]) @ member[bins]
+            common = common_all[act_q, :, :, act_k]  # (A, n, t): one row per active (query, range)
+            stored_part = np.moveaxis(sem_part[:, :t, act_k], 2, 0)  # (A, n, t)
+            total = stored_part + query_part[act_q, act_k][:, None, None] - common
+            values = (common / (total + PARTIAL_EPSILON)).reshape(act_q.shape[0], n_robots * t)
+            for q, k, cols in zip(
+                act_q.tolist(), act_k.tolist(), select_candidates_many(values, preset.n_ret),
+                strict=True,
+            ):
+                selected[(q, k)] = cols
+        for r in range(n_robots):
+            g = r * per + t
+            if t >= len(blocks[r]) or not valid[g]:
+                continue
+            parts = [selected[(r, k)] for k in range(n_ranges) if (r, k) in selected]
+            cols = np.concatenate(parts) if parts else np.zeros(0, np.int64)
+            cand_count[r, t] = cols.shape[0]
+            cand_robot = cols // t
+            robots = select_robots(cand_robot, preset.n_fq, r)
+            checked[(r, t)] = robots
+            keep = np.unique(cols[np.isin(cand_robot, robots)])
+            for c in keep.tolist():
+                pair_i.append(g)
+                pair_j.append((c // t) * per + c % t)
+        if progress:
+            progress(1)
+    pi = np.array(pair_i, np.int64)
+    pj = np.array(pair_j, np.int64)
+    lo, hi = np.minimum(pi, pj), np.maximum(pi, pj)
+    # A pair reached from both sides is scored once.
+    uniq = np.unique(lo * n + hi) if lo.shape[0] else np.zeros(0, np.int64)
+    lo, hi = uniq // n, uniq % n
+    scores = score_pairs(
+        table, lo, hi, d=preset.d, min_common=preset.min_common,
+        same_label_only=preset.same_label_only,
+    )  # fmt: skip
+    # Ignored frames are marked -2 only when they queried (not a robot's first frame).
+    marked = ~valid.copy()
+    for block in blocks:
+        if len(block):
+            marked[block.start] = False
+    nonzero = sem != 0
+    holder_of_bin = np.repeat(np.arange(n_ranges), np.diff(bounds))
+    labels_per_holder = np.bincount(
+        holder_of_bin, weights=nonzero.sum(axis=(0, 1)), minlength=n_ranges
+    ).astype(np.int64)
+    objects_per_holder = np.bincount(
+        holder_of_bin, weights=sem.sum(axis=(0, 1)), minlength=n_ranges
+    ).astype(np.int64)
+    descriptors_per_holder = (sem_part > 0).sum(axis=(0, 1)).astype(np.int64)
+    return DecentralizedRun(
+        matrix=ScoreMatrix(lo, hi, scores, n, preset.exclusion, ~valid, marked),
+        n_robots=n_robots,
+        frames_per_robot=per,
+        bounds=bounds,
+        descriptors=sem,
+        candidate_counts=cand_count,
+        checked_robots=checked,
+        partial_descriptors_per_holder=descriptors_per_holder,
+        labels_per_holder=labels_per_holder,
+        objects_per_holder=objects_per_holder,
+    )

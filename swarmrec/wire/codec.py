@@ -1,0 +1,468 @@
+"""Conversion between the core types and the v1 wire messages, with validation.
+
+protobuf accepts any well-formed bytes, fills absent fields with zeros and
+knows nothing of the label list, so a message that decodes can still be
+nonsense: a label past the end of the list, 7 coordinates for 2 objects, a
+count of zero. Every ``*_from_proto`` here checks a message against what the
+receiver knows and raises :class:`~swarmrec.errors.WireError` naming the first
+problem, so a service can answer ``ERROR_CODE_INVALID_ARGUMENT`` instead of
+crashing later in numpy. Every ``*_to_proto`` refuses what the schema cannot
+carry (NaN, negative ids, values past 32 bits) with the same error, rather
+than letting protobuf raise its own exception types or silently clamp.
+
+Positions travel as integer millimetres (zigzag varints, 1 to 2 bytes for the
+few metres a camera sees) instead of 4-byte floats: a millimetre is finer than
+any depth camera's noise, so nothing measurable is lost.
+"""
+
+from __future__ import annotations
+
+import operator
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any, SupportsIndex, TypeVar
+
+import numpy as np
+import numpy.typing as npt
+
+# protobuf ships no type stubs and types-protobuf is not a dev dependency; with
+# the stubs installed the ignore is unused, hence both codes.
+from google.protobuf.message import (  # type: ignore[import-untyped, unused-ignore]
+    DecodeError,
+    Message,
+)
+
+from swarmrec.core.types import Constellation
+from swarmrec.errors import WireError
+from swarmrec.wire.gen.swarmrec.v1 import (
+    constellation_pb2,
+    descriptor_pb2,
+    errors_pb2,
+    query_pb2,
+    verify_pb2,
+)
+
+__all__ = [
+    "MAX_ERROR_MESSAGE_CHARS",
+    "MM_PER_M",
+    "Candidate",
+    "DescriptorSlice",
+    "candidates_from_proto",
+    "candidates_to_proto",
+    "constellation_from_proto",
+    "constellation_to_proto",
+    "decode",
+    "descriptor_from_proto",
+    "descriptor_to_proto",
+    "encode",
+    "error_reply",
+    "matched_pairs_from_proto",
+    "partial_descriptor_from_proto",
+    "partial_descriptor_to_proto",
+    "schema_name",
+    "verify_match_to_proto",
+]
+
+IntArray = npt.NDArray[np.int64]
+FloatArray = npt.NDArray[np.float64]
+M = TypeVar("M", bound=Message)
+
+MM_PER_M = 1000
+"""Wire positions are integer millimetres: ``round(metres * MM_PER_M)``."""
+
+MAX_ERROR_MESSAGE_CHARS = 1000
+"""An ErrorReply's message is cut to this length, so that a service echoing a
+huge bad input in its error text cannot flood the bus."""
+
+_UINT32_MAX = 2**32 - 1
+_INT32_MIN = -(2**31)
+_INT32_MAX = 2**31 - 1
+
+
+# --- helpers ----------------------------------------------------------------
+
+
+def _uint32(name: str, value: SupportsIndex) -> int:
+    """``value`` as an int if it fits a uint32 field, else WireError.
+
+    ``operator.index`` takes Python and numpy integers but refuses floats,
+    which protobuf would otherwise reject with a TypeError of its own.
+    """
+    try:
+        v = operator.index(value)
+    except TypeError as e:
+        raise WireError(f"{name} must be an integer, got {value!r}") from e
+    if not 0 <= v <= _UINT32_MAX:
+        raise WireError(f"{name} {v} does not fit in 32 unsigned bits")
+    return v
+
+
+def _check_n_labels(n_labels: int) -> None:
+    # The receiver's own label list size: a wrong one is a caller bug, not bad input.
+    if n_labels <= 0:
+        raise ValueError(f"n_labels must be positive, got {n_labels}")
+
+
+def _check_range(lo: int, hi: int, n_labels: int) -> None:
+    if lo >= hi:
+        raise WireError(f"label range [{lo}, {hi}) is empty")
+    if hi > n_labels:
+        raise WireError(f"label range [{lo}, {hi}) ends past the label list of {n_labels} labels")
+
+
+def _dense_counts(counts: npt.ArrayLike) -> IntArray:
+    """A dense count vector as int64, checked to fit the uint32 count fields."""
+    arr = np.asarray(counts)
+    if arr.ndim != 1:
+        raise WireError(f"a descriptor is a 1-D count vector, got shape {arr.shape}")
+    if arr.size and not np.issubdtype(arr.dtype, np.integer):
+        raise WireError(f"descriptor counts must be integers, got {arr.dtype}")
+    if arr.size and arr.min() < 0:
+        raise WireError(f"descriptor count of label {int(np.argmin(arr))} is negative")
+    if arr.size and arr.max() > _UINT32_MAX:
+        raise WireError(
+            f"descriptor count of label {int(np.argmax(arr))} does not fit in 32 unsigned bits"
+        )
+    return arr.astype(np.int64, copy=False)
+
+
+def _sparse_bins(
+    indices: Iterable[int], counts: Iterable[int], lo: int, hi: int
+) -> tuple[IntArray, IntArray]:
+    """Validated (label - lo, count) arrays of a sparse descriptor over [lo, hi).
+
+    Rejects what a dense vector cannot come from: unequal lengths, a label
+    outside the range, a zero count (only non-zero bins are sent) and a label
+    listed twice (which of the two counts would be meant?).
+    """
+    idx = np.fromiter(indices, dtype=np.int64)
+    cnt = np.fromiter(counts, dtype=np.int64)
+    if idx.shape != cnt.shape:
+        raise WireError(f"descriptor lists {idx.size} labels but {cnt.size} counts")
+    outside = np.flatnonzero(idx >= hi - lo)
+    if outside.size:
+        i = int(outside[0])
+        raise WireError(f"descriptor bin {i}: label {lo + int(idx[i])} is outside [{lo}, {hi})")
+    zero = np.flatnonzero(cnt == 0)
+    if zero.size:
+        i = int(zero[0])
+        raise WireError(
+            f"descriptor bin {i}: label {lo + int(idx[i])} has count 0; only non-zero bins are sent"
+        )
+    seen, times = np.unique(idx, return_counts=True)
+    if (times > 1).any():
+        raise WireError(f"descriptor lists label {lo + int(seen[times > 1][0])} more than once")
+    return idx, cnt
+
+
+# --- constellations ---------------------------------------------------------
+
+
+def constellation_to_proto(
+    c: Constellation, robot: int, frame: int, frame_id: str = ""
+) -> constellation_pb2.Constellation:
+    """The wire form of robot ``robot``'s frame ``frame``.
+
+    Positions are rounded to the nearest millimetre with ``np.rint``, which
+    rounds exact halves to even (0.0625 m -> 62 mm, 0.1875 m -> 188 mm): it is
+    IEEE's default, has no bias, and exact half-millimetres are vanishingly
+    rare in measured data. Object order is kept (the association uses it).
+    """
+    robot_id = _uint32("robot id", robot)
+    frame_index = _uint32("frame index", frame)
+    labels = c.labels
+    if labels.size and labels.min() < 0:
+        raise WireError(f"object {int(np.argmin(labels))} has a negative label")
+    if labels.size and labels.max() > _UINT32_MAX:
+        raise WireError(f"object {int(np.argmax(labels))} has a label past 32 unsigned bits")
+    finite = np.isfinite(c.positions).all(axis=1)
+    if not finite.all():
+        k = int(np.flatnonzero(~finite)[0])
+        raise WireError(f"object {k} has a non-finite position {c.positions[k].tolist()}")
+    # A finite but huge position overflows to inf here; the range check below reports it.
+    with np.errstate(over="ignore"):
+        mm = np.rint(c.positions * MM_PER_M)
+    fits = ((mm >= _INT32_MIN) & (mm <= _INT32_MAX)).all(axis=1)
+    if not fits.all():
+        k = int(np.flatnonzero(~fits)[0])
+        raise WireError(
+            f"object {k} at {c.positions[k].tolist()} m is out of the int32 millimetre range"
+        )
+    return constellation_pb2.Constellation(
+        robot_id=robot_id,
+        frame_index=frame_index,
+        labels=labels.tolist(),
+        positions_mm=mm.astype(np.int64).ravel().tolist(),
+        frame_id=frame_id,
+    )
+
+
+def constellation_from_proto(msg: constellation_pb2.Constellation, n_labels: int) -> Constellation:
+    """The constellation in a wire message, checked against a list of ``n_labels`` labels.
+
+    Positions come back as ``mm / 1000``: dividing (rather than multiplying by
+    0.001) gives the float nearest the exact decimal, so 1234 mm is 1.234.
+    """
+    _check_n_labels(n_labels)
+    n = len(msg.labels)
+    if len(msg.positions_mm) != 3 * n:
+        raise WireError(
+            f"constellation has {n} labels but {len(msg.positions_mm)} coordinates;"
+            f" expected 3 per label ({3 * n})"
+        )
+    labels = np.fromiter(msg.labels, dtype=np.int64, count=n)
+    unknown = np.flatnonzero(labels >= n_labels)
+    if unknown.size:
+        k = int(unknown[0])
+        raise WireError(
+            f"object {k} has label {int(labels[k])}, outside the label list of {n_labels} labels"
+        )
+    mm = np.fromiter(msg.positions_mm, dtype=np.float64, count=3 * n)
+    return Constellation(labels, mm.reshape(n, 3) / MM_PER_M)
+
+
+# --- descriptors ------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class DescriptorSlice:
+    """Labels ``[lo, hi)`` of one frame's descriptor: ``counts[i]`` is label ``lo + i``."""
+
+    lo: int
+    hi: int
+    counts: IntArray
+
+
+def descriptor_to_proto(counts: npt.ArrayLike) -> descriptor_pb2.SemanticDescriptor:
+    """The sparse wire form of a dense count vector (one integer per label)."""
+    dense = _dense_counts(counts)
+    labels = np.flatnonzero(dense)
+    return descriptor_pb2.SemanticDescriptor(
+        n_labels=_uint32("label list size", dense.size),
+        labels=labels.tolist(),
+        counts=dense[labels].tolist(),
+    )
+
+
+def descriptor_from_proto(msg: descriptor_pb2.SemanticDescriptor, n_labels: int) -> IntArray:
+    """The dense int64 count vector (length ``n_labels``) of a sparse descriptor.
+
+    A descriptor built over another label list is refused: its bins would be
+    read as the wrong labels.
+    """
+    _check_n_labels(n_labels)
+    if msg.n_labels != n_labels:
+        raise WireError(
+            f"descriptor is over {msg.n_labels} labels but the label list has {n_labels}"
+        )
+    labels, counts = _sparse_bins(msg.labels, msg.counts, 0, n_labels)
+    dense = np.zeros(n_labels, dtype=np.int64)
+    dense[labels] = counts
+    return dense
+
+
+def partial_descriptor_to_proto(
+    counts: npt.ArrayLike,
+    lo: int,
+    hi: int,
+    *,
+    robot: int,
+    frame: int,
+    query_step: int,
+) -> descriptor_pb2.PartialDescriptor:
+    """The slice ``[lo, hi)`` of a dense count vector, for the shard owning those labels."""
+    dense = _dense_counts(counts)
+    lo, hi = _uint32("label_lo", lo), _uint32("label_hi", hi)
+    _check_range(lo, hi, dense.size)
+    offsets = np.flatnonzero(dense[lo:hi])
+    return descriptor_pb2.PartialDescriptor(
+        robot_id=_uint32("robot id", robot),
+        frame_index=_uint32("frame index", frame),
+        query_step=_uint32("query step", query_step),
+        label_lo=lo,
+        label_hi=hi,
+        label_offsets=offsets.tolist(),
+        counts=dense[lo + offsets].tolist(),
+    )
+
+
+def partial_descriptor_from_proto(
+    msg: descriptor_pb2.PartialDescriptor, n_labels: int
+) -> DescriptorSlice:
+    """The dense slice in a partial descriptor, checked against a list of ``n_labels`` labels.
+
+    The range must satisfy ``lo < hi <= n_labels``; whether it is the range
+    the receiving shard owns is the shard's business.
+    """
+    _check_n_labels(n_labels)
+    lo, hi = msg.label_lo, msg.label_hi
+    _check_range(lo, hi, n_labels)
+    offsets, counts = _sparse_bins(msg.label_offsets, msg.counts, lo, hi)
+    dense = np.zeros(hi - lo, dtype=np.int64)
+    dense[offsets] = counts
+    return DescriptorSlice(lo=lo, hi=hi, counts=dense)
+
+
+# --- candidates and matches -------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A stored frame an index shard proposes for a query, with its partial score."""
+
+    robot_id: int
+    frame_index: int
+    score: float
+
+
+def candidates_to_proto(
+    query_id: int, lo: int, hi: int, candidates: Iterable[Candidate]
+) -> query_pb2.CandidatesReply:
+    """A shard's reply for labels ``[lo, hi)``; candidates keep their order (best first).
+
+    Scores travel as float32 (about 7 significant digits), enough to rank.
+    """
+    items = list(candidates)
+    bad = [c for c in items if not np.isfinite(c.score)]
+    if bad:
+        raise WireError(f"candidate {bad[0]} has a non-finite score")
+    return query_pb2.CandidatesReply(
+        query_id=_uint32("query id", query_id),
+        label_lo=_uint32("label_lo", lo),
+        label_hi=_uint32("label_hi", hi),
+        robot_ids=[_uint32("robot id", c.robot_id) for c in items],
+        frame_indices=[_uint32("frame index", c.frame_index) for c in items],
+        scores=[c.score for c in items],
+    )
+
+
+def candidates_from_proto(msg: query_pb2.CandidatesReply, n_labels: int) -> list[Candidate]:
+    """The candidates of a shard's reply, after checking the reply is consistent."""
+    _check_n_labels(n_labels)
+    _check_range(msg.label_lo, msg.label_hi, n_labels)
+    n = len(msg.robot_ids)
+    if len(msg.frame_indices) != n or len(msg.scores) != n:
+        raise WireError(
+            f"candidates reply has {n} robot ids, {len(msg.frame_indices)} frame indices"
+            f" and {len(msg.scores)} scores; they must be equal"
+        )
+    scores = np.fromiter(msg.scores, dtype=np.float64, count=n)
+    bad = np.flatnonzero(~np.isfinite(scores))
+    if bad.size:
+        raise WireError(f"candidate {int(bad[0])} has a non-finite score")
+    return [
+        Candidate(robot_id=r, frame_index=f, score=float(s))
+        for r, f, s in zip(msg.robot_ids, msg.frame_indices, scores, strict=True)
+    ]
+
+
+def verify_match_to_proto(
+    frame_index: int,
+    score: float,
+    semantic_score: float,
+    n_matched: int,
+    pairs: npt.ArrayLike | None = None,
+) -> verify_pb2.VerifyMatch:
+    """One verified match; ``pairs`` is an (n_matched, 2) array of
+    (query object, matched object) indices, or None when not requested."""
+    if not (np.isfinite(score) and np.isfinite(semantic_score)):
+        raise WireError(f"match of frame {frame_index} has a non-finite score")
+    msg = verify_pb2.VerifyMatch(
+        frame_index=_uint32("frame index", frame_index),
+        score=score,
+        semantic_score=semantic_score,
+        n_matched=_uint32("matched object count", n_matched),
+    )
+    if pairs is not None:
+        arr = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        if arr.shape[0] != n_matched:
+            raise WireError(f"{arr.shape[0]} object pairs for {n_matched} matched objects")
+        if arr.size and (arr.min() < 0 or arr.max() > _UINT32_MAX):
+            raise WireError("object pair indices must fit in 32 unsigned bits")
+        msg.object_pairs.extend(arr.ravel().tolist())
+    return msg
+
+
+def matched_pairs_from_proto(match: verify_pb2.VerifyMatch, n_query: int) -> IntArray:
+    """The (m, 2) int64 array of (query object, matched object) index pairs of a match.
+
+    Empty (shape (0, 2)) when the verifier did not send pairs. Query indices
+    must be below ``n_query`` (the asker's own constellation size) and each
+    object may be matched once, since the association is one-to-one.
+    """
+    flat = np.fromiter(match.object_pairs, dtype=np.int64)
+    if flat.size % 2:
+        raise WireError(f"match lists {flat.size} pair indices; expected an even number")
+    pairs = flat.reshape(-1, 2)
+    if pairs.shape[0] and pairs.shape[0] != match.n_matched:
+        raise WireError(f"match has {pairs.shape[0]} pairs but n_matched={match.n_matched}")
+    outside = np.flatnonzero(pairs[:, 0] >= n_query)
+    if outside.size:
+        i = int(outside[0])
+        raise WireError(
+            f"pair {i} names query object {int(pairs[i, 0])} of a {n_query}-object query"
+        )
+    for column, side in ((0, "query"), (1, "matched")):
+        if np.unique(pairs[:, column]).size != pairs.shape[0]:
+            raise WireError(f"a {side} object appears in more than one pair")
+    return pairs
+
+
+# --- errors -----------------------------------------------------------------
+
+
+def error_reply(code: errors_pb2.ErrorCode, message: str) -> errors_pb2.ErrorReply:
+    """An ErrorReply with ``code`` (``ErrorCode.ERROR_CODE_...``) and ``message``
+    cut to :data:`MAX_ERROR_MESSAGE_CHARS`."""
+    if len(message) > MAX_ERROR_MESSAGE_CHARS:
+        message = message[: MAX_ERROR_MESSAGE_CHARS - 1] + "…"
+    return errors_pb2.ErrorReply(code=code, message=message)
+
+
+# --- bytes ------------------------------------------------------------------
+
+
+def schema_name(msg_or_cls: Any) -> str:
+    """The full protobuf name of a message or message class, e.g. ``swarmrec.v1.Constellation``.
+
+    Services send payloads as ``Encoding.APPLICATION_PROTOBUF.with_schema(name)``
+    so that a receiver can tell a reply from an ``ErrorReply`` before decoding.
+    """
+    try:
+        name: str = msg_or_cls.DESCRIPTOR.full_name
+    except AttributeError as e:
+        raise TypeError(f"{msg_or_cls!r} is not a protobuf message or message class") from e
+    return name
+
+
+def _too_large(size: int, max_size: int) -> WireError:
+    return WireError(f"message of {size} bytes exceeds the limit of {max_size}")
+
+
+def encode(msg: Message, *, max_size: int | None = None) -> bytes:
+    """The serialized bytes of ``msg``; WireError if they would exceed ``max_size``.
+
+    The size is computed before serializing, so an oversize message is never built.
+    """
+    if max_size is not None:
+        size: int = msg.ByteSize()
+        if size > max_size:
+            raise _too_large(size, max_size)
+    data: bytes = msg.SerializeToString()
+    return data
+
+
+def decode(data: bytes, cls: type[M], *, max_size: int | None = None) -> M:
+    """Parse ``data`` as a ``cls`` message; WireError if it does not parse or is too large.
+
+    The size is checked before parsing, so an oversize payload costs nothing.
+    Parsing only checks the bytes are well-formed; the ``*_from_proto``
+    functions check what the fields mean.
+    """
+    if max_size is not None and len(data) > max_size:
+        raise _too_large(len(data), max_size)
+    try:
+        msg: M = cls.FromString(data)
+    except DecodeError as e:
+        raise WireError(f"{len(data)} bytes do not decode as {schema_name(cls)}: {e}") from e
+    return msg

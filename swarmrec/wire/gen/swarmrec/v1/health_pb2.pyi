@@ -1,0 +1,37 @@
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class ServiceKind(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    SERVICE_KIND_UNSPECIFIED: _ClassVar[ServiceKind]
+    SERVICE_KIND_DETECTOR: _ClassVar[ServiceKind]
+    SERVICE_KIND_DESCRIPTOR: _ClassVar[ServiceKind]
+    SERVICE_KIND_INDEX_SHARD: _ClassVar[ServiceKind]
+    SERVICE_KIND_VERIFIER: _ClassVar[ServiceKind]
+    SERVICE_KIND_FUSION: _ClassVar[ServiceKind]
+SERVICE_KIND_UNSPECIFIED: ServiceKind
+SERVICE_KIND_DETECTOR: ServiceKind
+SERVICE_KIND_DESCRIPTOR: ServiceKind
+SERVICE_KIND_INDEX_SHARD: ServiceKind
+SERVICE_KIND_VERIFIER: ServiceKind
+SERVICE_KIND_FUSION: ServiceKind
+
+class MemberInfo(_message.Message):
+    __slots__ = ("kind", "robot_id", "label_lo", "label_hi", "version", "n_labels")
+    KIND_FIELD_NUMBER: _ClassVar[int]
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    LABEL_LO_FIELD_NUMBER: _ClassVar[int]
+    LABEL_HI_FIELD_NUMBER: _ClassVar[int]
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    N_LABELS_FIELD_NUMBER: _ClassVar[int]
+    kind: ServiceKind
+    robot_id: int
+    label_lo: int
+    label_hi: int
+    version: str
+    n_labels: int
+    def __init__(self, kind: _Optional[_Union[ServiceKind, str]] = ..., robot_id: _Optional[int] = ..., label_lo: _Optional[int] = ..., label_hi: _Optional[int] = ..., version: _Optional[str] = ..., n_labels: _Optional[int] = ...) -> None: ...

@@ -1,0 +1,40 @@
+"""Shared test fixtures: where the shared data lives, and small builders."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from swarmrec.core.types import Constellation
+from swarmrec.datasets.labels import COCO_NAMES
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("SWARMREC_SHARED_DATA", REPO.parent / "shared" / "data"))
+TUM_ZIP = SHARED_DATA / "tum_fr3_long_office_household_constellations.zip"
+
+
+def label(name: str) -> int:
+    return COCO_NAMES.index(name)
+
+
+def make(*objects: tuple[str, float, float, float]) -> Constellation:
+    """A constellation from (label name, x, y, z) tuples."""
+    if not objects:
+        return Constellation.empty()
+    return Constellation(
+        np.array([label(o[0]) for o in objects]), np.array([o[1:] for o in objects], float)
+    )
+
+
+@pytest.fixture(scope="session")
+def tum_zip() -> Path:
+    """The real TUM constellations. Skipped only where ../shared is absent (a
+    user's machine); CI always has it, so there the test must run."""
+    if not TUM_ZIP.exists():
+        if os.environ.get("CI"):
+            pytest.fail(f"CI must have the shared data at {TUM_ZIP}")
+        pytest.skip(f"shared TUM data not found at {TUM_ZIP}")
+    return TUM_ZIP
