@@ -52,9 +52,14 @@ def _add_evaluate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
         help="hand-made ground-truth rules of the published fr3/long_office_household evaluation",
     )
     p.add_argument(
-        "--mode", choices=["centralized", "decentralized", "both"], default="both", help="(default both)"
+        "--mode",
+        choices=["centralized", "decentralized", "both"],
+        default="both",
+        help="(default both)",
     )
-    p.add_argument("--robots", type=int, default=10, help="robots of the decentralized mode (default 10)")
+    p.add_argument(
+        "--robots", type=int, default=10, help="robots of the decentralized mode (default 10)"
+    )
     p.add_argument("--preset", choices=sorted(PRESETS), default="paper", help="(default paper)")
     p.add_argument("--out", type=Path, default=Path("runs/evaluate"), help="output folder")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
@@ -74,7 +79,7 @@ def _add_synth(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="swarmrec",
-        description="Decentralized place recognition for robot swarms with constellations of objects.",
+        description="Decentralized place recognition for robot swarms (constellations of objects).",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _add_evaluate(sub)
@@ -102,7 +107,9 @@ def _evaluate(args: argparse.Namespace) -> int:
     )
     summary = evaluate(settings)
     ds = summary["dataset"]
-    print(f"dataset {ds['name']}: {ds['frames']} frames, {ds['ignored_frames']} with too few objects")
+    print(
+        f"dataset {ds['name']}: {ds['frames']} frames, {ds['ignored_frames']} with too few objects"
+    )
     for name, result in summary["results"].items():
         auc = f"AUC {result['auc']:.4f}" if "auc" in result else "AUC n/a (no ground truth)"
         print(f"  {name:<20} {auc}, {result['positive_pairs']} pairs scored > 0")
@@ -121,7 +128,11 @@ def _evaluate(args: argparse.Namespace) -> int:
 def _synth(args: argparse.Namespace) -> int:
     from swarmrec.synthetic import OfficeConfig, generate_office, write_dataset
 
-    config = OfficeConfig(seed=args.seed) if args.frames is None else OfficeConfig(seed=args.seed, n_frames=args.frames)
+    config = (
+        OfficeConfig(seed=args.seed)
+        if args.frames is None
+        else OfficeConfig(seed=args.seed, n_frames=args.frames)
+    )
     ds = generate_office(config)
     write_dataset(ds, args.out)
     print(json.dumps({"out": str(args.out), "frames": len(ds.sequence)}))

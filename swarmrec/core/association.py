@@ -251,7 +251,7 @@ def score_pairs(
     tb = table if other is None else other
     pi = np.ascontiguousarray(pairs_i, dtype=np.int64)
     pj = np.ascontiguousarray(pairs_j, dtype=np.int64)
-    return _score_pairs(  # type: ignore[no-any-return]
+    return _score_pairs(
         pi, pj,
         table.offsets, table.labels, table.order, table.near, table.desc,
         tb.offsets, tb.labels, tb.order, tb.near, tb.desc,

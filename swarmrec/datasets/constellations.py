@@ -54,7 +54,9 @@ def parse_constellation(text: str, labels: LabelMap, source: str) -> Constellati
                 source, f"coordinates are not numbers: {' '.join(tokens[-3:])!r}", line=number
             ) from None
         if not all(math.isfinite(v) for v in xyz):
-            raise MalformedLineError(source, f"non-finite coordinate in {raw.strip()!r}", line=number)
+            raise MalformedLineError(
+                source, f"non-finite coordinate in {raw.strip()!r}", line=number
+            )
         index = labels.index(name)
         if index is None:
             raise UnknownLabelError(source, f"label {name!r} is not in the label list", line=number)

@@ -33,7 +33,9 @@ def read_trajectory(path: str | Path) -> Trajectory:
         tokens = line.replace(",", " ").split()
         if len(tokens) != 8:
             raise MalformedLineError(
-                path, f"expected 8 columns 'timestamp tx ty tz qx qy qz qw', got {len(tokens)}", number
+                path,
+                f"expected 8 columns 'timestamp tx ty tz qx qy qz qw', got {len(tokens)}",
+                number,
             )
         try:
             values = [float(t) for t in tokens]
@@ -81,6 +83,7 @@ def associate_poses(
         worst = int(np.argmax(gap))
         raise DatasetError(
             "trajectory",
-            f"frame at t={t[worst]:.6f} has no pose within {max_dt} s (nearest {gap[worst]:.3f} s away)",
+            f"frame at t={t[worst]:.6f} has no pose within {max_dt} s "
+            f"(nearest {gap[worst]:.3f} s away)",
         )
     return idx.astype(np.int64)

@@ -51,7 +51,8 @@ def scene_points(seq: ConstellationSequence, poses: Trajectory) -> FloatArray:
     """
     depth = np.array([c.positions[:, 2].mean() if len(c) else 0.0 for c in seq.constellations])
     rot = quaternion_to_matrix(poses.quaternions)
-    return poses.positions + rot[:, :, 2] * depth[:, None]
+    points: FloatArray = poses.positions + rot[:, :, 2] * depth[:, None]
+    return points
 
 
 def _tum_fr3_office_filter(cam: FloatArray, scene: FloatArray, dist: FloatArray) -> FloatArray:

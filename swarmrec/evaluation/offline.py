@@ -31,7 +31,12 @@ from swarmrec.errors import ConfigError
 from swarmrec.evaluation.bandwidth import holder_load, paper_byte_model
 from swarmrec.evaluation.groundtruth import Rules, ground_truth
 from swarmrec.evaluation.pr import PRCurve, precision_recall
-from swarmrec.evaluation.scoring import ScoreMatrix, score_centralized, score_decentralized, split_frames
+from swarmrec.evaluation.scoring import (
+    ScoreMatrix,
+    score_centralized,
+    score_decentralized,
+    split_frames,
+)
 
 __all__ = ["EvaluationSettings", "load_dataset", "main"]
 
@@ -121,7 +126,9 @@ def _write_scores(path: Path, matrix: ScoreMatrix, seq: ConstellationSequence, r
     )
 
 
-def _write_best(path: Path, seq: ConstellationSequence, dense: np.ndarray, curve: PRCurve | None) -> None:
+def _write_best(
+    path: Path, seq: ConstellationSequence, dense: np.ndarray, curve: PRCurve | None
+) -> None:
     best = np.argmax(dense, axis=1)
     with path.open("w", newline="", encoding="utf-8") as f:
         out = csv.writer(f)
@@ -188,7 +195,12 @@ def main(settings: EvaluationSettings) -> dict[str, Any]:
         steps = max(len(split_frames(len(seq), settings.robots)[0]) - 1, 0)
         with _bar(settings.progress, steps, f"decentralized x{settings.robots}") as bar:
             run = score_decentralized(
-                seq, settings.robots, preset, table=table, label_load=load_prior, progress=bar.update
+                seq,
+                settings.robots,
+                preset,
+                table=table,
+                label_load=load_prior,
+                progress=bar.update,
             )
         timings["decentralized_s"] = time.perf_counter() - t0
         runs.append((f"decentralized_{settings.robots}", run.matrix, settings.robots))
@@ -219,7 +231,11 @@ def main(settings: EvaluationSettings) -> dict[str, Any]:
         if settings.plots:
             from swarmrec.evaluation.plots import plot_similarity
 
-            plot_similarity(dense, f"{seq.name}: {name.replace('_', ' ')} robots", out / f"similarity_{name}.png")
+            plot_similarity(
+                dense,
+                f"{seq.name}: {name.replace('_', ' ')} robots",
+                out / f"similarity_{name}.png",
+            )
     if settings.plots and curves:
         from swarmrec.evaluation.plots import plot_pr
 

@@ -8,12 +8,12 @@ import matplotlib
 
 matplotlib.use("Agg")  # files only: never needs a display
 
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import numpy.typing as npt  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import numpy.typing as npt
 
-from swarmrec.evaluation.bandwidth import HolderLoad  # noqa: E402
-from swarmrec.evaluation.pr import PRCurve  # noqa: E402
+from swarmrec.evaluation.bandwidth import HolderLoad
+from swarmrec.evaluation.pr import PRCurve
 
 __all__ = ["plot_holder_load", "plot_pr", "plot_similarity"]
 
@@ -24,11 +24,15 @@ def plot_similarity(
     """Scores as an image (negative sentinels shown as 0), with each frame's
     best match above ``best_threshold`` marked, as in the paper's Fig. 4."""
     fig, ax = plt.subplots(figsize=(5.5, 5))
-    img = ax.imshow(np.clip(dense, 0.0, 1.0), cmap="viridis", vmin=0, vmax=1, interpolation="nearest")
+    img = ax.imshow(
+        np.clip(dense, 0.0, 1.0), cmap="viridis", vmin=0, vmax=1, interpolation="nearest"
+    )
     best = np.argmax(dense, axis=1)
     score = dense[np.arange(dense.shape[0]), best]
     keep = score > best_threshold
-    ax.scatter(best[keep], np.flatnonzero(keep), s=2, c="red", label=f"best match > {best_threshold}")
+    ax.scatter(
+        best[keep], np.flatnonzero(keep), s=2, c="red", label=f"best match > {best_threshold}"
+    )
     ax.set_xlabel("frame")
     ax.set_ylabel("frame")
     ax.set_title(title)
@@ -72,9 +76,15 @@ def plot_holder_load(
     left.set_xlabel("label index")
     left.set_ylabel("% of detected objects")
     left.set_title("labels, coloured by range holder")
-    right.bar(np.arange(n_holders), load.partial_queries, color=[colors(h % colors.N) for h in range(n_holders)])
+    right.bar(
+        np.arange(n_holders),
+        load.partial_queries,
+        color=[colors(h % colors.N) for h in range(n_holders)],
+    )
     mean = float(np.mean(load.partial_queries))
-    right.axhline(mean, color="k", ls="--", lw=1, label=f"mean; busiest/mean = {load.balance_ratio:.2f}")
+    right.axhline(
+        mean, color="k", ls="--", lw=1, label=f"mean; busiest/mean = {load.balance_ratio:.2f}"
+    )
     right.set_xlabel("range holder")
     right.set_ylabel("partial queries received")
     right.legend(fontsize=7)

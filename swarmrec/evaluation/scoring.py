@@ -112,9 +112,13 @@ def score_centralized(
             chunks_j.append(j.astype(np.int64))
             chunks_s.append(
                 score_pairs(
-                    table, ii, j, d=preset.d, min_common=preset.min_common,
+                    table,
+                    ii,
+                    j,
+                    d=preset.d,
+                    min_common=preset.min_common,
                     same_label_only=preset.same_label_only,
-                )  # fmt: skip
+                )
             )
         if progress:
             progress(1)
@@ -217,7 +221,9 @@ def score_decentralized(
             total = stored_part + query_part[act_q, act_k][:, None, None] - common
             values = (common / (total + PARTIAL_EPSILON)).reshape(act_q.shape[0], n_robots * t)
             for q, k, cols in zip(
-                act_q.tolist(), act_k.tolist(), select_candidates_many(values, preset.n_ret),
+                act_q.tolist(),
+                act_k.tolist(),
+                select_candidates_many(values, preset.n_ret),
                 strict=True,
             ):
                 selected[(q, k)] = cols
@@ -257,9 +263,9 @@ def score_decentralized(
     labels_per_holder = np.bincount(
         holder_of_bin, weights=nonzero.sum(axis=(0, 1)), minlength=n_ranges
     ).astype(np.int64)
-    objects_per_holder = np.bincount(
-        holder_of_bin, weights=sem.sum(axis=(0, 1)), minlength=n_ranges
-    ).astype(np.int64)
+    objects_per_holder = np.bincount(holder_of_bin, weights=sem.sum(axis=(0, 1)), minlength=n_ranges).astype(
+        np.int64
+    )
     descriptors_per_holder = (sem_part > 0).sum(axis=(0, 1)).astype(np.int64)
     return DecentralizedRun(
         matrix=ScoreMatrix(lo, hi, scores, n, preset.exclusion, ~valid, marked),

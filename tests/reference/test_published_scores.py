@@ -21,14 +21,22 @@ PUBLISHED = json.loads(FIXTURE.read_text())["matrices"]
 
 
 def _row_digests(dense: np.ndarray) -> list[str]:
-    return [hashlib.sha256(np.ascontiguousarray(r, "<f8").tobytes()).hexdigest()[:16] for r in dense]
+    return [
+        hashlib.sha256(np.ascontiguousarray(r, "<f8").tobytes()).hexdigest()[:16] for r in dense
+    ]
 
 
 def _assert_same(name: str, dense: np.ndarray) -> None:
     expected = PUBLISHED[name]
     assert int((dense > 0).sum()) == expected["positive_entries"]
-    differ = [i for i, (a, b) in enumerate(zip(_row_digests(dense), expected["rows"], strict=True)) if a != b]
-    assert not differ, f"{name}: {len(differ)} rows differ from the published output, first {differ[:10]}"
+    differ = [
+        i
+        for i, (a, b) in enumerate(zip(_row_digests(dense), expected["rows"], strict=True))
+        if a != b
+    ]
+    assert not differ, (
+        f"{name}: {len(differ)} rows differ from the published output, first {differ[:10]}"
+    )
 
 
 @pytest.fixture(scope="module")

@@ -27,7 +27,9 @@ def _sequence(depths: list[float]) -> ConstellationSequence:
     frames = tuple(make(("cup", 0, 0, z), ("book", 0, 0, z)) for z in depths)
     n = len(frames)
     names = tuple(str(i) for i in range(80))
-    return ConstellationSequence(tuple(map(str, range(n))), np.arange(n, dtype=float), frames, names)
+    return ConstellationSequence(
+        tuple(map(str, range(n))), np.arange(n, dtype=float), frames, names
+    )
 
 
 def test_cameras_facing_the_same_scene_point_are_a_closure() -> None:

@@ -22,16 +22,14 @@ def _random_sequence(n_frames: int, seed: int) -> ConstellationSequence:
     labels so partial scores tie often, as in real data."""
     rng = np.random.default_rng(seed)
     places = [
-        (rng.choice([39, 41, 73, 56, 62, 64], size=8), rng.uniform(-1, 1, (8, 3)) + [0, 0, 2])
+        (rng.choice([39, 41, 73, 56, 62, 64], size=8), rng.uniform(-1, 1, (8, 3)) + np.array([0, 0, 2]))
         for _ in range(4)
     ]
     frames = []
     for _ in range(n_frames):
         labels, pos = places[rng.integers(len(places))]
         keep = rng.random(len(labels)) < 0.7
-        frames.append(
-            Constellation(labels[keep], pos[keep] + rng.normal(0, 0.02, pos[keep].shape))
-        )
+        frames.append(Constellation(labels[keep], pos[keep] + rng.normal(0, 0.02, pos[keep].shape)))
     return ConstellationSequence(
         frame_ids=tuple(f"{i}.0" for i in range(n_frames)),
         timestamps=np.arange(n_frames, dtype=float),
@@ -52,18 +50,15 @@ def _plain_score(a: Constellation, b: Constellation, p: Preset) -> float:
         return 0.0
     labels = [lab for lab in range(N_LABELS) if ha[lab] and hb[lab]]
 
-    def vectors(c: Constellation) -> tuple[list[int], list[list[float]]]:
-        objs = [k for lab in labels for k in range(len(c)) if c.labels[k] == lab]
-        vecs = []
-        for k in objs:
-            vecs.append([
-                min(math.dist(c.positions[k], c.positions[n]) for n in range(len(c)) if c.labels[n] == lab)
-                for lab in labels
-            ])  # fmt: skip
-        return objs, vecs
+    def nearest(c: Constellation, k: int, lab: int) -> float:
+        return min(math.dist(c.positions[k], c.positions[n]) for n in range(len(c)) if c.labels[n] == lab)
 
-    oa, va = vectors(a)
-    ob, vb = vectors(b)
+    def vectors(c: Constellation) -> list[list[float]]:
+        objs = [k for lab in labels for k in range(len(c)) if c.labels[k] == lab]
+        return [[nearest(c, k, lab) for lab in labels] for k in objs]
+
+    va = vectors(a)
+    vb = vectors(b)
     dist = [[math.dist(x, y) for y in vb] for x in va]
     best_a = [min(range(len(vb)), key=lambda n, r=row: (r[n], n)) for row in dist]
     best_b = [min(range(len(va)), key=lambda k, n=n: (dist[k][n], k)) for n in range(len(vb))]
@@ -71,7 +66,9 @@ def _plain_score(a: Constellation, b: Constellation, p: Preset) -> float:
     return s * matches / common
 
 
-def _plain_decentralized(seq: ConstellationSequence, n_robots: int, p: Preset) -> dict[tuple[int, int], float]:
+def _plain_decentralized(
+    seq: ConstellationSequence, n_robots: int, p: Preset
+) -> dict[tuple[int, int], float]:
     n = len(seq)
     per = math.ceil(n / n_robots)
     valid = [len(c) >= p.min_objects for c in seq.constellations]
@@ -102,8 +99,10 @@ def _plain_decentralized(seq: ConstellationSequence, n_robots: int, p: Preset) -
                         vals[r2, t2] = c / (float(dq.sum() + dg.sum()) - c + 1e-12)
                 flat = vals.flatten()
                 order = np.argsort(-flat)  # the notes: ties in that sort's order
-                cands += [(int(i) // t, int(i) % t) for i in order[:p.n_ret] if flat[i] > 0]
-            robots = set(np.argsort(-np.bincount([c[0] for c in cands]))[:p.n_fq].tolist()) if cands else set()
+                cands += [(int(i) // t, int(i) % t) for i in order[: p.n_ret] if flat[i] > 0]
+            robots = (
+                set(np.argsort(-np.bincount([c[0] for c in cands]))[: p.n_fq].tolist()) if cands else set()
+            )
             robots.add(r)
             for r2, t2 in cands:
                 if r2 in robots:
@@ -118,7 +117,9 @@ PRESET = get_preset("paper").with_(exclusion=5)
 
 
 @pytest.mark.parametrize("seed", [0, 1])
-def test_centralized_scores_every_valid_pair_beyond_the_exclusion_like_the_plain_loops(seed: int) -> None:
+def test_centralized_scores_every_valid_pair_beyond_the_exclusion_like_the_plain_loops(
+    seed: int,
+) -> None:
     seq = _random_sequence(40, seed)
     m = score_centralized(seq, PRESET)
     got = dict(zip(zip(m.pairs_i.tolist(), m.pairs_j.tolist(), strict=True), m.scores.tolist(), strict=True))
@@ -156,7 +157,9 @@ def test_frames_of_the_same_step_are_never_compared() -> None:
     # step-0 frames 0 and 2; robot 1's frame 3 sees 0 and 2. Frames 1 and 3
     # (same step) and 0 and 2 (step 0, nobody queries) are never paired.
     scene = make(("cup", 0, 0, 1), ("book", 1, 0, 1), ("bottle", 0, 1, 1))
-    seq = ConstellationSequence(("0", "1", "2", "3"), np.arange(4.0), (scene,) * 4, tuple(map(str, range(80))))
+    seq = ConstellationSequence(
+        ("0", "1", "2", "3"), np.arange(4.0), (scene,) * 4, tuple(map(str, range(80)))
+    )
     run = score_decentralized(seq, 2, get_preset("paper").with_(exclusion=0))
     pairs = set(zip(run.matrix.pairs_i.tolist(), run.matrix.pairs_j.tolist(), strict=True))
     assert pairs == {(0, 1), (1, 2), (0, 3), (2, 3)}

@@ -1,0 +1,55 @@
+# swarmrec task runner. CI runs `make test` (see .ci/run); nothing CI does is
+# out of a developer's reach.
+#
+#   make run     the main job: evaluate the built-in synthetic world
+#   make test    regenerated-code check, lint, types, all tests
+#   make bench   benchmarks, figures written to bench/results/
+#
+# Every target sets up its own virtual environment first (.venv, pinned by
+# requirements.lock), so a fresh clone needs only python3 and make.
+
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed-stamp
+RUN_OUT ?= runs/synthetic
+
+.PHONY: help venv run test unit lint typecheck proto check-proto bench clean
+
+help:
+	@sed -n 's/^#   //p' Makefile
+
+$(STAMP): pyproject.toml requirements.lock
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -c requirements.lock -e '.[dev]'
+	@touch $(STAMP)
+
+venv: $(STAMP)
+
+run: $(STAMP)
+	$(BIN)/swarmrec evaluate --dataset synthetic --out $(RUN_OUT)
+
+test: $(STAMP) check-proto lint typecheck
+	$(BIN)/python -m pytest
+
+unit: $(STAMP)
+	$(BIN)/python -m pytest tests/unit -q
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
+
+typecheck: $(STAMP)
+	$(BIN)/mypy
+
+proto: $(STAMP)
+	$(BIN)/python proto/generate.py
+
+check-proto: $(STAMP)
+	$(BIN)/python proto/generate.py --check
+
+bench: $(STAMP)
+	$(BIN)/python bench/bench_offline.py --out bench/results/offline.json
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache .mypy_cache .ruff_cache
