@@ -10,7 +10,9 @@ import numpy as np
 from swarmrec.core.types import Constellation
 
 
-def naive_score(a: Constellation, b: Constellation, n_labels: int, d: float = 0.25, min_common: int = 3) -> float:
+def naive_score(
+    a: Constellation, b: Constellation, n_labels: int, d: float = 0.25, min_common: int = 3
+) -> float:
     ha = np.bincount(a.labels, minlength=n_labels)
     hb = np.bincount(b.labels, minlength=n_labels)
     common = float(np.minimum(ha, hb).sum())

@@ -23,14 +23,14 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from baseline_naive import naive_score  # noqa: E402
+from baseline_naive import naive_score
 
-from swarmrec.core.association import build_table, score_pairs  # noqa: E402
-from swarmrec.core.presets import get_preset  # noqa: E402
-from swarmrec.core.types import ConstellationSequence  # noqa: E402
-from swarmrec.datasets.constellations import read_constellations  # noqa: E402
-from swarmrec.evaluation.bandwidth import holder_load, paper_byte_model  # noqa: E402
-from swarmrec.evaluation.scoring import score_centralized, score_decentralized  # noqa: E402
+from swarmrec.core.association import build_table, score_pairs
+from swarmrec.core.presets import get_preset
+from swarmrec.core.types import ConstellationSequence
+from swarmrec.datasets.constellations import read_constellations
+from swarmrec.evaluation.bandwidth import holder_load, paper_byte_model
+from swarmrec.evaluation.scoring import score_centralized, score_decentralized
 
 REPO = Path(__file__).resolve().parents[1]
 TUM_ZIP = REPO.parent / "shared" / "data" / "tum_fr3_long_office_household_constellations.zip"
@@ -61,7 +61,10 @@ def bench_sequence(name: str, load: Any, repeat: int, sample: int) -> dict[str, 
     pick = rng.choice(matrix.scores.shape[0], size=min(sample, matrix.scores.shape[0]), replace=False)
     i, j = matrix.pairs_i[pick], matrix.pairs_j[pick]
     t0 = time.perf_counter()
-    naive = [naive_score(seq.constellations[a], seq.constellations[b], seq.n_labels) for a, b in zip(i, j)]
+    naive = [
+        naive_score(seq.constellations[a], seq.constellations[b], seq.n_labels)
+        for a, b in zip(i, j, strict=True)
+    ]
     t_naive = (time.perf_counter() - t0) / len(pick)
     agree = bool(np.allclose(naive, matrix.scores[pick], rtol=0, atol=1e-12))
     t_kernel, _ = _best_of(
@@ -96,7 +99,9 @@ def bench_sequence(name: str, load: Any, repeat: int, sample: int) -> dict[str, 
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "offline.json")
     parser.add_argument("--repeat", type=int, default=3, help="best of N timings (default 3)")
     parser.add_argument("--sample", type=int, default=3000, help="pairs timed for the baseline")

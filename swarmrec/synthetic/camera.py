@@ -26,7 +26,11 @@ FloatArray = npt.NDArray[np.float64]
 
 #: Height of the point the camera looks at (a little above the tabletops).
 LOOK_AT_HEIGHT_M = 0.8
-TARGET_PULL = (0.7, 0.35)
+TARGET_PULL = (0.7, 1.0)
+# Duration of the turn of a glance away (the logistic step's 10-90 % time is about this).
+_GLANCE_TURN_S = 0.5
+# The orbit's radius varies by this fraction, so loops and views differ.
+BREATHING = 0.12
 
 
 @dataclass(frozen=True)
@@ -153,9 +157,10 @@ def orbit_path(config: OfficeConfig, rng: np.random.Generator) -> tuple[FloatArr
     x = np.linspace(0.0, 1.0, n)
 
     # Walking speed varies (handheld): the phase is a monotone warp of time,
-    # derivative 1 + sum(a_k cos(...)) >= 1 - 0.45 > 0.
-    amps = rng.uniform(0.05, 0.15, 3)
-    cycles = rng.integers(1, 6, 3)
+    # derivative 1 + sum(a_k cos(...)) >= 1 - 3 * 0.3 > 0. Where the terms
+    # line up the camera nearly stops and lingers on a desk, as in TUM.
+    amps = rng.uniform(0.15, 0.3, 3)
+    cycles = rng.integers(2, 3 + int(2 * config.n_loops), 3)
     phases = rng.uniform(0.0, 2 * np.pi, 3)
     warp = x + (
         amps[None, :] / (2 * np.pi * cycles[None, :])
@@ -165,7 +170,7 @@ def orbit_path(config: OfficeConfig, rng: np.random.Generator) -> tuple[FloatArr
     theta = rng.uniform(0.0, 2 * np.pi) + 2 * np.pi * config.n_loops * warp
 
     ax, ay = config.orbit_semi_axes_m
-    breathing = 1.0 + 0.05 * np.sin(0.5 * theta + rng.uniform(0.0, 2 * np.pi))
+    breathing = 1.0 + BREATHING * np.sin(0.5 * theta + rng.uniform(0.0, 2 * np.pi))
     shake = 0.015 * np.stack([_smooth_wave(rng, t, (0.3, 1.5)) for _ in range(3)], axis=1)
     lo, hi = config.camera_height_m
     height = (lo + hi) / 2 + (hi - lo) / 2 * _smooth_wave(rng, t, (0.02, 0.12))
@@ -185,6 +190,14 @@ def orbit_path(config: OfficeConfig, rng: np.random.Generator) -> tuple[FloatArr
         axis=1,
     )
     forward = target - pos
+    # Glances turn the body, about the world's vertical (turning about the
+    # tilted camera axis would make a look back point at the ceiling).
+    glance = _glances(config, rng, t)
+    c, s = np.cos(glance), np.sin(glance)
+    forward = np.stack(
+        [c * forward[:, 0] - s * forward[:, 1], s * forward[:, 0] + c * forward[:, 1], forward[:, 2]],
+        axis=1,
+    )
     forward /= np.linalg.norm(forward, axis=1, keepdims=True)
     right = np.cross(forward, np.array([0.0, 0.0, 1.0]))
     right /= np.linalg.norm(right, axis=1, keepdims=True)
@@ -192,21 +205,27 @@ def orbit_path(config: OfficeConfig, rng: np.random.Generator) -> tuple[FloatArr
     look = np.stack([right, down, forward], axis=2)  # columns: camera axes in the world
 
     w = np.deg2rad(config.wobble_deg)
-    yaw = w * _smooth_wave(rng, t, (0.03, 0.4)) + _glances(config, rng, t)
-    pitch = 0.7 * w * _smooth_wave(rng, t, (0.03, 0.4))
-    roll = 0.5 * w * _smooth_wave(rng, t, (0.03, 0.4))
+    yaw = w * _smooth_wave(rng, t, (0.02, 0.25))
+    pitch = 0.7 * w * _smooth_wave(rng, t, (0.02, 0.25))
+    roll = 0.5 * w * _smooth_wave(rng, t, (0.02, 0.25))
     # Wobble in the camera frame: yaw about y (down), pitch about x, roll about z.
     wobble = _axis_rotations(1, yaw) @ _axis_rotations(0, pitch) @ _axis_rotations(2, roll)
     return pos, look @ wobble
 
 
 def _glances(config: OfficeConfig, rng: np.random.Generator, t: FloatArray) -> FloatArray:
-    """Yaw offsets (radians) of quick looks away from the desks: smooth bumps."""
+    """Yaw offsets (radians) of looks away from the desks.
+
+    Each is a quick turn (a logistic step, about half a second), a hold of
+    0.5-2 s and a turn back; the turns are fast enough to blur the images.
+    """
     n_glances = int(round(config.glances_per_minute * config.duration_s / 60.0))
     if n_glances == 0:
         return np.zeros_like(t)
-    centres = rng.uniform(t[0], t[-1], n_glances)
-    widths = rng.uniform(0.3, 0.7, n_glances)
-    amps = np.deg2rad(rng.uniform(30.0, 100.0, n_glances)) * rng.choice([-1.0, 1.0], n_glances)
-    bumps = amps[None, :] * np.exp(-0.5 * ((t[:, None] - centres[None, :]) / widths[None, :]) ** 2)
-    return np.asarray(bumps.sum(axis=1))
+    starts = rng.uniform(t[0], t[-1], n_glances)
+    holds = rng.uniform(0.5, 2.0, n_glances)
+    amps = np.deg2rad(rng.uniform(60.0, 160.0, n_glances)) * rng.choice([-1.0, 1.0], n_glances)
+    tau = _GLANCE_TURN_S / 4
+    up = 1.0 / (1.0 + np.exp(-(t[:, None] - starts[None, :]) / tau))
+    down = 1.0 / (1.0 + np.exp(-(t[:, None] - starts[None, :] - holds[None, :]) / tau))
+    return np.asarray((amps[None, :] * (up - down)).sum(axis=1))

@@ -54,50 +54,63 @@ class OfficeConfig:
     #: Mean of the two semi-axes of the elliptic orbit around the desk block.
     orbit_radius_m: float = 2.0
     #: Lowest and highest camera height above the floor.
-    camera_height_m: tuple[float, float] = (1.2, 1.6)
+    camera_height_m: tuple[float, float] = (1.1, 1.7)
     #: Amplitude of the hand wobble of the yaw (pitch 0.7x, roll 0.5x of it).
-    wobble_deg: float = 6.0
-    #: Quick looks away from the desks (at the room's walls), per minute of sequence.
-    glances_per_minute: float = 6.0
+    wobble_deg: float = 15.0
+    #: Quick looks away from the desks, per minute of sequence.
+    glances_per_minute: float = 3.0
 
     # --- simulated detector (YOLO + median depth in the box) -------------------
     #: Near and far limit of the depth sensor; outside, nothing is detected.
     depth_range_m: tuple[float, float] = (0.4, 5.0)
     #: Detection probability of an easy object close to the image centre.
-    detection_prob: float = 0.95
+    detection_prob: float = 0.8
     #: Depth at which the detection probability has dropped to half.
-    half_detection_depth_m: float = 3.6
+    half_detection_depth_m: float = 2.2
     #: Objects closer than this to the image border are harder to detect (cut boxes).
     border_margin_px: float = 40.0
-    #: Misses come in runs: a slowly varying random term (standard deviation
-    #: ``flicker_strength``, in logits) is added to each object's detection
-    #: log-odds, with a correlation time of ``flicker_frames`` (0 = independent frames).
-    flicker_strength: float = 1.0
-    flicker_frames: float = 12.0
-    #: Detection probability factor of an object hidden behind a nearer large object.
-    occluded_factor: float = 0.2
-    #: Motion blur: at this angular speed of the camera the detection
-    #: probability halves (fast turns and glances give frames with few objects).
-    blur_half_rad_s: float = 1.2
-    #: Detection probability factor of a screen (monitor, laptop...) seen from behind.
-    back_view_factor: float = 0.15
     #: How much the per-class recall table matters: recall ** exponent (0 = all alike).
     class_recall_exponent: float = 1.0
-    #: Position noise standard deviation ``sigma = sigma_base_m + sigma_depth_quad * z**2``.
+    #: Share of the objects that are hard for the detector (lying flat, half
+    #: hidden, an unusual look): their detection probability is multiplied by
+    #: ``hard_object_factor`` in every frame, so the detector misses the same
+    #: objects on every visit, as a real one does.
+    hard_object_share: float = 0.4
+    hard_object_factor: float = 0.15
+    #: Detection probability factor of an object hidden behind a nearer large object.
+    occluded_factor: float = 0.1
+    #: Detection probability factor of a screen (monitor, laptop...) seen from behind.
+    back_view_factor: float = 0.4
+    #: Motion blur: at this angular speed of the camera the detection
+    #: probability halves (fast turns and glances give frames with few objects).
+    blur_half_rad_s: float = 2.5
+    #: A detector gives nearly the same boxes for nearly the same image: the
+    #: random draws behind misses, confusions, duplicates and background hits
+    #: of an object vary smoothly, with this correlation time (frames)...
+    miss_corr_frames: float = 60.0
+    #: ...plus this share of frame-to-frame independent randomness (flicker).
+    flicker: float = 0.05
+    #: Slowly varying position error, standard deviation
+    #: ``sigma_base_m + sigma_depth_quad * z**2``, correlation time ``noise_corr_frames``.
     sigma_base_m: float = 0.01
     sigma_depth_quad: float = 0.02
+    noise_corr_frames: float = 45.0
+    #: Frame-to-frame position jitter, ``jitter_base_m + jitter_depth_quad * z**2``.
+    jitter_base_m: float = 0.003
+    jitter_depth_quad: float = 0.001
     #: Depth bias along the ray: the median of a box's depth pixels lies behind
     #: the object's centre when background shows through (chairs, bottles,
     #: cutlery). Per object it is ``depth_bias_scale`` x the class's typical
     #: bias (``detections.CLASS_DEPTH_BIAS_M``) + Normal(0, ``depth_bias_spread_m``).
     depth_bias_scale: float = 1.0
     depth_bias_spread_m: float = 0.04
-    #: Probability that the median depth lands on the background behind the object.
-    background_hit_rate: float = 0.02
+    #: Probability, for an object 2 m away (growing with depth squared), that the
+    #: median depth lands on the background behind the object (a jump of 0.2-1.5 m).
+    background_hit_rate: float = 0.05
     #: Multiplies the label-confusion table (0 = no confusions).
     confusion_scale: float = 1.0
     #: Mean number of false-positive detections per frame (Poisson).
-    false_positives_per_frame: float = 0.35
+    false_positives_per_frame: float = 0.3
     #: Probability that a detected object gets a second, duplicate box.
     duplicate_rate: float = 0.04
 
@@ -121,8 +134,13 @@ class OfficeConfig:
         _check_range(self, "detection_prob", 0.0, 1.0)
         _check_range(self, "half_detection_depth_m", 0.1, 50.0)
         _check_range(self, "border_margin_px", 0.0, 240.0)
-        _check_range(self, "flicker_strength", 0.0, 10.0)
-        _check_range(self, "flicker_frames", 0.0, 1e4)
+        _check_range(self, "miss_corr_frames", 0.0, 1e4)
+        _check_range(self, "flicker", 0.0, 1.0)
+        _check_range(self, "noise_corr_frames", 0.0, 1e4)
+        _check_range(self, "jitter_base_m", 0.0, 1.0)
+        _check_range(self, "jitter_depth_quad", 0.0, 1.0)
+        _check_range(self, "hard_object_share", 0.0, 1.0)
+        _check_range(self, "hard_object_factor", 0.0, 1.0)
         _check_range(self, "occluded_factor", 0.0, 1.0)
         _check_range(self, "blur_half_rad_s", 0.01, 1e3)
         _check_range(self, "back_view_factor", 0.0, 1.0)
@@ -185,8 +203,10 @@ class OfficeConfig:
                 "glances_per_minute": 0.0,
                 "detection_prob": 1.0,
                 "half_detection_depth_m": 8.0,
-                "flicker_strength": 0.0,
+                "jitter_base_m": 0.001,
+                "jitter_depth_quad": 0.0,
                 "occluded_factor": 1.0,
+                "hard_object_share": 0.0,
                 "back_view_factor": 1.0,
                 "blur_half_rad_s": 1e3,
                 "class_recall_exponent": 0.0,

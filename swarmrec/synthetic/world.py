@@ -42,10 +42,10 @@ DESK_LAYOUTS: dict[str, tuple[Placement, ...]] = {
         ("cup", -0.42, 0.30, 0.80),
         ("bottle", 0.50, 0.62, 0.87),
         ("bottle", 0.60, 0.50, 0.87),
-        ("bottle", -0.25, 0.62, 0.87),
         ("book", -0.55, 0.62, 0.78),
         ("book", -0.55, 0.64, 0.83),
-        ("chair", 0.05, -0.30, 0.70),
+        ("chair", 0.05, -0.15, 0.75),
+        ("chair", -0.60, -0.25, 0.75),
         ("diningtable", 0.00, 0.40, 0.72),
     ),
     "household": (
@@ -65,7 +65,8 @@ DESK_LAYOUTS: dict[str, tuple[Placement, ...]] = {
         ("book", -0.60, 0.30, 0.78),
         ("book", -0.60, 0.32, 0.82),
         ("scissors", -0.12, 0.58, 0.76),
-        ("chair", -0.05, -0.30, 0.70),
+        ("sports ball", -0.62, 0.68, 0.95),
+        ("chair", -0.05, -0.15, 0.75),
         ("diningtable", 0.00, 0.40, 0.72),
     ),
     "study": (
@@ -80,7 +81,8 @@ DESK_LAYOUTS: dict[str, tuple[Placement, ...]] = {
         ("bottle", 0.62, 0.35, 0.87),
         ("bottle", -0.62, 0.60, 0.87),
         ("cup", 0.24, 0.60, 0.80),
-        ("chair", 0.00, -0.30, 0.70),
+        ("vase", -0.15, 0.72, 0.90),
+        ("chair", 0.00, -0.15, 0.75),
         ("diningtable", 0.00, 0.40, 0.72),
     ),
 }
@@ -186,37 +188,47 @@ def build_world(config: OfficeConfig, rng: np.random.Generator) -> OfficeWorld:
 def _room(
     config: OfficeConfig, rng: np.random.Generator
 ) -> list[tuple[str, FloatArray, str, FloatArray]]:
-    """Furniture around the orbit: beyond its ends, in a corner, along a wall.
+    """Furniture just outside the camera's orbit, all around it.
 
     The camera sees these over the desk block from afar (rarely detected) or
-    up close when it glances away, which is where the rare labels come from.
+    up close when it glances away: that is where most rare labels come from.
     """
     ax, ay = config.orbit_semi_axes_m
-    hx = config.block_half_extent_m[0]
     items: list[tuple[str, FloatArray, str, FloatArray]] = []
 
-    def put(label: str, x: float, y: float, h: float, group: str) -> None:
-        p = np.array([x, y, h]) + np.append(rng.normal(0.0, 0.02, 2), 0.0)
+    def spot(angle_deg: float, out_m: float = 1.0) -> tuple[float, float]:
+        """A point ``out_m`` outside the orbit ellipse, at polar angle ``angle_deg``."""
+        a = np.deg2rad(angle_deg)
+        x, y = ax * np.cos(a), ay * np.sin(a)
+        normal = np.array([x / ax**2, y / ay**2])
+        normal /= np.linalg.norm(normal)
+        return float(x + out_m * normal[0]), float(y + out_m * normal[1])
+
+    def put(label: str, at: tuple[float, float], dx: float, dy: float, h: float, group: str) -> None:
+        p = np.array([at[0] + dx, at[1] + dy, h]) + np.append(rng.normal(0.0, 0.02, 2), 0.0)
         face = np.zeros(3)
         if label in _FACING_LABELS:
-            face = -np.array([x, y, 0.0]) / np.hypot(x, y)  # facing the room's centre
+            face = -np.array([p[0], p[1], 0.0]) / np.hypot(p[0], p[1])  # facing the centre
         items.append((label, p, group, face))
 
-    end = ax + 0.7
-    put("vase", end, -0.3, 0.85, "side table")
-    put("remote", end + 0.05, 0.1, 0.76, "side table")
-    put("sports ball", end, 0.45, 0.82, "side table")
-    put("microwave", -end - 0.1, -0.5, 1.05, "counter")
-    put("bottle", -end, 0.0, 1.02, "counter")
-    put("bottle", -end - 0.05, 0.15, 1.02, "counter")
-    put("cake", -end, 0.4, 0.98, "counter")
-    put("donut", -end + 0.05, 0.6, 0.96, "counter")
-    put("refrigerator", ax + 0.9, -(ay + 0.7), 0.9, "fridge")
-    put("person", -(ax + 0.5), ay + 0.5, 1.1, "visitor")
+    side = spot(0.0)
+    put("remote", side, 0.0, -0.25, 0.76, "side table")
+    put("cup", side, 0.0, 0.05, 0.80, "side table")
+    put("book", side, 0.05, 0.3, 0.78, "side table")
+    fridge = spot(50.0, 1.2)
+    put("refrigerator", fridge, 0.0, 0.0, 0.9, "fridge")
+    shelf = spot(90.0)
     for i in range(6):
-        put("book", -0.6 + 0.24 * i, ay + 1.2, 1.05 + 0.4 * (i % 2), "bookshelf")
-    put("backpack", -(hx + 0.6), -0.6, 0.25, "floor")
-    put("handbag", hx + 0.6, 0.7, 0.3, "floor")
-    put("chair", ax + 0.6, 0.6 * ay, 0.7, "spare chairs")
-    put("chair", -(ax + 0.6), -0.6 * ay, 0.7, "spare chairs")
+        put("book", shelf, -0.6 + 0.24 * i, 0.0, 1.05 + 0.4 * (i % 2), "bookshelf")
+    put("handbag", spot(125.0, 0.6), 0.0, 0.0, 0.3, "floor")
+    counter = spot(180.0)
+    put("microwave", counter, 0.0, -0.5, 1.05, "counter")
+    put("bottle", counter, 0.0, -0.05, 1.02, "counter")
+    put("bottle", counter, 0.05, 0.1, 1.02, "counter")
+    put("cake", counter, 0.0, 0.35, 0.98, "counter")
+    put("donut", counter, -0.05, 0.55, 0.96, "counter")
+    put("chair", spot(215.0, 0.6), 0.0, 0.0, 0.7, "spare chairs")
+    put("person", spot(250.0, 1.2), 0.0, 0.0, 1.1, "visitor")
+    put("backpack", spot(300.0, 0.6), 0.0, 0.0, 0.25, "floor")
+    put("chair", spot(330.0, 0.6), 0.0, 0.0, 0.7, "spare chairs")
     return items
