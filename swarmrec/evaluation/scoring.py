@@ -32,6 +32,7 @@ from swarmrec.core.presets import Preset
 from swarmrec.core.ranges import balanced_ranges, even_ranges, validate_bounds
 from swarmrec.core.selection import select_candidates_many, select_robots
 from swarmrec.core.types import ConstellationSequence
+from swarmrec.errors import ConfigError
 
 __all__ = [
     "DecentralizedRun",
@@ -147,7 +148,7 @@ def label_bounds(preset: Preset, n_labels: int, n_holders: int, label_load: Floa
     if preset.ranges == "even":
         return even_ranges(n_labels, n_holders)
     if label_load is None:
-        raise ValueError("balanced label ranges need a label load (label frequencies)")
+        raise ConfigError("balanced label ranges need a label load (label frequencies)")
     return validate_bounds(balanced_ranges(label_load, n_holders), n_labels)
 
 
@@ -162,8 +163,8 @@ class DecentralizedRun:
     #: (n_robots, frames_per_robot, n_labels) descriptors as the robots share them
     #: (zeros for ignored frames and for the padding of the last robot).
     descriptors: FloatArray
-    #: candidates[(r, t)] = global frame indices returned by every range, in range order.
-    candidate_counts: IntArray  # (n_robots, frames_per_robot) candidates returned per query
+    #: Candidates returned to each query (robot, step), over all ranges.
+    candidate_counts: IntArray
     checked_robots: dict[tuple[int, int], IntArray] = field(repr=False)
     partial_descriptors_per_holder: IntArray = field(repr=False)  # (R,)
     labels_per_holder: IntArray = field(repr=False)  # (R,) non-zero bins received

@@ -23,6 +23,7 @@ from swarmrec.synthetic.labels import coco_names, label_index
 from swarmrec.synthetic.office import (
     SEQUENCE_NAME,
     SyntheticDataset,
+    covisibility,
     generate_office,
     write_dataset,
 )
@@ -37,6 +38,7 @@ __all__ = [
     "PinholeCamera",
     "SyntheticDataset",
     "coco_names",
+    "covisibility",
     "generate_office",
     "label_index",
     "matrices_to_quaternions",

@@ -26,11 +26,13 @@ FloatArray = npt.NDArray[np.float64]
 
 #: Height of the point the camera looks at (a little above the tabletops).
 LOOK_AT_HEIGHT_M = 0.8
-TARGET_PULL = (0.7, 1.0)
-# Duration of the turn of a glance away (the logistic step's 10-90 % time is about this).
+# The look-at point is the camera's (x, y) times these factors, clipped to the
+# near half of the block: the near desk fills the view, the far row shows behind.
+_TARGET_PULL = (0.7, 1.0)
+# Duration of the turn of a glance away (about the logistic step's 10-90 % time).
 _GLANCE_TURN_S = 0.5
-# The orbit's radius varies by this fraction, so loops and views differ.
-BREATHING = 0.12
+# The orbit's radius varies by up to this fraction, so loops and views differ.
+_BREATHING = 0.12
 
 
 @dataclass(frozen=True)
@@ -146,8 +148,8 @@ def orbit_path(config: OfficeConfig, rng: np.random.Generator) -> tuple[FloatArr
     """Camera positions (``n x 3``) and camera-to-world rotations (``n x 3 x 3``).
 
     The camera walks ``n_loops`` times around the desk block on an ellipse
-    (semi-axes :attr:`OfficeConfig.orbit_semi_axes_m`, radius breathing by a few
-    per cent so loops do not coincide), at a walking speed that varies, with
+    (semi-axes :attr:`OfficeConfig.orbit_semi_axes_m`, radius breathing by up to
+    12 % so loops do not coincide), at a walking speed that varies, with
     the height drifting between the two ``camera_height_m`` limits. It looks at
     a point above the desks near the camera's side of the block, plus smooth
     hand wobble in yaw, pitch and roll, plus a few quick glances away.
@@ -170,7 +172,7 @@ def orbit_path(config: OfficeConfig, rng: np.random.Generator) -> tuple[FloatArr
     theta = rng.uniform(0.0, 2 * np.pi) + 2 * np.pi * config.n_loops * warp
 
     ax, ay = config.orbit_semi_axes_m
-    breathing = 1.0 + BREATHING * np.sin(0.5 * theta + rng.uniform(0.0, 2 * np.pi))
+    breathing = 1.0 + _BREATHING * np.sin(0.5 * theta + rng.uniform(0.0, 2 * np.pi))
     shake = 0.015 * np.stack([_smooth_wave(rng, t, (0.3, 1.5)) for _ in range(3)], axis=1)
     lo, hi = config.camera_height_m
     height = (lo + hi) / 2 + (hi - lo) / 2 * _smooth_wave(rng, t, (0.02, 0.12))
@@ -178,13 +180,11 @@ def orbit_path(config: OfficeConfig, rng: np.random.Generator) -> tuple[FloatArr
     pos = pos + shake
     pos[:, 2] = np.clip(pos[:, 2], lo, hi)
 
-    # Look at the part of the block on the camera's side, so the near desk fills
-    # the view and the far row shows behind it, as in the real sequence.
     hx, hy = config.block_half_extent_m
     target = np.stack(
         [
-            np.clip(TARGET_PULL[0] * pos[:, 0], -(hx - 0.35), hx - 0.35),
-            np.clip(TARGET_PULL[1] * pos[:, 1], -0.5 * hy, 0.5 * hy),
+            np.clip(_TARGET_PULL[0] * pos[:, 0], -(hx - 0.35), hx - 0.35),
+            np.clip(_TARGET_PULL[1] * pos[:, 1], -0.5 * hy, 0.5 * hy),
             np.full(n, LOOK_AT_HEIGHT_M),
         ],
         axis=1,
@@ -219,13 +219,18 @@ def _glances(config: OfficeConfig, rng: np.random.Generator, t: FloatArray) -> F
     Each is a quick turn (a logistic step, about half a second), a hold of
     0.5-2 s and a turn back; the turns are fast enough to blur the images.
     """
-    n_glances = int(round(config.glances_per_minute * config.duration_s / 60.0))
+    n_glances = round(config.glances_per_minute * config.duration_s / 60.0)
     if n_glances == 0:
         return np.zeros_like(t)
     starts = rng.uniform(t[0], t[-1], n_glances)
     holds = rng.uniform(0.5, 2.0, n_glances)
     amps = np.deg2rad(rng.uniform(60.0, 160.0, n_glances)) * rng.choice([-1.0, 1.0], n_glances)
     tau = _GLANCE_TURN_S / 4
-    up = 1.0 / (1.0 + np.exp(-(t[:, None] - starts[None, :]) / tau))
-    down = 1.0 / (1.0 + np.exp(-(t[:, None] - starts[None, :] - holds[None, :]) / tau))
+    up = _logistic((t[:, None] - starts[None, :]) / tau)
+    down = _logistic((t[:, None] - starts[None, :] - holds[None, :]) / tau)
     return np.asarray((amps[None, :] * (up - down)).sum(axis=1))
+
+
+def _logistic(x: FloatArray) -> FloatArray:
+    """1 / (1 + exp(-x)), written with tanh so that it never overflows."""
+    return np.asarray(0.5 * (1.0 + np.tanh(0.5 * x)))

@@ -33,7 +33,14 @@ from swarmrec.synthetic.config import OfficeConfig
 from swarmrec.synthetic.detections import Detections, camera_points, detect, visible_mask
 from swarmrec.synthetic.world import OfficeWorld, build_world
 
-__all__ = ["SEQUENCE_NAME", "SyntheticDataset", "generate_office", "write_dataset"]
+__all__ = [
+    "SEQUENCE_NAME",
+    "SyntheticDataset",
+    "covisibility",
+    "frame_ids",
+    "generate_office",
+    "write_dataset",
+]
 
 IntArray = npt.NDArray[np.int64]
 FloatArray = npt.NDArray[np.float64]
@@ -118,6 +125,24 @@ def generate_office(config: OfficeConfig | None = None) -> SyntheticDataset:
         visible=vis_sources,
         camera=camera,
     )
+
+
+def covisibility(ds: SyntheticDataset) -> FloatArray:
+    """Pairwise overlap of what the frames see (``n x n``, in [0, 1]).
+
+    Entry ``(i, j)`` is the Jaccard index of the sets of world objects visible
+    in frames ``i`` and ``j`` (``|A & B| / |A | B|``, 0 when both are empty).
+    A ground truth for place recognition that needs no hand-made rules: two
+    frames show the same place when they see mostly the same objects.
+    """
+    n = len(ds.visible)
+    seen = np.zeros((n, len(ds.world)), dtype=np.float64)
+    for i, objects in enumerate(ds.visible):
+        seen[i, objects] = 1.0
+    common = seen @ seen.T
+    counts = seen.sum(axis=1)
+    union = counts[:, None] + counts[None, :] - common
+    return np.asarray(np.where(union > 0, common / np.maximum(union, 1.0), 0.0))
 
 
 def _split_frames(

@@ -6,8 +6,9 @@ the TUM ``long_office_household`` scene). Desk layouts cycle through
 workstation layout appears twice side by side, with the same kinds of objects
 at nearly the same places (perceptual aliasing). Each desk has a chair in
 front of it and counts itself as a ``diningtable`` (YOLO's name for a table).
-Along the walls stand a fridge, a bookshelf, a counter, a side table, a person
-and a few bags, seen mostly when the camera glances away from the desks.
+Just outside the camera's orbit stand a fridge, a bookshelf, a counter, a side
+table, a person, spare chairs and a few bags, seen mostly when the camera
+glances away (where most rare labels come from).
 
 The world frame has z up, the floor at z = 0, and the block centred on the
 origin with its rows along x; tabletops are at 0.75 m.
@@ -42,6 +43,7 @@ DESK_LAYOUTS: dict[str, tuple[Placement, ...]] = {
         ("cup", -0.42, 0.30, 0.80),
         ("bottle", 0.50, 0.62, 0.87),
         ("bottle", 0.60, 0.50, 0.87),
+        ("bottle", -0.25, 0.62, 0.87),
         ("book", -0.55, 0.62, 0.78),
         ("book", -0.55, 0.64, 0.83),
         ("chair", 0.05, -0.15, 0.75),
