@@ -9,22 +9,20 @@ index is the label index; the spellings are YOLO's (``tvmonitor``,
 from __future__ import annotations
 
 from functools import cache
-from importlib import resources
+
+from swarmrec.datasets.labels import COCO_NAMES
 
 __all__ = ["coco_names", "label_index"]
 
 N_COCO_LABELS = 80
 
 
-@cache
 def coco_names() -> tuple[str, ...]:
-    """The 80 COCO class names, in label-index order."""
-    text = resources.files("swarmrec").joinpath("data", "coco.names").read_text(encoding="utf-8")
-    names = tuple(line.strip() for line in text.splitlines() if line.strip())
-    if len(names) != N_COCO_LABELS:
+    """The 80 COCO class names, in label-index order (the package's bundled list)."""
+    if len(COCO_NAMES) != N_COCO_LABELS:
         # A packaging mistake, not a user error: fail loudly at first use.
-        raise RuntimeError(f"bundled coco.names has {len(names)} names, expected {N_COCO_LABELS}")
-    return names
+        raise RuntimeError(f"bundled coco.names has {len(COCO_NAMES)} names, expected {N_COCO_LABELS}")
+    return COCO_NAMES
 
 
 @cache

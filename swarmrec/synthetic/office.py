@@ -22,6 +22,8 @@ import numpy as np
 import numpy.typing as npt
 
 from swarmrec.core.types import Constellation, ConstellationSequence, Trajectory
+from swarmrec.datasets.constellations import format_constellation, write_constellations
+from swarmrec.datasets.tum import write_trajectory
 from swarmrec.synthetic.camera import (
     TUM_FR3_CAMERA,
     PinholeCamera,
@@ -46,7 +48,6 @@ IntArray = npt.NDArray[np.int64]
 FloatArray = npt.NDArray[np.float64]
 
 SEQUENCE_NAME = "synthetic-office"
-GROUNDTRUTH_HEADER = "# timestamp tx ty tz qx qy qz qw"
 
 
 @dataclass(frozen=True, eq=False)
@@ -186,32 +187,12 @@ def write_dataset(ds: SyntheticDataset, folder: Path, *, overwrite: bool = False
         if not overwrite:
             raise FileExistsError(f"{folder} is not empty; pass overwrite=True to replace it")
         shutil.rmtree(folder / "constellations", ignore_errors=True)
-    frames_dir = folder / "constellations"
-    frames_dir.mkdir(parents=True, exist_ok=True)
+    write_constellations(ds.sequence, folder / "constellations")
+    write_trajectory(ds.trajectory, folder / "groundtruth.txt")
     names = ds.sequence.label_names
-    for frame_id, constellation in zip(
-        ds.sequence.frame_ids, ds.sequence.constellations, strict=True
-    ):
-        lines = [
-            f"{names[int(label)]} {x:.9f} {y:.9f} {z:.9f}\n"
-            for label, (x, y, z) in zip(
-                constellation.labels, constellation.positions, strict=True
-            )
-        ]
-        (frames_dir / f"{frame_id}.txt").write_text("".join(lines), encoding="utf-8")
-
-    traj = ds.trajectory
-    gt = [GROUNDTRUTH_HEADER + "\n"]
-    for frame_id, p, q in zip(ds.sequence.frame_ids, traj.positions, traj.quaternions, strict=True):
-        values = " ".join(f"{v:.9f}" for v in (*p, *q))
-        gt.append(f"{frame_id} {values}\n")
-    (folder / "groundtruth.txt").write_text("".join(gt), encoding="utf-8")
     (folder / "coco.names").write_text("".join(f"{n}\n" for n in names), encoding="utf-8")
-    world_lines = [
-        f"{names[int(label)]} {x:.9f} {y:.9f} {z:.9f}\n"
-        for label, (x, y, z) in zip(ds.world.labels, ds.world.positions, strict=True)
-    ]
-    (folder / "world.txt").write_text("".join(world_lines), encoding="utf-8")
+    world = Constellation(ds.world.labels, ds.world.positions)
+    (folder / "world.txt").write_text(format_constellation(world, names), encoding="utf-8")
     (folder / "README.md").write_text(_readme(ds), encoding="utf-8")
 
 

@@ -5,8 +5,7 @@ Run as a script to compare the synthetic office with the real TUM constellations
     python -m swarmrec.synthetic.stats                      # seed 0, default settings
     python -m swarmrec.synthetic.stats --seed 3 --tum path/to/constellations.zip
 
-The TUM zip is read by a small ad-hoc reader (:func:`read_constellation_zip`)
-so this module does not depend on the dataset readers of ``swarmrec.datasets``.
+The TUM zip is read with :func:`swarmrec.datasets.constellations.read_constellations`.
 """
 
 from __future__ import annotations
@@ -14,7 +13,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,8 +20,8 @@ from typing import TypedDict
 
 import numpy as np
 
-from swarmrec.core.types import Constellation, ConstellationSequence
-from swarmrec.errors import DatasetError, MalformedLineError, UnknownLabelError
+from swarmrec.core.types import ConstellationSequence
+from swarmrec.datasets.constellations import read_constellations
 from swarmrec.synthetic.config import OfficeConfig
 from swarmrec.synthetic.labels import coco_names
 from swarmrec.synthetic.office import generate_office
@@ -33,7 +31,6 @@ __all__ = [
     "StatsSettings",
     "compare_markdown",
     "main",
-    "read_constellation_zip",
     "sequence_stats",
     "stats_markdown",
 ]
@@ -164,60 +161,6 @@ def compare_markdown(
     return stats_markdown([a_stats, b_stats], names, top=top)
 
 
-def read_constellation_zip(path: Path, label_names: Sequence[str]) -> ConstellationSequence:
-    """Read a TUM constellation zip: ``constellations/<timestamp>.txt`` members.
-
-    Frames are in timestamp order; each line is ``<label> <x> <y> <z>`` where
-    the label is every token but the last three (labels may contain spaces).
-    """
-    index = {name: i for i, name in enumerate(label_names)}
-    frames: list[tuple[float, str, Constellation]] = []
-    empty = 0
-    with zipfile.ZipFile(path) as archive:
-        for member in archive.namelist():
-            stem = Path(member).name
-            if not (member.startswith("constellations/") and stem.endswith(".txt")):
-                continue
-            source = f"{path}:{member}"
-            try:
-                stamp = float(stem[: -len(".txt")])
-            except ValueError:
-                raise DatasetError(source, "file name is not a timestamp") from None
-            text = archive.read(member).decode("utf-8")
-            labels: list[int] = []
-            points: list[list[float]] = []
-            for line_no, line in enumerate(text.splitlines(), start=1):
-                tokens = line.split()
-                if not tokens:
-                    continue
-                if len(tokens) < 4:
-                    raise MalformedLineError(source, "expected '<label> <x> <y> <z>'", line_no)
-                label = " ".join(tokens[:-3])
-                if label not in index:
-                    raise UnknownLabelError(source, f"unknown label {label!r}", line_no)
-                try:
-                    xyz = [float(v) for v in tokens[-3:]]
-                except ValueError:
-                    raise MalformedLineError(source, "coordinates are not numbers", line_no) from None
-                if not all(np.isfinite(xyz)):
-                    raise MalformedLineError(source, "coordinates must be finite", line_no)
-                labels.append(index[label])
-                points.append(xyz)
-            empty += not labels
-            frames.append(
-                (stamp, stem[: -len(".txt")], Constellation(np.array(labels), np.array(points)))
-            )
-    frames.sort(key=lambda f: f[0])
-    return ConstellationSequence(
-        frame_ids=tuple(f[1] for f in frames),
-        timestamps=np.array([f[0] for f in frames]),
-        constellations=tuple(f[2] for f in frames),
-        label_names=tuple(label_names),
-        name=Path(path).stem,
-        skipped={"empty_frames": empty} if empty else {},
-    )
-
-
 @dataclass(frozen=True)
 class StatsSettings:
     """What ``python -m swarmrec.synthetic.stats`` compares."""
@@ -237,7 +180,7 @@ def main(settings: StatsSettings) -> str:
     stats = [sequence_stats(ds.sequence)]
     names = [f"synthetic (seed {settings.seed})"]
     if settings.tum_zip.exists():
-        stats.append(sequence_stats(read_constellation_zip(settings.tum_zip, coco_names())))
+        stats.append(sequence_stats(read_constellations(settings.tum_zip, coco_names())))
         names.append("TUM fr3 long office household")
     else:
         print(f"{settings.tum_zip} not found: synthetic statistics only", file=sys.stderr)

@@ -11,6 +11,7 @@ import pytest
 
 import swarmrec.synthetic as synthetic
 from swarmrec.core.types import Constellation, ConstellationSequence
+from swarmrec.datasets.constellations import read_constellations
 from swarmrec.errors import ConfigError, UnknownLabelError
 from swarmrec.synthetic import (
     OfficeConfig,
@@ -26,7 +27,6 @@ from swarmrec.synthetic.stats import (
     StatsSettings,
     compare_markdown,
     main,
-    read_constellation_zip,
     sequence_stats,
 )
 
@@ -419,7 +419,7 @@ def test_stats_script_prints_synthetic_statistics_without_the_tum_data(tmp_path:
     assert "synthetic (seed 0)" in text and "objects per frame, mean" in text
 
 
-def test_constellation_zip_reader_names_the_file_and_line_of_an_unknown_label(
+def test_tum_zip_reading_names_the_file_and_line_of_an_unknown_label(
     tmp_path: Path,
 ) -> None:
     import zipfile
@@ -428,7 +428,7 @@ def test_constellation_zip_reader_names_the_file_and_line_of_an_unknown_label(
     with zipfile.ZipFile(path, "w") as archive:
         archive.writestr("constellations/1.000000.txt", "bottle 0 0 1\nunicorn 0 0 2\n")
     with pytest.raises(UnknownLabelError) as info:
-        read_constellation_zip(path, coco_names())
+        read_constellations(path, coco_names())
     assert info.value.line == 2 and "1.000000.txt" in str(info.value)
 
 
@@ -436,7 +436,7 @@ def test_constellation_zip_reader_names_the_file_and_line_of_an_unknown_label(
 def test_synthetic_statistics_are_close_to_the_real_tum_sequence(
     default_ds: SyntheticDataset,
 ) -> None:
-    tum = sequence_stats(read_constellation_zip(TUM_ZIP, coco_names()))
+    tum = sequence_stats(read_constellations(TUM_ZIP, coco_names()))
     ours = sequence_stats(default_ds.sequence)
     assert tum["n_frames"] == 2585
     assert tum["objects_per_frame_mean"] == pytest.approx(7.97, abs=0.01)
