@@ -110,11 +110,12 @@ def read_constellations(
 ) -> ConstellationSequence:
     """Read every ``<timestamp>.txt`` of a folder or zip, in timestamp order.
 
-    A folder that holds a ``constellations/`` subfolder (the layout written by
-    :func:`write_constellations` and by the synthetic world) is accepted too.
+    A folder that holds a ``constellations/`` subfolder (the layout of the
+    synthetic world, ``swarmrec synth``) is read from that subfolder: its other
+    .txt files (``groundtruth.txt``, ``world.txt``) are not frames.
     """
     path = Path(path)
-    if path.is_dir() and not any(path.glob("*.txt")) and (path / "constellations").is_dir():
+    if path.is_dir() and (path / "constellations").is_dir():
         path = path / "constellations"
     labels = LabelMap(label_names)
     frames: list[tuple[tuple[float, str], Constellation]] = []

@@ -160,3 +160,11 @@ def test_a_frame_far_from_every_pose_is_an_error() -> None:
     traj = Trajectory(np.array([0.0, 1.0]), np.zeros((2, 3)), np.tile([0, 0, 0, 1.0], (2, 1)))
     with pytest.raises(DatasetError, match="no pose within"):
         associate_poses(traj, [5.0], max_dt=0.05)
+
+
+def test_a_dataset_folder_is_read_from_its_constellations_subfolder(tmp_path: Path) -> None:
+    # The layout `swarmrec synth` writes: frames in constellations/, other .txt beside it.
+    _folder(tmp_path, {"groundtruth.txt": "# timestamp tx ty tz qx qy qz qw\n", "world.txt": "cup 0 0 0\n"})
+    (tmp_path / "constellations").mkdir()
+    _folder(tmp_path / "constellations", {"1.0.txt": "cup 0 0 1\n", "2.0.txt": "book 0 0 1\n"})
+    assert read_constellations(tmp_path).frame_ids == ("1.0", "2.0")
