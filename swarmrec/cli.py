@@ -76,6 +76,54 @@ def _add_synth(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--frames", type=int, help="number of frames (default: the world's default)")
 
 
+def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "run",
+        help="the main job: a local swarm of N robots (real processes over a real zenoh router) "
+        "replays a dataset and reports",
+        description=(
+            "Start a zenoh router and every robot's detector, descriptor, index-shard and verifier as "
+            "separate processes on this machine, replay the dataset split into N sub-trajectories, "
+            "and write the report: loop closures, precision-recall against ground truth, bytes per "
+            "query and shard load scraped from the services' Prometheus metrics, query latency."
+        ),
+    )
+    p.add_argument("--dataset", default="synthetic",
+                   help="'synthetic' (built-in office world) or a folder/.zip of constellation files")  # fmt: skip
+    p.add_argument("--seed", type=int, default=0, help="seed of the synthetic world (default 0)")
+    p.add_argument("--frames", type=int, help="use only the first N frames (synthetic: generate N)")
+    p.add_argument("--labels", type=Path, help="label list, one name a line (default: COCO 80)")
+    p.add_argument("--groundtruth", type=Path, help="TUM trajectory for precision-recall")
+    p.add_argument("--robots", type=int, default=10, help="robots in the swarm (default 10)")
+    p.add_argument("--preset", choices=sorted(PRESETS), default="paper", help="(default paper)")
+    p.add_argument("--pace", default="lockstep",
+                   help="lockstep (default; identical to the offline evaluation), fast, or frames per second")  # fmt: skip
+    p.add_argument("--swarm", default="local", help="swarm name (the key expressions' swarm segment)")
+    p.add_argument("--timeout", type=float, default=5.0, help="seconds a service waits for a peer (default 5)")
+    p.add_argument("--out", type=Path, default=Path("runs/swarm"), help="output folder")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    p.add_argument("--no-offline-check", action="store_true",
+                   help="skip comparing the pair scores with the offline evaluation")  # fmt: skip
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def _add_serve(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    from swarmrec.services import SERVICES
+    from swarmrec.services.config import add_arguments
+
+    p = sub.add_parser(
+        "serve",
+        help="run one service of one robot (router, detector, descriptor, index-shard, verifier)",
+        description=(
+            "Run one swarm service until SIGTERM/SIGINT. Settings come from defaults < --config "
+            "TOML file < SWARMREC_* environment < flags. Prints one JSON 'ready' line on stdout "
+            "when serving; logs are JSON lines on stderr."
+        ),
+    )
+    p.add_argument("kind", choices=SERVICES, help="which service")
+    add_arguments(p)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="swarmrec",
@@ -84,6 +132,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _add_evaluate(sub)
     _add_synth(sub)
+    _add_run(sub)
+    _add_serve(sub)
     return parser
 
 
@@ -139,9 +189,56 @@ def _synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _serve(args: argparse.Namespace) -> int:
+    from swarmrec.services import service_factory
+    from swarmrec.services.config import load_settings
+
+    settings = load_settings(args)
+    if args.kind == "router":
+        from swarmrec.services.router import run_router
+
+        return run_router(settings)
+    from swarmrec.services.runner import run_service
+
+    return run_service(settings, args.kind, service_factory(args.kind))
+
+
+def _run(args: argparse.Namespace) -> int:
+    from swarmrec.swarm.job import SwarmSettings
+    from swarmrec.swarm.job import main as run_swarm
+
+    settings = SwarmSettings(
+        dataset=args.dataset, seed=args.seed, frames=args.frames, labels=args.labels,
+        groundtruth=args.groundtruth, robots=args.robots, preset=args.preset, pace=args.pace,
+        swarm=args.swarm, request_timeout_s=args.timeout, out=args.out, plots=not args.no_plots,
+        progress=not args.quiet, check_offline=not args.no_offline_check,
+    )  # fmt: skip
+    s = run_swarm(settings)
+    q, b, load = s["queries"], s["bytes"], s["shard_load"]
+    print(f"swarm of {settings.robots} robots on {s['dataset']['name']} ({s['dataset']['frames']} frames, "
+          f"{s['swarm']['processes']} processes), pace {settings.pace}")  # fmt: skip
+    auc = f"AUC {s['auc']:.4f}" if "auc" in s else "AUC n/a (no ground truth)"
+    print(f"  {q['queried']} queries, {s['loop_closures']['count']} loop closures, {auc}")
+    lat = q["latency_ms"]
+    if lat:
+        print(f"  query latency p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms")
+    print(f"  measured bytes between robots: {b['per_query']:.1f} B per query ({b['per_frame']:.1f} B per frame)")
+    print(f"  partial queries per shard {load['partial_queries']}; busiest / mean = {load['balance_ratio']:.2f}")
+    if "offline_check" in s:
+        oc = s["offline_check"]
+        verdict = "identical" if oc["identical"] else f"DIFFERENT ({oc})"
+        print(f"  pair scores vs offline decentralized evaluation: {verdict}")
+    if q["missing_slots"]:
+        print(f"  missing answers: {q['missing_slots']} (by robot {q['missing_by_robot']})")
+    t = s["timings"]
+    print(f"  time: start {t['start_s']:.1f} s, replay {t['replay_s']:.1f} s, total {t['total_s']:.1f} s")
+    print(f"  written to {settings.out}/ (summary.json, pairs.csv, loop_closures.csv, *.png, logs/)")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    handlers = {"evaluate": _evaluate, "synth": _synth}
+    handlers = {"evaluate": _evaluate, "synth": _synth, "serve": _serve, "run": _run}
     try:
         return handlers[args.command](args)
     except SwarmrecError as exc:

@@ -57,15 +57,17 @@ def select_candidates_many(scores: FloatArray, n_ret: int) -> list[IntArray]:
     return out
 
 
-def select_robots(candidate_robots: npt.ArrayLike, n_fq: int, self_robot: int) -> IntArray:
+def select_robots(candidate_robots: npt.ArrayLike, n_fq: int, self_robot: int | None) -> IntArray:
     """Robots to send the full constellation to: the ``n_fq`` robots with the
     most candidates (ties as the published argsort orders them), plus the
-    querying robot itself. Robots with no candidate may fill the list, as in
-    the scripts; they have nothing to verify."""
+    querying robot itself (None: the query comes from outside the swarm).
+    Robots with no candidate may fill the list, as in the scripts; they have
+    nothing to verify."""
     robots = np.asarray(candidate_robots, dtype=np.int64)
     chosen: list[int] = []
     if robots.shape[0]:
         order = np.argsort(-np.bincount(robots))
         chosen = [int(r) for r in order[:n_fq]]
-    chosen.append(int(self_robot))
+    if self_robot is not None:
+        chosen.append(int(self_robot))
     return np.unique(np.array(chosen, np.int64))

@@ -15,7 +15,7 @@ import numpy.typing as npt
 from swarmrec.evaluation.bandwidth import HolderLoad
 from swarmrec.evaluation.pr import PRCurve
 
-__all__ = ["plot_holder_load", "plot_pr", "plot_similarity"]
+__all__ = ["plot_bytes", "plot_holder_load", "plot_pr", "plot_similarity"]
 
 
 def plot_similarity(
@@ -88,6 +88,21 @@ def plot_holder_load(
     right.set_xlabel("range holder")
     right.set_ylabel("partial queries received")
     right.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_bytes(per_query_by_message: dict[str, float], path: Path) -> None:
+    """Bytes sent between robots per query, by message type (measured)."""
+    names = list(per_query_by_message)
+    values = [per_query_by_message[n] for n in names]
+    fig, ax = plt.subplots(figsize=(6, 3.2))
+    ax.barh(names, values, color="tab:blue")
+    for y, v in enumerate(values):
+        ax.text(v, y, f" {v:.1f}", va="center", fontsize=8)
+    ax.set_xlabel(f"bytes per query between robots (total {sum(values):.1f} B)")
+    ax.grid(axis="x", alpha=0.4)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -31,6 +31,7 @@ from swarmrec.core.association import FrameTable, build_table, score_pairs
 from swarmrec.core.presets import Preset
 from swarmrec.core.ranges import balanced_ranges, even_ranges, validate_bounds
 from swarmrec.core.selection import select_candidates_many, select_robots
+from swarmrec.core.split import split_frames
 from swarmrec.core.types import ConstellationSequence
 from swarmrec.errors import ConfigError
 
@@ -134,13 +135,6 @@ def score_centralized(
         ignored=~valid,
         ignored_marked=~valid,
     )
-
-
-def split_frames(n_frames: int, n_robots: int) -> list[range]:
-    """The frames of each robot: consecutive blocks of ``ceil(N / n)`` frames,
-    the last one shorter (possibly empty when n does not divide well)."""
-    per = math.ceil(n_frames / n_robots)
-    return [range(min(r * per, n_frames), min((r + 1) * per, n_frames)) for r in range(n_robots)]
 
 
 def label_bounds(preset: Preset, n_labels: int, n_holders: int, label_load: FloatArray | None) -> IntArray:

@@ -21,10 +21,19 @@ from swarmrec.wire.codec import schema_name
 from swarmrec.wire.gen.swarmrec.v1.constellation_pb2 import Constellation
 from swarmrec.wire.gen.swarmrec.v1.descriptor_pb2 import PartialDescriptor, SemanticDescriptor
 from swarmrec.wire.gen.swarmrec.v1.errors_pb2 import ErrorCode, ErrorReply
-from swarmrec.wire.gen.swarmrec.v1.events_pb2 import LoopClosure
+from swarmrec.wire.gen.swarmrec.v1.events_pb2 import LoopClosure, QueryReport, VerifiedPair
 from swarmrec.wire.gen.swarmrec.v1.fusion_pb2 import ClassifierOutput
 from swarmrec.wire.gen.swarmrec.v1.health_pb2 import MemberInfo, ServiceKind
 from swarmrec.wire.gen.swarmrec.v1.query_pb2 import CandidatesReply, PartialQuery
+from swarmrec.wire.gen.swarmrec.v1.replay_pb2 import (
+    LoopClosureList,
+    LoopClosuresRequest,
+    ReplayReply,
+    ReplayRequest,
+    StepReply,
+    StepRequest,
+    StoreReply,
+)
 from swarmrec.wire.gen.swarmrec.v1.verify_pb2 import VerifyMatch, VerifyReply, VerifyRequest
 
 __all__ = [
@@ -35,11 +44,20 @@ __all__ = [
     "ErrorCode",
     "ErrorReply",
     "LoopClosure",
+    "LoopClosureList",
+    "LoopClosuresRequest",
     "MemberInfo",
     "PartialDescriptor",
     "PartialQuery",
+    "QueryReport",
+    "ReplayReply",
+    "ReplayRequest",
     "SemanticDescriptor",
     "ServiceKind",
+    "StepReply",
+    "StepRequest",
+    "StoreReply",
+    "VerifiedPair",
     "VerifyMatch",
     "VerifyReply",
     "VerifyRequest",
@@ -54,10 +72,19 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         Constellation,
         ErrorReply,
         LoopClosure,
+        LoopClosureList,
+        LoopClosuresRequest,
         MemberInfo,
         PartialDescriptor,
         PartialQuery,
+        QueryReport,
+        ReplayReply,
+        ReplayRequest,
         SemanticDescriptor,
+        StepReply,
+        StepRequest,
+        StoreReply,
+        VerifiedPair,
         VerifyMatch,
         VerifyReply,
         VerifyRequest,

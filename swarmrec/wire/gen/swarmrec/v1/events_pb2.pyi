@@ -1,6 +1,8 @@
+from google.protobuf.internal import containers as _containers
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
-from typing import ClassVar as _ClassVar, Optional as _Optional
+from collections.abc import Iterable as _Iterable, Mapping as _Mapping
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 
 DESCRIPTOR: _descriptor.FileDescriptor
 
@@ -23,3 +25,39 @@ class LoopClosure(_message.Message):
     n_matched: int
     unix_time_ns: int
     def __init__(self, query_robot_id: _Optional[int] = ..., query_frame_index: _Optional[int] = ..., match_robot_id: _Optional[int] = ..., match_frame_index: _Optional[int] = ..., score: _Optional[float] = ..., semantic_score: _Optional[float] = ..., n_matched: _Optional[int] = ..., unix_time_ns: _Optional[int] = ...) -> None: ...
+
+class VerifiedPair(_message.Message):
+    __slots__ = ("match_robot_id", "match_frame_index", "score", "semantic_score", "n_matched")
+    MATCH_ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    MATCH_FRAME_INDEX_FIELD_NUMBER: _ClassVar[int]
+    SCORE_FIELD_NUMBER: _ClassVar[int]
+    SEMANTIC_SCORE_FIELD_NUMBER: _ClassVar[int]
+    N_MATCHED_FIELD_NUMBER: _ClassVar[int]
+    match_robot_id: int
+    match_frame_index: int
+    score: float
+    semantic_score: float
+    n_matched: int
+    def __init__(self, match_robot_id: _Optional[int] = ..., match_frame_index: _Optional[int] = ..., score: _Optional[float] = ..., semantic_score: _Optional[float] = ..., n_matched: _Optional[int] = ...) -> None: ...
+
+class QueryReport(_message.Message):
+    __slots__ = ("robot_id", "frame_index", "queried", "matches", "verified_robot_ids", "failed_shard_robot_ids", "failed_verifier_robot_ids", "n_candidates", "duration_us")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    FRAME_INDEX_FIELD_NUMBER: _ClassVar[int]
+    QUERIED_FIELD_NUMBER: _ClassVar[int]
+    MATCHES_FIELD_NUMBER: _ClassVar[int]
+    VERIFIED_ROBOT_IDS_FIELD_NUMBER: _ClassVar[int]
+    FAILED_SHARD_ROBOT_IDS_FIELD_NUMBER: _ClassVar[int]
+    FAILED_VERIFIER_ROBOT_IDS_FIELD_NUMBER: _ClassVar[int]
+    N_CANDIDATES_FIELD_NUMBER: _ClassVar[int]
+    DURATION_US_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    frame_index: int
+    queried: bool
+    matches: _containers.RepeatedCompositeFieldContainer[VerifiedPair]
+    verified_robot_ids: _containers.RepeatedScalarFieldContainer[int]
+    failed_shard_robot_ids: _containers.RepeatedScalarFieldContainer[int]
+    failed_verifier_robot_ids: _containers.RepeatedScalarFieldContainer[int]
+    n_candidates: int
+    duration_us: int
+    def __init__(self, robot_id: _Optional[int] = ..., frame_index: _Optional[int] = ..., queried: _Optional[bool] = ..., matches: _Optional[_Iterable[_Union[VerifiedPair, _Mapping]]] = ..., verified_robot_ids: _Optional[_Iterable[int]] = ..., failed_shard_robot_ids: _Optional[_Iterable[int]] = ..., failed_verifier_robot_ids: _Optional[_Iterable[int]] = ..., n_candidates: _Optional[int] = ..., duration_us: _Optional[int] = ...) -> None: ...

@@ -21,17 +21,21 @@ SERVICE_KIND_VERIFIER: ServiceKind
 SERVICE_KIND_FUSION: ServiceKind
 
 class MemberInfo(_message.Message):
-    __slots__ = ("kind", "robot_id", "label_lo", "label_hi", "version", "n_labels")
+    __slots__ = ("kind", "robot_id", "label_lo", "label_hi", "version", "n_labels", "metrics_url", "swarm")
     KIND_FIELD_NUMBER: _ClassVar[int]
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     LABEL_LO_FIELD_NUMBER: _ClassVar[int]
     LABEL_HI_FIELD_NUMBER: _ClassVar[int]
     VERSION_FIELD_NUMBER: _ClassVar[int]
     N_LABELS_FIELD_NUMBER: _ClassVar[int]
+    METRICS_URL_FIELD_NUMBER: _ClassVar[int]
+    SWARM_FIELD_NUMBER: _ClassVar[int]
     kind: ServiceKind
     robot_id: int
     label_lo: int
     label_hi: int
     version: str
     n_labels: int
-    def __init__(self, kind: _Optional[_Union[ServiceKind, str]] = ..., robot_id: _Optional[int] = ..., label_lo: _Optional[int] = ..., label_hi: _Optional[int] = ..., version: _Optional[str] = ..., n_labels: _Optional[int] = ...) -> None: ...
+    metrics_url: str
+    swarm: str
+    def __init__(self, kind: _Optional[_Union[ServiceKind, str]] = ..., robot_id: _Optional[int] = ..., label_lo: _Optional[int] = ..., label_hi: _Optional[int] = ..., version: _Optional[str] = ..., n_labels: _Optional[int] = ..., metrics_url: _Optional[str] = ..., swarm: _Optional[str] = ...) -> None: ...

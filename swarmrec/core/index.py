@@ -1,0 +1,106 @@
+"""The index of one label range: partial descriptors from every robot, and
+the n_ret best candidates for a query (paper Sec. III-C).
+
+A holder scores the query's slice against every stored slice with the
+partial Jaccard index and keeps the ``n_ret`` best scores > 0. Candidates
+are laid out as the published evaluation lays them out, robot-major over
+``n_robots x n_frames`` slots (unstored slots score 0), so that ties are
+broken by the same sort on the same array and a swarm replaying in lock-step
+returns exactly the offline evaluation's candidates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from swarmrec.core.selection import select_candidates
+
+__all__ = ["IndexCandidate", "RangeIndex"]
+
+IntArray = npt.NDArray[np.int64]
+FloatArray = npt.NDArray[np.float64]
+
+# The published scripts add this to every partial-score denominator; it
+# changes the order of equal fractions (2/4 ranks above 1/2), so it is kept.
+PARTIAL_EPSILON = 1e-12
+
+
+@dataclass(frozen=True)
+class IndexCandidate:
+    robot: int
+    frame: int
+    score: float
+
+
+class RangeIndex:
+    """Partial descriptors of labels ``[lo, hi)`` from robots ``0 .. n_robots - 1``."""
+
+    def __init__(self, lo: int, hi: int, n_robots: int) -> None:
+        if not 0 <= lo < hi:
+            raise ValueError(f"empty label range [{lo}, {hi})")
+        self.lo, self.hi, self.n_robots = lo, hi, n_robots
+        width = hi - lo
+        # Per robot: counts by frame (grown by doubling), and which frames are stored.
+        self._counts = [np.zeros((0, width)) for _ in range(n_robots)]
+        self._stored = [np.zeros(0, np.bool_) for _ in range(n_robots)]
+        self.size = 0
+
+    @property
+    def width(self) -> int:
+        return self.hi - self.lo
+
+    def frames_of(self, robot: int) -> int:
+        """One past the highest frame index stored for ``robot``."""
+        stored = np.flatnonzero(self._stored[robot])
+        return int(stored[-1]) + 1 if stored.shape[0] else 0
+
+    def add(self, robot: int, frame: int, counts: npt.ArrayLike) -> bool:
+        """Store (or replace) a frame's slice; True when it was new."""
+        row = np.asarray(counts, dtype=np.float64).reshape(-1)
+        if row.shape[0] != self.width:
+            raise ValueError(f"slice of {row.shape[0]} bins for a range of {self.width}")
+        cap = self._counts[robot].shape[0]
+        if frame >= cap:
+            new_cap = max(frame + 1, 2 * cap, 64)
+            grown = np.zeros((new_cap, self.width))
+            grown[:cap] = self._counts[robot]
+            flags = np.zeros(new_cap, np.bool_)
+            flags[:cap] = self._stored[robot]
+            self._counts[robot], self._stored[robot] = grown, flags
+        new = not self._stored[robot][frame]
+        self._counts[robot][frame] = row
+        self._stored[robot][frame] = True
+        self.size += int(new)
+        return new
+
+    def candidates(
+        self, counts: npt.ArrayLike, n_ret: int, *, before: int | None = None
+    ) -> list[IndexCandidate]:
+        """The ``n_ret`` best stored frames for the query slice ``counts``, best first.
+
+        ``before`` limits the search to frames with a smaller index on every
+        robot (lock-step replay at step ``before``); None searches everything.
+        """
+        query = np.asarray(counts, dtype=np.float64).reshape(-1)
+        t = (
+            before
+            if before is not None
+            else max((self.frames_of(r) for r in range(self.n_robots)), default=0)
+        )
+        if t <= 0:
+            return []
+        stored = np.zeros((self.n_robots, t, self.width))
+        for r in range(self.n_robots):
+            k = min(t, self._counts[r].shape[0])
+            stored[r, :k] = self._counts[r][:k]
+        # Same operations, same order as the offline evaluation: exact integer
+        # sums in float64, then one division with the published epsilon.
+        common = np.minimum(stored, query).sum(axis=2)
+        total = stored.sum(axis=2) + query.sum() - common
+        values = (common / (total + PARTIAL_EPSILON)).reshape(-1)
+        cols = select_candidates(values, n_ret)
+        order = cols[np.argsort(-values[cols], kind="stable")]
+        return [IndexCandidate(int(c // t), int(c % t), float(values[c])) for c in order.tolist()]

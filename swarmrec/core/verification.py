@@ -1,0 +1,59 @@
+"""Geometric verification of a query frame against a robot's own frames
+(paper Sec. III-D, Eq. 2-7), as the verifier service runs it.
+
+Frames are named swarm-wide by ``(robot, frame)``. The association breaks
+ties by argument order, so each pair is scored with the frame that comes
+first in ``(robot, frame)`` order as the first argument: that is the order
+the offline evaluation uses (its global frame index is robot-major), so a
+lock-step swarm's scores equal the offline ones bit for bit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from swarmrec.core.association import full_score
+from swarmrec.core.presets import Preset
+from swarmrec.core.types import Constellation
+
+__all__ = ["FrameMatch", "verify"]
+
+IntArray = npt.NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class FrameMatch:
+    """A stored frame compared with the query."""
+
+    frame: int
+    score: float
+    semantic: float
+    #: (m, 2): object index in the query, object index in the stored frame.
+    pairs: IntArray
+
+
+def verify(
+    query: Constellation,
+    query_key: tuple[int, int],
+    own_robot: int,
+    frames: Iterable[tuple[int, Constellation]],
+    n_labels: int,
+    preset: Preset,
+) -> list[FrameMatch]:
+    """Score ``query`` against each ``(frame index, constellation)`` of ``own_robot``;
+    every result, best first (ties by frame index)."""
+    out = []
+    for frame, stored in frames:
+        first_is_query = query_key < (own_robot, frame)
+        a, b = (query, stored) if first_is_query else (stored, query)
+        s = full_score(
+            a, b, n_labels, d=preset.d, min_common=preset.min_common, same_label_only=preset.same_label_only
+        )
+        pairs = s.matches if first_is_query else s.matches[:, ::-1]
+        out.append(FrameMatch(frame, s.score, s.semantic, np.ascontiguousarray(pairs)))
+    out.sort(key=lambda m: (-m.score, m.frame))
+    return out

@@ -1,0 +1,41 @@
+"""The swarm's Zenoh services and the runner they share.
+
+Data flow, one robot::
+
+    detector --Constellation--> descriptor --PartialQuery--> index-shard (each robot's, by label range)
+                                           --VerifyRequest--> verifier (the chosen robots')
+                                           --LoopClosure event-->
+
+``python -m swarmrec serve <kind>`` runs one service (see :data:`SERVICES`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from swarmrec.services.runner import Service, ServiceContext
+
+__all__ = ["SERVICES", "service_factory"]
+
+SERVICES = ("router", "detector", "descriptor", "index-shard", "verifier")
+
+
+def service_factory(kind: str) -> Callable[[ServiceContext], Service]:
+    """The class that implements ``kind`` (imported on demand: a shard need not load numba)."""
+    if kind == "detector":
+        from swarmrec.services.detector import DetectorReplay
+
+        return DetectorReplay
+    if kind == "descriptor":
+        from swarmrec.services.descriptor import Descriptor
+
+        return Descriptor
+    if kind == "index-shard":
+        from swarmrec.services.index_shard import IndexShard
+
+        return IndexShard
+    if kind == "verifier":
+        from swarmrec.services.verifier import Verifier
+
+        return Verifier
+    raise ValueError(f"unknown service {kind!r}; services: {', '.join(SERVICES)}")

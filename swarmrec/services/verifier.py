@@ -1,0 +1,115 @@
+"""The verifier service: holds its robot's constellations and verifies queries
+against them geometrically (data association, Eq. 2-7).
+
+Endpoints:
+
+* ``store``: a :class:`Constellation` of this robot (sent by its descriptor
+  service) -> :class:`StoreReply`; appended to ``<data_dir>/verifier.log``
+  before the answer, replayed on start.
+* ``verify``: a :class:`VerifyRequest` (the query constellation and the
+  candidate frames) -> :class:`VerifyReply`, every candidate with a score > 0,
+  best first.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections.abc import Sequence
+
+from swarmrec.core.presets import get_preset
+from swarmrec.core.types import Constellation
+from swarmrec.core.verification import verify
+from swarmrec.errors import WireError
+from swarmrec.services.common import MAX_FRAME_INDEX, invalid, wire_error
+from swarmrec.services.runner import Endpoint, RequestContext, ServiceContext
+from swarmrec.services.storage import RecordLog
+from swarmrec.wire import messages as pb
+from swarmrec.wire.codec import constellation_from_proto, encode, verify_match_to_proto
+
+__all__ = ["Verifier"]
+
+
+class Verifier:
+    def __init__(self, ctx: ServiceContext) -> None:
+        s = ctx.settings
+        self.ctx = ctx
+        self.preset = get_preset(s.preset)
+        self.frames: dict[int, Constellation] = {}
+        self.lock = threading.Lock()
+        path = s.data_dir / "verifier.log" if s.data_dir else None
+        self.store_log = RecordLog(path, fsync=s.fsync, log=ctx.log)
+        for record in self.store_log.records():
+            msg = pb.Constellation.FromString(record)
+            self.frames[msg.frame_index] = constellation_from_proto(msg, s.n_labels)
+        ctx.metrics.stored_frames.set(len(self.frames))
+        ctx.log.info("frames loaded", extra={"fields": {"stored": len(self.frames)}})
+
+    def endpoints(self) -> Sequence[Endpoint]:
+        return [
+            Endpoint("store", pb.Constellation, self.store),
+            Endpoint("verify", pb.VerifyRequest, self.verify),
+        ]
+
+    def member_info(self) -> pb.MemberInfo:
+        return pb.MemberInfo()
+
+    def _constellation(self, msg: pb.Constellation) -> Constellation:
+        if msg.frame_index >= MAX_FRAME_INDEX:
+            raise invalid(f"frame index must be below {MAX_FRAME_INDEX}, got {msg.frame_index}")
+        try:
+            return constellation_from_proto(msg, self.ctx.settings.n_labels)
+        except WireError as e:
+            raise wire_error(e) from None
+
+    def store(self, msg: pb.Constellation, _ctx: RequestContext) -> pb.StoreReply:
+        own = self.ctx.settings.robot
+        if msg.robot_id != own:
+            raise invalid(f"verifier {own} stores only its own robot's frames, got robot {msg.robot_id}")
+        c = self._constellation(msg)
+        with self.lock:
+            self.store_log.append(encode(msg))
+            self.frames[msg.frame_index] = c
+            n = len(self.frames)
+        self.ctx.metrics.stored_frames.set(n)
+        return pb.StoreReply(stored_frames=n)
+
+    def verify(self, req: pb.VerifyRequest, _ctx: RequestContext) -> pb.VerifyReply:
+        s = self.ctx.settings
+        if not req.HasField("query"):
+            raise invalid("verify request without a query constellation")
+        query = self._constellation(req.query)
+        preset = self.preset
+        if req.HasField("distance_threshold_m"):
+            d = req.distance_threshold_m
+            if not (math.isfinite(d) and d > 0):
+                raise invalid(f"distance_threshold_m must be a positive number, got {d}")
+            preset = preset.with_(d=float(d))
+        with self.lock:
+            if req.candidate_frame_indices:
+                wanted = sorted(set(req.candidate_frame_indices))
+                frames = [(f, self.frames[f]) for f in wanted if f in self.frames]
+                missing = len(wanted) - len(frames)
+                if missing:
+                    self.ctx.log.warning(
+                        "asked to verify frames it does not hold", extra={"fields": {"missing": missing}}
+                    )
+            else:
+                frames = [(f, c) for f, c in self.frames.items() if len(c) >= preset.min_common]
+        results = verify(
+            query, (req.query.robot_id, req.query.frame_index), s.robot, frames, s.n_labels, preset
+        )
+        results = [m for m in results if m.score > 0]
+        if req.max_matches:
+            results = results[: req.max_matches]
+        reply = pb.VerifyReply(query_id=req.query_id, robot_id=s.robot)
+        for m in results:
+            reply.matches.append(
+                verify_match_to_proto(
+                    m.frame, m.score, m.semantic, m.pairs.shape[0], m.pairs if req.include_pairs else None
+                )
+            )
+        return reply
+
+    def close(self) -> None:
+        self.store_log.close()
