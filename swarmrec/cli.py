@@ -57,9 +57,7 @@ def _add_evaluate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
         default="both",
         help="(default both)",
     )
-    p.add_argument(
-        "--robots", type=int, default=10, help="robots of the decentralized mode (default 10)"
-    )
+    p.add_argument("--robots", type=int, default=10, help="robots of the decentralized mode (default 10)")
     p.add_argument("--preset", choices=sorted(PRESETS), default="paper", help="(default paper)")
     p.add_argument("--out", type=Path, default=Path("runs/evaluate"), help="output folder")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
@@ -88,22 +86,33 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
             "query and shard load scraped from the services' Prometheus metrics, query latency."
         ),
     )
-    p.add_argument("--dataset", default="synthetic",
-                   help="'synthetic' (built-in office world) or a folder/.zip of constellation files")  # fmt: skip
+    p.add_argument(
+        "--dataset",
+        default="synthetic",
+        help="'synthetic' (built-in office world) or a folder/.zip of constellation files",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the synthetic world (default 0)")
     p.add_argument("--frames", type=int, help="use only the first N frames (synthetic: generate N)")
     p.add_argument("--labels", type=Path, help="label list, one name a line (default: COCO 80)")
     p.add_argument("--groundtruth", type=Path, help="TUM trajectory for precision-recall")
     p.add_argument("--robots", type=int, default=10, help="robots in the swarm (default 10)")
     p.add_argument("--preset", choices=sorted(PRESETS), default="paper", help="(default paper)")
-    p.add_argument("--pace", default="lockstep",
-                   help="lockstep (default; identical to the offline evaluation), fast, or frames per second")  # fmt: skip
+    p.add_argument(
+        "--pace",
+        default="lockstep",
+        help="lockstep (default; identical to the offline evaluation), fast, or frames per second",
+    )
     p.add_argument("--swarm", default="local", help="swarm name (the key expressions' swarm segment)")
-    p.add_argument("--timeout", type=float, default=5.0, help="seconds a service waits for a peer (default 5)")
+    p.add_argument(
+        "--timeout", type=float, default=5.0, help="seconds a service waits for a peer (default 5)"
+    )
     p.add_argument("--out", type=Path, default=Path("runs/swarm"), help="output folder")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
-    p.add_argument("--no-offline-check", action="store_true",
-                   help="skip comparing the pair scores with the offline evaluation")  # fmt: skip
+    p.add_argument(
+        "--no-offline-check",
+        action="store_true",
+        help="skip comparing the pair scores with the offline evaluation",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -157,9 +166,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     )
     summary = evaluate(settings)
     ds = summary["dataset"]
-    print(
-        f"dataset {ds['name']}: {ds['frames']} frames, {ds['ignored_frames']} with too few objects"
-    )
+    print(f"dataset {ds['name']}: {ds['frames']} frames, {ds['ignored_frames']} with too few objects")
     for name, result in summary["results"].items():
         auc = f"AUC {result['auc']:.4f}" if "auc" in result else "AUC n/a (no ground truth)"
         print(f"  {name:<20} {auc}, {result['positive_pairs']} pairs scored > 0")
@@ -208,22 +215,37 @@ def _run(args: argparse.Namespace) -> int:
     from swarmrec.swarm.job import main as run_swarm
 
     settings = SwarmSettings(
-        dataset=args.dataset, seed=args.seed, frames=args.frames, labels=args.labels,
-        groundtruth=args.groundtruth, robots=args.robots, preset=args.preset, pace=args.pace,
-        swarm=args.swarm, request_timeout_s=args.timeout, out=args.out, plots=not args.no_plots,
-        progress=not args.quiet, check_offline=not args.no_offline_check,
-    )  # fmt: skip
+        dataset=args.dataset,
+        seed=args.seed,
+        frames=args.frames,
+        labels=args.labels,
+        groundtruth=args.groundtruth,
+        robots=args.robots,
+        preset=args.preset,
+        pace=args.pace,
+        swarm=args.swarm,
+        request_timeout_s=args.timeout,
+        out=args.out,
+        plots=not args.no_plots,
+        progress=not args.quiet,
+        check_offline=not args.no_offline_check,
+    )
     s = run_swarm(settings)
     q, b, load = s["queries"], s["bytes"], s["shard_load"]
-    print(f"swarm of {settings.robots} robots on {s['dataset']['name']} ({s['dataset']['frames']} frames, "
-          f"{s['swarm']['processes']} processes), pace {settings.pace}")  # fmt: skip
+    print(
+        f"swarm of {settings.robots} robots on {s['dataset']['name']} ({s['dataset']['frames']} frames, "
+        f"{s['swarm']['processes']} processes), pace {settings.pace}"
+    )
     auc = f"AUC {s['auc']:.4f}" if "auc" in s else "AUC n/a (no ground truth)"
     print(f"  {q['queried']} queries, {s['loop_closures']['count']} loop closures, {auc}")
     lat = q["latency_ms"]
     if lat:
         print(f"  query latency p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms")
-    print(f"  measured bytes between robots: {b['per_query']:.1f} B per query ({b['per_frame']:.1f} B per frame)")
-    print(f"  partial queries per shard {load['partial_queries']}; busiest / mean = {load['balance_ratio']:.2f}")
+    per_frame = f"{b['per_frame']:.1f} B per frame"
+    print(f"  measured bytes between robots: {b['per_query']:.1f} B per query ({per_frame})")
+    print(
+        f"  partial queries per shard {load['partial_queries']}; busiest / mean = {load['balance_ratio']:.2f}"
+    )
     if "offline_check" in s:
         oc = s["offline_check"]
         verdict = "identical" if oc["identical"] else f"DIFFERENT ({oc})"

@@ -184,7 +184,14 @@ class SwarmClient:
         wire = constellation_to_proto(constellation, 0, 0)
         t0 = time.perf_counter()
         report = two_step_query(
-            self._caller(), plan, constellation, wire, query_id=1, read_only=True, self_robot=None
+            self._caller(),
+            plan,
+            constellation,
+            wire,
+            query_id=1,
+            read_only=True,
+            include_scores=True,
+            self_robot=None,
         )
         return QueryResult(
             matches=list(report.matches),

@@ -42,10 +42,13 @@ class RangeIndex:
         if not 0 <= lo < hi:
             raise ValueError(f"empty label range [{lo}, {hi})")
         self.lo, self.hi, self.n_robots = lo, hi, n_robots
-        width = hi - lo
-        # Per robot: counts by frame (grown by doubling), and which frames are stored.
-        self._counts = [np.zeros((0, width)) for _ in range(n_robots)]
-        self._stored = [np.zeros(0, np.bool_) for _ in range(n_robots)]
+        # One (robot, frame, bin) array, grown by doubling along frames, so a query
+        # reads a view of it instead of assembling the robots' rows every time;
+        # row sums are kept beside it for the same reason.
+        self._counts = np.zeros((n_robots, 0, hi - lo))
+        self._sums = np.zeros((n_robots, 0))
+        self._stored = np.zeros((n_robots, 0), np.bool_)
+        self._frames = np.zeros(n_robots, np.int64)  # one past each robot's highest stored frame
         self.size = 0
 
     @property
@@ -54,25 +57,32 @@ class RangeIndex:
 
     def frames_of(self, robot: int) -> int:
         """One past the highest frame index stored for ``robot``."""
-        stored = np.flatnonzero(self._stored[robot])
-        return int(stored[-1]) + 1 if stored.shape[0] else 0
+        return int(self._frames[robot])
+
+    def _grow(self, frames: int) -> None:
+        cap = self._counts.shape[1]
+        if frames <= cap:
+            return
+        new_cap = max(frames, 2 * cap, 64)
+        counts = np.zeros((self.n_robots, new_cap, self.width))
+        counts[:, :cap] = self._counts
+        sums = np.zeros((self.n_robots, new_cap))
+        sums[:, :cap] = self._sums
+        stored = np.zeros((self.n_robots, new_cap), np.bool_)
+        stored[:, :cap] = self._stored
+        self._counts, self._sums, self._stored = counts, sums, stored
 
     def add(self, robot: int, frame: int, counts: npt.ArrayLike) -> bool:
         """Store (or replace) a frame's slice; True when it was new."""
         row = np.asarray(counts, dtype=np.float64).reshape(-1)
         if row.shape[0] != self.width:
             raise ValueError(f"slice of {row.shape[0]} bins for a range of {self.width}")
-        cap = self._counts[robot].shape[0]
-        if frame >= cap:
-            new_cap = max(frame + 1, 2 * cap, 64)
-            grown = np.zeros((new_cap, self.width))
-            grown[:cap] = self._counts[robot]
-            flags = np.zeros(new_cap, np.bool_)
-            flags[:cap] = self._stored[robot]
-            self._counts[robot], self._stored[robot] = grown, flags
-        new = not self._stored[robot][frame]
-        self._counts[robot][frame] = row
-        self._stored[robot][frame] = True
+        self._grow(frame + 1)
+        new = not self._stored[robot, frame]
+        self._counts[robot, frame] = row
+        self._sums[robot, frame] = row.sum()
+        self._stored[robot, frame] = True
+        self._frames[robot] = max(self._frames[robot], frame + 1)
         self.size += int(new)
         return new
 
@@ -85,21 +95,15 @@ class RangeIndex:
         robot (lock-step replay at step ``before``); None searches everything.
         """
         query = np.asarray(counts, dtype=np.float64).reshape(-1)
-        t = (
-            before
-            if before is not None
-            else max((self.frames_of(r) for r in range(self.n_robots)), default=0)
-        )
+        t = before if before is not None else int(self._frames.max(initial=0))
         if t <= 0:
             return []
-        stored = np.zeros((self.n_robots, t, self.width))
-        for r in range(self.n_robots):
-            k = min(t, self._counts[r].shape[0])
-            stored[r, :k] = self._counts[r][:k]
+        self._grow(t)  # a lock-step query may look past the frames stored so far (zeros)
+        stored = self._counts[:, :t]
         # Same operations, same order as the offline evaluation: exact integer
         # sums in float64, then one division with the published epsilon.
         common = np.minimum(stored, query).sum(axis=2)
-        total = stored.sum(axis=2) + query.sum() - common
+        total = self._sums[:, :t] + query.sum() - common
         values = (common / (total + PARTIAL_EPSILON)).reshape(-1)
         cols = select_candidates(values, n_ret)
         order = cols[np.argsort(-values[cols], kind="stable")]

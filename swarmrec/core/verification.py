@@ -34,6 +34,10 @@ class FrameMatch:
     semantic: float
     #: (m, 2): object index in the query, object index in the stored frame.
     pairs: IntArray
+    #: Objects in common (sum of per-label minima) and in either frame: the
+    #: integers the scores are ratios of, which is what travels on the wire.
+    n_common: int
+    n_union: int
 
 
 def verify(
@@ -47,6 +51,7 @@ def verify(
     """Score ``query`` against each ``(frame index, constellation)`` of ``own_robot``;
     every result, best first (ties by frame index)."""
     out = []
+    q_counts = np.bincount(query.labels, minlength=n_labels)
     for frame, stored in frames:
         first_is_query = query_key < (own_robot, frame)
         a, b = (query, stored) if first_is_query else (stored, query)
@@ -54,6 +59,8 @@ def verify(
             a, b, n_labels, d=preset.d, min_common=preset.min_common, same_label_only=preset.same_label_only
         )
         pairs = s.matches if first_is_query else s.matches[:, ::-1]
-        out.append(FrameMatch(frame, s.score, s.semantic, np.ascontiguousarray(pairs)))
+        common = int(np.minimum(q_counts, np.bincount(stored.labels, minlength=n_labels)).sum())
+        union = len(query) + len(stored) - common
+        out.append(FrameMatch(frame, s.score, s.semantic, np.ascontiguousarray(pairs), common, union))
     out.sort(key=lambda m: (-m.score, m.frame))
     return out

@@ -16,7 +16,6 @@ Endpoints:
 
 from __future__ import annotations
 
-import itertools
 import threading
 import time
 from collections.abc import Sequence
@@ -40,8 +39,9 @@ class Descriptor:
         s = ctx.settings
         self.ctx = ctx
         self.preset = get_preset(s.preset)
-        self.plan = QueryPlan(s.swarm, s.n_robots, label_bounds_of(s), s.n_labels, self.preset)
-        self.query_ids = itertools.count(1)
+        self.plan = QueryPlan(
+            s.swarm, s.n_robots, label_bounds_of(s), s.n_labels, self.preset, self.preset.n_ret
+        )
         self.lock = threading.Lock()
         path = s.data_dir / "loop-closures.log" if s.data_dir else None
         self.closure_log = RecordLog(path, fsync=s.fsync, log=ctx.log)
@@ -79,7 +79,7 @@ class Descriptor:
                 self.plan,
                 c,
                 msg,
-                query_id=next(self.query_ids) & 0xFFFFFFFF,
+                query_id=0,
                 read_only=False,
                 self_robot=s.robot,
             )
@@ -96,7 +96,8 @@ class Descriptor:
         self.ctx.metrics.query_seconds.observe(report.duration_us / 1e6)
         if report.queried:
             self._loop_closure(report)
-            self.ctx.publish(keys.event(s.swarm, "query", s.robot), report)
+        # Every frame's report, queried or not, so a listener can count frames.
+        self.ctx.publish(keys.event(s.swarm, "query", s.robot), report)
         return report
 
     def _loop_closure(self, report: pb.QueryReport) -> None:

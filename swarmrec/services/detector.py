@@ -110,7 +110,10 @@ class DetectorReplay:
 
     def _replay(self, rate_hz: float) -> None:
         period = 1.0 / rate_hz if rate_hz > 0 else 0.0
-        start = time.perf_counter()
+        # Robots are not synchronised: each starts at its own phase of the period,
+        # or all ten would query at the same instant, every time.
+        settings = self.ctx.settings
+        start = time.perf_counter() + period * settings.robot / settings.n_robots
         for t in range(len(self.frames)):
             if self.ctx.stop.is_set():
                 return

@@ -13,6 +13,7 @@ import threading
 from collections.abc import Sequence
 
 from swarmrec.core.index import RangeIndex
+from swarmrec.core.presets import get_preset
 from swarmrec.errors import WireError
 from swarmrec.services.common import MAX_FRAME_INDEX, MAX_N_RET, invalid, label_bounds_of, wire_error
 from swarmrec.services.runner import Endpoint, RequestContext, ServiceContext
@@ -31,6 +32,7 @@ class IndexShard:
         self.lo, self.hi = int(bounds[s.robot]), int(bounds[s.robot + 1])
         self.index = RangeIndex(self.lo, self.hi, s.n_robots)
         self.lock = threading.Lock()
+        self.n_ret = get_preset(s.preset).n_ret
         path = s.data_dir / "index-shard.log" if s.data_dir else None
         self.store = RecordLog(path, fsync=s.fsync, log=ctx.log)
         restored = 0
@@ -63,8 +65,9 @@ class IndexShard:
         s = self.ctx.settings
         if not req.HasField("descriptor"):
             raise invalid("partial query without a descriptor")
-        if not 1 <= req.n_ret <= MAX_N_RET:
-            raise invalid(f"n_ret must be 1 .. {MAX_N_RET}, got {req.n_ret}")
+        if req.n_ret > MAX_N_RET:
+            raise invalid(f"n_ret must be at most {MAX_N_RET}, got {req.n_ret}")
+        n_ret = req.n_ret or self.n_ret
         desc = req.descriptor
         if desc.robot_id >= s.n_robots:
             raise invalid(f"robot {desc.robot_id} is not in this swarm of {s.n_robots} robots")
@@ -79,9 +82,9 @@ class IndexShard:
         if not part.counts.any():
             raise invalid("partial descriptor has no labels; send only non-empty slices")
         # A read-only lookup (a client's) searches everything even in a lock-step swarm.
-        before = desc.query_step if s.lockstep and not req.read_only else None
+        before = (desc.query_step or desc.frame_index) if s.lockstep and not req.read_only else None
         with self.lock:
-            found = self.index.candidates(part.counts, req.n_ret, before=before)
+            found = self.index.candidates(part.counts, n_ret, before=before)
             if not req.read_only:
                 # Stored before the answer leaves: an acknowledged frame survives a crash.
                 self.store.append(encode(desc))
@@ -89,7 +92,11 @@ class IndexShard:
                 self.ctx.metrics.stored_descriptors.set(self.index.size)
         self.ctx.metrics.shard_partial_queries.inc()
         return candidates_to_proto(
-            req.query_id, self.lo, self.hi, (Candidate(c.robot, c.frame, c.score) for c in found)
+            req.query_id,
+            self.lo,
+            self.hi,
+            (Candidate(c.robot, c.frame, c.score) for c in found),
+            include_scores=req.include_scores,
         )
 
     def close(self) -> None:

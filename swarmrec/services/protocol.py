@@ -30,7 +30,7 @@ from swarmrec.errors import WireError
 from swarmrec.services import keys
 from swarmrec.services.rpc import Caller, CallError, Pending, RemoteError
 from swarmrec.wire import messages as pb
-from swarmrec.wire.codec import candidates_from_proto, partial_descriptor_to_proto
+from swarmrec.wire.codec import candidates_from_proto, match_scores, partial_descriptor_to_proto
 
 __all__ = ["QueryPlan", "two_step_query"]
 
@@ -46,6 +46,8 @@ class QueryPlan:
     bounds: IntArray
     n_labels: int
     preset: Preset
+    #: n_ret the shards are configured with (None: unknown, always send it).
+    shard_n_ret: int | None = None
 
 
 def two_step_query(
@@ -57,8 +59,12 @@ def two_step_query(
     query_id: int,
     read_only: bool,
     self_robot: int | None,
+    include_scores: bool = False,
 ) -> pb.QueryReport:
-    """Run both steps for one frame; ``wire`` is its wire form (robot, frame, objects)."""
+    """Run both steps for one frame; ``wire`` is its wire form (robot, frame, objects).
+
+    ``query_id`` 0 costs no byte: zenoh pairs each reply with its query already.
+    """
     t0 = time.perf_counter()
     report = pb.QueryReport(robot_id=wire.robot_id, frame_index=wire.frame_index, queried=True)
     desc = semantic_descriptor(constellation, plan.n_labels)
@@ -70,11 +76,14 @@ def two_step_query(
             continue
         request = pb.PartialQuery(
             query_id=query_id,
-            n_ret=plan.preset.n_ret,
+            # n_ret 0: the shards' own, which the swarm shares (costs no byte).
+            n_ret=0 if plan.preset.n_ret == plan.shard_n_ret else plan.preset.n_ret,
+            # query_step 0: the step is the frame index (costs no byte on the wire).
             descriptor=partial_descriptor_to_proto(
-                desc, lo, hi, robot=wire.robot_id, frame=wire.frame_index, query_step=wire.frame_index
+                desc, lo, hi, robot=wire.robot_id, frame=wire.frame_index, query_step=0
             ),
             read_only=read_only,
+            include_scores=include_scores,
         )
         key = keys.endpoint(plan.swarm, "index-shard", k, "query")
         asked.append((k, caller.start(key, request, target_robot=k, endpoint="shard_query")))
@@ -96,13 +105,20 @@ def two_step_query(
     robots_arr = np.asarray(cand_robot, np.int64)
     frames_arr = np.asarray(cand_frame, np.int64)
     chosen = select_robots(robots_arr, plan.preset.n_fq, self_robot)
+    # The verifiers need the objects, not the frame's name: frame_id stays home.
+    query = pb.Constellation(
+        robot_id=wire.robot_id,
+        frame_index=wire.frame_index,
+        labels=wire.labels,
+        positions_mm=wire.positions_mm,
+    )
     verifying: list[tuple[int, Pending]] = []
     for r in chosen.tolist():
         frames = np.unique(frames_arr[robots_arr == r])
         if frames.shape[0] == 0:
             continue  # a robot chosen to fill the list has nothing to verify
         report.verified_robot_ids.append(r)
-        request = pb.VerifyRequest(query_id=query_id, query=wire, candidate_frame_indices=frames.tolist())
+        request = pb.VerifyRequest(query_id=query_id, query=query, candidate_frame_indices=frames.tolist())
         key = keys.endpoint(plan.swarm, "verifier", r, "verify")
         verifying.append((r, caller.start(key, request, target_robot=r, endpoint="verify")))
     pairs: list[pb.VerifiedPair] = []
@@ -116,13 +132,19 @@ def two_step_query(
             caller.count_failure("verify", RemoteError.reason)
             report.failed_verifier_robot_ids.append(r)
             continue
-        for m in vreply.matches:
+        try:
+            scored = [(m, *match_scores(m)) for m in vreply.matches]
+        except WireError:
+            caller.count_failure("verify", RemoteError.reason)
+            report.failed_verifier_robot_ids.append(r)
+            continue
+        for m, score, semantic in scored:
             pairs.append(
                 pb.VerifiedPair(
                     match_robot_id=r,
                     match_frame_index=m.frame_index,
-                    score=m.score,
-                    semantic_score=m.semantic_score,
+                    score=score,
+                    semantic_score=semantic,
                     n_matched=m.n_matched,
                 )
             )

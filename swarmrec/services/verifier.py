@@ -17,6 +17,8 @@ import math
 import threading
 from collections.abc import Sequence
 
+import numpy as np
+
 from swarmrec.core.presets import get_preset
 from swarmrec.core.types import Constellation
 from swarmrec.core.verification import verify
@@ -43,6 +45,10 @@ class Verifier:
             msg = pb.Constellation.FromString(record)
             self.frames[msg.frame_index] = constellation_from_proto(msg, s.n_labels)
         ctx.metrics.stored_frames.set(len(self.frames))
+        # Load the association kernels now (numba compiles or reads its cache on
+        # first use), so the first query does not pay hundreds of milliseconds.
+        probe = Constellation(np.zeros(3, np.int64), np.eye(3))
+        verify(probe, (0, 0), s.robot, [(0, probe)], 1, self.preset)
         ctx.log.info("frames loaded", extra={"fields": {"stored": len(self.frames)}})
 
     def endpoints(self) -> Sequence[Endpoint]:
@@ -104,10 +110,9 @@ class Verifier:
             results = results[: req.max_matches]
         reply = pb.VerifyReply(query_id=req.query_id, robot_id=s.robot)
         for m in results:
+            pairs = m.pairs if req.include_pairs else None
             reply.matches.append(
-                verify_match_to_proto(
-                    m.frame, m.score, m.semantic, m.pairs.shape[0], m.pairs if req.include_pairs else None
-                )
+                verify_match_to_proto(m.frame, m.pairs.shape[0], m.n_common, m.n_union, pairs)
             )
         return reply
 

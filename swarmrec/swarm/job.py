@@ -82,12 +82,17 @@ class SwarmSettings:
 
 def as_on_the_wire(seq: ConstellationSequence) -> ConstellationSequence:
     """``seq`` as the services see it: positions rounded to the wire's millimetres."""
-    out = [constellation_from_proto(constellation_to_proto(c, 0, 0), seq.n_labels) for c in seq.constellations]
-    return ConstellationSequence(seq.frame_ids, seq.timestamps, tuple(out), seq.label_names, seq.name,
-                                 dict(seq.skipped))  # fmt: skip
+    out = [
+        constellation_from_proto(constellation_to_proto(c, 0, 0), seq.n_labels) for c in seq.constellations
+    ]
+    return ConstellationSequence(
+        seq.frame_ids, seq.timestamps, tuple(out), seq.label_names, seq.name, dict(seq.skipped)
+    )
 
 
-def _prepare_dataset(settings: SwarmSettings) -> tuple[str, Path | None, ConstellationSequence, Trajectory | None]:
+def _prepare_dataset(
+    settings: SwarmSettings,
+) -> tuple[str, Path | None, ConstellationSequence, Trajectory | None]:
     """The dataset folder the detectors replay, and the sequence and poses it holds."""
     from swarmrec.datasets.constellations import read_constellations
     from swarmrec.datasets.labels import COCO_NAMES, read_label_names
@@ -106,15 +111,14 @@ def _prepare_dataset(settings: SwarmSettings) -> tuple[str, Path | None, Constel
         source, labels_file = settings.dataset, settings.labels
     names = read_label_names(labels_file) if labels_file else COCO_NAMES
     seq = read_constellations(Path(source), names)
-    if settings.frames is not None and settings.dataset != "synthetic":
-        if settings.frames < len(seq):
-            # The detectors replay the folder; a subset is written for them.
-            from swarmrec.datasets.constellations import write_constellations
+    if settings.frames is not None and settings.dataset != "synthetic" and settings.frames < len(seq):
+        # The detectors replay the folder; a subset is written for them.
+        from swarmrec.datasets.constellations import write_constellations
 
-            seq = seq.subset(range(settings.frames))
-            folder = settings.out / "dataset"
-            write_constellations(seq, folder)
-            source = str(folder)
+        seq = seq.subset(range(settings.frames))
+        folder = settings.out / "dataset"
+        write_constellations(seq, folder)
+        source = str(folder)
     gt_path = settings.groundtruth
     if gt_path is None and Path(source).is_dir() and (Path(source) / "groundtruth.txt").is_file():
         gt_path = Path(source) / "groundtruth.txt"
@@ -151,8 +155,9 @@ class _Replay:
     wall_s: float
 
 
-def _replay_lockstep(client: Any, blocks: list[range], settings: SwarmSettings,
-                     on_step: Callable[[int], None] | None) -> _Replay:  # fmt: skip
+def _replay_lockstep(
+    client: Any, blocks: list[range], settings: SwarmSettings, on_step: Callable[[int], None] | None
+) -> _Replay:
     per = max((len(b) for b in blocks), default=0)
     reports: list[pb.QueryReport] = []
     missing: list[tuple[int, int]] = []
@@ -160,8 +165,13 @@ def _replay_lockstep(client: Any, blocks: list[range], settings: SwarmSettings,
     step_s: list[float] = []
     t0 = time.perf_counter()
     step_timeout = 6 * settings.request_timeout_s
-    with tqdm(total=per, desc=f"swarm x{settings.robots} lock-step", unit="step",
-              disable=not settings.progress, leave=False) as bar:  # fmt: skip
+    with tqdm(
+        total=per,
+        desc=f"swarm x{settings.robots} lock-step",
+        unit="step",
+        disable=not settings.progress,
+        leave=False,
+    ) as bar:
         for t in range(per):
             ts = time.perf_counter()
             answered: set[int] = set()
@@ -191,10 +201,16 @@ def _replay_free(client: Any, blocks: list[range], settings: SwarmSettings) -> _
     errors: list[str] = []
     key = keys.event(settings.swarm, "query", "*")
     t0 = time.perf_counter()
-    with client.session.declare_subscriber(key) as sub, tqdm(
-        total=expected, desc=f"swarm x{settings.robots} at {settings.pace}", unit="frame",
-        disable=not settings.progress, leave=False,
-    ) as bar:  # fmt: skip
+    with (
+        client.session.declare_subscriber(key) as sub,
+        tqdm(
+            total=expected,
+            desc=f"swarm x{settings.robots} at {settings.pace}",
+            unit="frame",
+            disable=not settings.progress,
+            leave=False,
+        ) as bar,
+    ):
         for item in client.replay(rate):
             if isinstance(item, Exception):
                 errors.append(f"replay: {item}")
@@ -224,8 +240,12 @@ def _percentiles(values: list[float]) -> dict[str, float]:
     return {f"p{q}": float(np.percentile(arr, q)) for q in (50, 90, 99)} | {"mean": float(arr.mean())}
 
 
-def main(settings: SwarmSettings, *, on_step: Callable[[int], None] | None = None,
-         swarm_hook: Callable[[LocalSwarm], None] | None = None) -> dict[str, Any]:  # fmt: skip
+def main(
+    settings: SwarmSettings,
+    *,
+    on_step: Callable[[int], None] | None = None,
+    swarm_hook: Callable[[LocalSwarm], None] | None = None,
+) -> dict[str, Any]:
     """Run the swarm, write the report, return the summary.
 
     ``on_step`` is called after each lock-step step and ``swarm_hook`` once
@@ -243,14 +263,21 @@ def main(settings: SwarmSettings, *, on_step: Callable[[int], None] | None = Non
     blocks = split_frames(len(seq), settings.robots)
     _warm_numba()
     base = ServiceSettings(
-        swarm=settings.swarm, n_robots=settings.robots, preset=settings.preset, n_labels=seq.n_labels,
-        label_bounds=tuple(int(b) for b in bounds), lockstep=settings.lockstep,
-        request_timeout_s=settings.request_timeout_s, connect=("tcp/127.0.0.1:7447",),
-    )  # fmt: skip
+        swarm=settings.swarm,
+        n_robots=settings.robots,
+        preset=settings.preset,
+        n_labels=seq.n_labels,
+        label_bounds=tuple(int(b) for b in bounds),
+        lockstep=settings.lockstep,
+        request_timeout_s=settings.request_timeout_s,
+        connect=("tcp/127.0.0.1:7447",),
+    )
     timings: dict[str, float] = {"prepare_s": time.perf_counter() - t_start}
     for old in (out / "data").glob("robot*/*/*.log"):
         old.unlink()  # a fresh run starts from empty stores
-    swarm = LocalSwarm(base, data_dir=out / "data", log_dir=out / "logs", dataset=source, labels_file=labels_file)
+    swarm = LocalSwarm(
+        base, data_dir=out / "data", log_dir=out / "logs", dataset=source, labels_file=labels_file
+    )
     exit_codes: dict[str, int] = {}
     try:
         t0 = time.perf_counter()
@@ -261,17 +288,23 @@ def main(settings: SwarmSettings, *, on_step: Callable[[int], None] | None = Non
             client.wait_for(expected)
             if swarm_hook is not None:
                 swarm_hook(swarm)
-            replay = (_replay_lockstep(client, blocks, settings, on_step) if settings.lockstep
-                      else _replay_free(client, blocks, settings))  # fmt: skip
+            replay = (
+                _replay_lockstep(client, blocks, settings, on_step)
+                if settings.lockstep
+                else _replay_free(client, blocks, settings)
+            )
             timings["replay_s"] = replay.wall_s
-            targets = {(sp.kind, sp.robot): str(sp.info.get("metrics_url", ""))
-                       for sp in swarm.procs if sp.proc.poll() is None and sp.info.get("metrics_url")}  # fmt: skip
+            targets = {
+                (sp.kind, sp.robot): str(sp.info.get("metrics_url", ""))
+                for sp in swarm.procs
+                if sp.proc.poll() is None and sp.info.get("metrics_url")
+            }
             metrics = scrape(targets)
             closures: list[pb.LoopClosure] = []
             for r in range(settings.robots):
                 try:
                     closures += client.loop_closures(r)
-                except Exception as e:  # noqa: BLE001 - a dead robot has none to give
+                except Exception as e:
                     replay.errors.append(f"loop closures of robot {r}: {e}")
     finally:
         t0 = time.perf_counter()
@@ -281,8 +314,16 @@ def main(settings: SwarmSettings, *, on_step: Callable[[int], None] | None = Non
     from swarmrec.swarm.report import write_report
 
     return write_report(
-        settings, seq=seq, wire_seq=wire_seq, trajectory=trajectory, preset=preset, bounds=bounds,
-        blocks=blocks, replay=replay, metrics=metrics, closures=closures, exit_codes=exit_codes,
+        settings,
+        seq=seq,
+        wire_seq=wire_seq,
+        trajectory=trajectory,
+        preset=preset,
+        bounds=bounds,
+        blocks=blocks,
+        replay=replay,
+        metrics=metrics,
+        closures=closures,
+        exit_codes=exit_codes,
         timings=timings,
-    )  # fmt: skip
-
+    )

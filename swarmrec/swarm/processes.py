@@ -31,9 +31,20 @@ ROBOT_SERVICES = ("index-shard", "verifier", "descriptor", "detector")
 
 # Settings every robot's services share (the robot id is added per robot).
 _SHARED = (
-    "swarm", "n_robots", "connect", "preset", "n_labels", "label_bounds", "metrics_host",
-    "workers", "request_timeout_s", "lockstep", "loop_closure_min_score", "log_level", "fsync",
-)  # fmt: skip
+    "swarm",
+    "n_robots",
+    "connect",
+    "preset",
+    "n_labels",
+    "label_bounds",
+    "metrics_host",
+    "workers",
+    "request_timeout_s",
+    "lockstep",
+    "loop_closure_min_score",
+    "log_level",
+    "fsync",
+)
 
 
 class SwarmStartError(SwarmrecError):

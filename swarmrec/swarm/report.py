@@ -71,7 +71,11 @@ def _positive(matrix: ScoreMatrix) -> dict[tuple[int, int], float]:
 
 
 def _compare_offline(
-    matrix: ScoreMatrix, wire_seq: ConstellationSequence, robots: int, preset: Preset, bounds: npt.NDArray[np.int64]
+    matrix: ScoreMatrix,
+    wire_seq: ConstellationSequence,
+    robots: int,
+    preset: Preset,
+    bounds: npt.NDArray[np.int64],
 ) -> tuple[dict[str, Any], Any]:
     from swarmrec.evaluation.scoring import score_decentralized
 
@@ -136,10 +140,20 @@ def write_report(
     for r, _t in replay.missing:
         missing_by_robot[str(r)] = missing_by_robot.get(str(r), 0) + 1
     summary: dict[str, Any] = {
-        "dataset": {"name": seq.name, "source": settings.dataset, "frames": len(seq), "labels": seq.n_labels,
-                    "groundtruth": trajectory is not None},
-        "swarm": {"robots": settings.robots, "pace": settings.pace, "preset": asdict(preset),
-                  "label_bounds": [int(b) for b in bounds], "processes": len(exit_codes)},
+        "dataset": {
+            "name": seq.name,
+            "source": settings.dataset,
+            "frames": len(seq),
+            "labels": seq.n_labels,
+            "groundtruth": trajectory is not None,
+        },
+        "swarm": {
+            "robots": settings.robots,
+            "pace": settings.pace,
+            "preset": asdict(preset),
+            "label_bounds": [int(b) for b in bounds],
+            "processes": len(exit_codes),
+        },
         "queries": {
             "frames_replayed": len(replay.reports),
             "queried": len(queried),
@@ -156,7 +170,7 @@ def write_report(
             "partial_queries": loads,
             "balance_ratio": float(max(loads) / mean_load) if mean_load > 0 else 0.0,
             "note": "partial queries served per index shard (swarmrec_shard_partial_queries_total); "
-                    "balance_ratio is the busiest shard over the mean",
+            "balance_ratio is the busiest shard over the mean",
         },
         "rejected_requests": metrics.total("swarmrec_rejected_requests_total"),
         "peer_failures": metrics.by_label("swarmrec_peer_failures_total", "reason"),
@@ -169,10 +183,12 @@ def write_report(
         "scrape_failed": metrics.failed,
         "exit_codes": exit_codes,
         "timings": timings,
-    }  # fmt: skip
+    }
     offline_run = None
     if settings.check_offline and settings.lockstep and not replay.missing:
-        summary["offline_check"], offline_run = _compare_offline(matrix, wire_seq, settings.robots, preset, bounds)
+        summary["offline_check"], offline_run = _compare_offline(
+            matrix, wire_seq, settings.robots, preset, bounds
+        )
     dense = matrix.dense()
     curves = {}
     if trajectory is not None:
@@ -209,22 +225,57 @@ def _write_pairs(path: Path, matrix: ScoreMatrix, seq: ConstellationSequence) ->
             w.writerow([int(i), int(j), seq.frame_ids[i], seq.frame_ids[j], repr(float(s))])
 
 
-def _write_closures(path: Path, closures: list[pb.LoopClosure], blocks: list[range], seq: ConstellationSequence,
-                    truth: npt.NDArray[np.bool_] | None) -> None:  # fmt: skip
+def _write_closures(
+    path: Path,
+    closures: list[pb.LoopClosure],
+    blocks: list[range],
+    seq: ConstellationSequence,
+    truth: npt.NDArray[np.bool_] | None,
+) -> None:
     with path.open("w", newline="", encoding="utf-8") as f:
         w = csv.writer(f)
-        w.writerow(["query_robot", "query_frame", "match_robot", "match_frame", "query_frame_id",
-                    "match_frame_id", "score", "n_matched", "true_closure"])  # fmt: skip
+        w.writerow(
+            [
+                "query_robot",
+                "query_frame",
+                "match_robot",
+                "match_frame",
+                "query_frame_id",
+                "match_frame_id",
+                "score",
+                "n_matched",
+                "true_closure",
+            ]
+        )
         for c in sorted(closures, key=lambda c: (c.query_robot_id, c.query_frame_index)):
             g = blocks[c.query_robot_id].start + c.query_frame_index
             h = blocks[c.match_robot_id].start + c.match_frame_index
             true = "" if truth is None else int(truth[g, h])
-            w.writerow([c.query_robot_id, c.query_frame_index, c.match_robot_id, c.match_frame_index,
-                        seq.frame_ids[g], seq.frame_ids[h], f"{c.score:.6f}", c.n_matched, true])  # fmt: skip
+            w.writerow(
+                [
+                    c.query_robot_id,
+                    c.query_frame_index,
+                    c.match_robot_id,
+                    c.match_frame_index,
+                    seq.frame_ids[g],
+                    seq.frame_ids[h],
+                    f"{c.score:.6f}",
+                    c.n_matched,
+                    true,
+                ]
+            )
 
 
-def _plots(settings: SwarmSettings, summary: dict[str, Any], dense: Any, curves: dict[str, Any],
-           seq: ConstellationSequence, bounds: Any, loads: list[int], offline_run: Any) -> None:  # fmt: skip
+def _plots(
+    settings: SwarmSettings,
+    summary: dict[str, Any],
+    dense: Any,
+    curves: dict[str, Any],
+    seq: ConstellationSequence,
+    bounds: Any,
+    loads: list[int],
+    offline_run: Any,
+) -> None:
     from swarmrec.datasets.constellations import label_counts
     from swarmrec.evaluation.plots import plot_bytes, plot_holder_load, plot_pr, plot_similarity
 

@@ -56,6 +56,7 @@ __all__ = [
     "descriptor_to_proto",
     "encode",
     "error_reply",
+    "match_scores",
     "matched_pairs_from_proto",
     "partial_descriptor_from_proto",
     "partial_descriptor_to_proto",
@@ -316,11 +317,12 @@ class Candidate:
 
 
 def candidates_to_proto(
-    query_id: int, lo: int, hi: int, candidates: Iterable[Candidate]
+    query_id: int, lo: int, hi: int, candidates: Iterable[Candidate], *, include_scores: bool = True
 ) -> query_pb2.CandidatesReply:
     """A shard's reply for labels ``[lo, hi)``; candidates keep their order (best first).
 
-    Scores travel as float32 (about 7 significant digits), enough to rank.
+    Scores travel as float32 (about 7 significant digits), enough to rank,
+    and only when ``include_scores``.
     """
     items = list(candidates)
     bad = [c for c in items if not np.isfinite(c.score)]
@@ -332,7 +334,7 @@ def candidates_to_proto(
         label_hi=_uint32("label_hi", hi),
         robot_ids=[_uint32("robot id", c.robot_id) for c in items],
         frame_indices=[_uint32("frame index", c.frame_index) for c in items],
-        scores=[c.score for c in items],
+        scores=[c.score for c in items] if include_scores else [],
     )
 
 
@@ -341,13 +343,14 @@ def candidates_from_proto(msg: query_pb2.CandidatesReply, n_labels: int) -> list
     _check_n_labels(n_labels)
     _check_range(msg.label_lo, msg.label_hi, n_labels)
     n = len(msg.robot_ids)
-    if len(msg.frame_indices) != n or len(msg.scores) != n:
+    if len(msg.frame_indices) != n or len(msg.scores) not in (0, n):
         raise WireError(
             f"candidates reply has {n} robot ids, {len(msg.frame_indices)} frame indices"
-            f" and {len(msg.scores)} scores; they must be equal"
+            f" and {len(msg.scores)} scores; they must be equal (or no scores)"
         )
-    scores = np.fromiter(msg.scores, dtype=np.float64, count=n)
-    bad = np.flatnonzero(~np.isfinite(scores))
+    # Without scores (the querier did not ask for them) every candidate reads as NaN.
+    scores = np.fromiter(msg.scores, dtype=np.float64, count=n) if msg.scores else np.full(n, np.nan)
+    bad = np.flatnonzero(np.isinf(scores) | (np.isnan(scores) & bool(msg.scores)))
     if bad.size:
         raise WireError(f"candidate {int(bad[0])} has a non-finite score")
     return [
@@ -358,20 +361,22 @@ def candidates_from_proto(msg: query_pb2.CandidatesReply, n_labels: int) -> list
 
 def verify_match_to_proto(
     frame_index: int,
-    score: float,
-    semantic_score: float,
     n_matched: int,
+    n_common: int,
+    n_union: int,
     pairs: npt.ArrayLike | None = None,
 ) -> verify_pb2.VerifyMatch:
-    """One verified match; ``pairs`` is an (n_matched, 2) array of
+    """One verified match, as the counts its scores are computed from (see
+    :func:`match_scores`); ``pairs`` is an (n_matched, 2) array of
     (query object, matched object) indices, or None when not requested."""
-    if not (np.isfinite(score) and np.isfinite(semantic_score)):
-        raise WireError(f"match of frame {frame_index} has a non-finite score")
+    if not 0 <= n_matched <= n_common <= n_union or n_union == 0:
+        raise WireError(f"match counts need 0 <= n_matched <= n_common <= n_union > 0, got "
+                        f"{n_matched}, {n_common}, {n_union}")  # fmt: skip
     msg = verify_pb2.VerifyMatch(
         frame_index=_uint32("frame index", frame_index),
-        score=score,
-        semantic_score=semantic_score,
         n_matched=_uint32("matched object count", n_matched),
+        n_common=_uint32("common object count", n_common),
+        n_union=_uint32("union object count", n_union),
     )
     if pairs is not None:
         arr = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
@@ -381,6 +386,20 @@ def verify_match_to_proto(
             raise WireError("object pair indices must fit in 32 unsigned bits")
         msg.object_pairs.extend(arr.ravel().tolist())
     return msg
+
+
+def match_scores(match: verify_pb2.VerifyMatch) -> tuple[float, float]:
+    """(score, semantic score) of a verified match, the same doubles the
+    verifier computed: the association kernel evaluates
+    ``semantic = n_common / n_union`` and ``score = semantic * (n_matched / n_common)``
+    in this order, and IEEE arithmetic gives the same bits here."""
+    if not 0 < match.n_common <= match.n_union or match.n_matched > match.n_common:
+        raise WireError(
+            f"match of frame {match.frame_index} has inconsistent counts: {match.n_matched} matched, "
+            f"{match.n_common} common, {match.n_union} in the union"
+        )
+    semantic = match.n_common / match.n_union
+    return semantic * (match.n_matched / match.n_common), semantic
 
 
 def matched_pairs_from_proto(match: verify_pb2.VerifyMatch, n_query: int) -> IntArray:

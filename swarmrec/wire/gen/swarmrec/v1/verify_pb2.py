@@ -25,7 +25,7 @@ _sym_db = _symbol_database.Default()
 from . import constellation_pb2 as swarmrec_dot_v1_dot_constellation__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18swarmrec/v1/verify.proto\x12\x0bswarmrec.v1\x1a\x1fswarmrec/v1/constellation.proto\"\xd5\x01\n\rVerifyRequest\x12\x10\n\x08query_id\x18\x01 \x01(\r\x12)\n\x05query\x18\x02 \x01(\x0b\x32\x1a.swarmrec.v1.Constellation\x12\x1f\n\x17\x63\x61ndidate_frame_indices\x18\x03 \x03(\r\x12!\n\x14\x64istance_threshold_m\x18\x04 \x01(\x02H\x00\x88\x01\x01\x12\x13\n\x0bmax_matches\x18\x05 \x01(\r\x12\x15\n\rinclude_pairs\x18\x06 \x01(\x08\x42\x17\n\x15_distance_threshold_m\"r\n\x0bVerifyMatch\x12\x13\n\x0b\x66rame_index\x18\x01 \x01(\r\x12\r\n\x05score\x18\x02 \x01(\x01\x12\x16\n\x0esemantic_score\x18\x03 \x01(\x01\x12\x11\n\tn_matched\x18\x04 \x01(\r\x12\x14\n\x0cobject_pairs\x18\x05 \x03(\r\"\\\n\x0bVerifyReply\x12\x10\n\x08query_id\x18\x01 \x01(\r\x12\x10\n\x08robot_id\x18\x02 \x01(\r\x12)\n\x07matches\x18\x03 \x03(\x0b\x32\x18.swarmrec.v1.VerifyMatchb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18swarmrec/v1/verify.proto\x12\x0bswarmrec.v1\x1a\x1fswarmrec/v1/constellation.proto\"\xd5\x01\n\rVerifyRequest\x12\x10\n\x08query_id\x18\x01 \x01(\r\x12)\n\x05query\x18\x02 \x01(\x0b\x32\x1a.swarmrec.v1.Constellation\x12\x1f\n\x17\x63\x61ndidate_frame_indices\x18\x03 \x03(\r\x12!\n\x14\x64istance_threshold_m\x18\x04 \x01(\x02H\x00\x88\x01\x01\x12\x13\n\x0bmax_matches\x18\x05 \x01(\r\x12\x15\n\rinclude_pairs\x18\x06 \x01(\x08\x42\x17\n\x15_distance_threshold_m\"\x91\x01\n\x0bVerifyMatch\x12\x13\n\x0b\x66rame_index\x18\x01 \x01(\r\x12\x11\n\tn_matched\x18\x04 \x01(\r\x12\x14\n\x0cobject_pairs\x18\x05 \x03(\r\x12\x10\n\x08n_common\x18\x06 \x01(\r\x12\x0f\n\x07n_union\x18\x07 \x01(\rJ\x04\x08\x02\x10\x03J\x04\x08\x03\x10\x04R\x05scoreR\x0esemantic_score\"\\\n\x0bVerifyReply\x12\x10\n\x08query_id\x18\x01 \x01(\r\x12\x10\n\x08robot_id\x18\x02 \x01(\r\x12)\n\x07matches\x18\x03 \x03(\x0b\x32\x18.swarmrec.v1.VerifyMatchb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -34,8 +34,8 @@ if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_VERIFYREQUEST']._serialized_start=75
   _globals['_VERIFYREQUEST']._serialized_end=288
-  _globals['_VERIFYMATCH']._serialized_start=290
-  _globals['_VERIFYMATCH']._serialized_end=404
-  _globals['_VERIFYREPLY']._serialized_start=406
-  _globals['_VERIFYREPLY']._serialized_end=498
+  _globals['_VERIFYMATCH']._serialized_start=291
+  _globals['_VERIFYMATCH']._serialized_end=436
+  _globals['_VERIFYREPLY']._serialized_start=438
+  _globals['_VERIFYREPLY']._serialized_end=530
 # @@protoc_insertion_point(module_scope)

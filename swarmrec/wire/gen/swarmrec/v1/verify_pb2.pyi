@@ -24,18 +24,18 @@ class VerifyRequest(_message.Message):
     def __init__(self, query_id: _Optional[int] = ..., query: _Optional[_Union[_constellation_pb2.Constellation, _Mapping]] = ..., candidate_frame_indices: _Optional[_Iterable[int]] = ..., distance_threshold_m: _Optional[float] = ..., max_matches: _Optional[int] = ..., include_pairs: _Optional[bool] = ...) -> None: ...
 
 class VerifyMatch(_message.Message):
-    __slots__ = ("frame_index", "score", "semantic_score", "n_matched", "object_pairs")
+    __slots__ = ("frame_index", "n_matched", "object_pairs", "n_common", "n_union")
     FRAME_INDEX_FIELD_NUMBER: _ClassVar[int]
-    SCORE_FIELD_NUMBER: _ClassVar[int]
-    SEMANTIC_SCORE_FIELD_NUMBER: _ClassVar[int]
     N_MATCHED_FIELD_NUMBER: _ClassVar[int]
     OBJECT_PAIRS_FIELD_NUMBER: _ClassVar[int]
+    N_COMMON_FIELD_NUMBER: _ClassVar[int]
+    N_UNION_FIELD_NUMBER: _ClassVar[int]
     frame_index: int
-    score: float
-    semantic_score: float
     n_matched: int
     object_pairs: _containers.RepeatedScalarFieldContainer[int]
-    def __init__(self, frame_index: _Optional[int] = ..., score: _Optional[float] = ..., semantic_score: _Optional[float] = ..., n_matched: _Optional[int] = ..., object_pairs: _Optional[_Iterable[int]] = ...) -> None: ...
+    n_common: int
+    n_union: int
+    def __init__(self, frame_index: _Optional[int] = ..., n_matched: _Optional[int] = ..., object_pairs: _Optional[_Iterable[int]] = ..., n_common: _Optional[int] = ..., n_union: _Optional[int] = ...) -> None: ...
 
 class VerifyReply(_message.Message):
     __slots__ = ("query_id", "robot_id", "matches")
