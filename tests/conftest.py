@@ -38,3 +38,12 @@ def tum_zip() -> Path:
             pytest.fail(f"CI must have the shared data at {TUM_ZIP}")
         pytest.skip(f"shared TUM data not found at {TUM_ZIP}")
     return TUM_ZIP
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Mark each test by its folder (unit / integration / e2e)."""
+    for item in items:
+        parts = Path(str(item.fspath)).parts
+        for marker in ("unit", "integration", "e2e"):
+            if marker in parts:
+                item.add_marker(getattr(pytest.mark, marker))

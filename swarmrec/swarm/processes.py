@@ -69,6 +69,14 @@ class ServiceProcess:
     log_path: Path
     ready: threading.Event = field(default_factory=threading.Event)
     info: dict[str, object] = field(default_factory=dict)
+    reader: threading.Thread | None = None
+
+    def release(self) -> None:
+        """After the process exited: let the stdout reader finish, close the pipe."""
+        if self.reader is not None:
+            self.reader.join(timeout=2.0)
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
 
     @property
     def name(self) -> str:
@@ -139,7 +147,8 @@ class LocalSwarm:
             start_new_session=True,  # a Ctrl-C in the terminal reaches the main job only
         )
         sp = ServiceProcess(kind, robot, proc, log_path)
-        threading.Thread(target=sp._read_stdout, daemon=True, name=f"stdout-{sp.name}").start()
+        sp.reader = threading.Thread(target=sp._read_stdout, daemon=True, name=f"stdout-{sp.name}")
+        sp.reader.start()
         return sp
 
     def start_router(self, timeout_s: float = 30.0) -> None:
@@ -209,6 +218,7 @@ class LocalSwarm:
             except subprocess.TimeoutExpired:
                 sp.proc.kill()
                 sp.proc.wait()
+        sp.release()
         return int(sp.proc.returncode)
 
     def stop(self, timeout_s: float = 10.0) -> dict[str, int]:
@@ -224,11 +234,13 @@ class LocalSwarm:
             except subprocess.TimeoutExpired:
                 sp.proc.kill()
                 sp.proc.wait()
+            sp.release()
             codes[sp.name] = int(sp.proc.returncode)
         if self.router is not None:
             codes["router"] = self.stop_process(self.router, timeout_s)
         for log in self._logs:
             log.close()
+        self._logs.clear()
         return codes
 
     def __enter__(self) -> LocalSwarm:
