@@ -1,7 +1,8 @@
 # swarmrec task runner. CI runs `make test` (see .ci/run); nothing CI does is
 # out of a developer's reach.
 #
-#   make run     the main job: evaluate the built-in synthetic world
+#   make run     the main job: a local swarm of 10 robots (real processes, real zenoh router) on the synthetic world
+#   make evaluate  the offline evaluation (no processes): centralized and 10 robots
 #   make test    regenerated-code check, lint, types, all tests
 #   make bench   benchmarks, figures written to bench/results/
 #
@@ -12,9 +13,9 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
-RUN_OUT ?= runs/synthetic
+RUN_OUT ?= runs/swarm
 
-.PHONY: help venv run test unit lint typecheck proto check-proto bench clean
+.PHONY: help venv run evaluate test unit lint typecheck proto check-proto bench clean
 
 help:
 	@sed -n 's/^#   //p' Makefile
@@ -28,7 +29,10 @@ $(STAMP): pyproject.toml requirements.lock
 venv: $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/swarmrec evaluate --dataset synthetic --out $(RUN_OUT)
+	$(BIN)/swarmrec run --dataset synthetic --robots 10 --out $(RUN_OUT)
+
+evaluate: $(STAMP)
+	$(BIN)/swarmrec evaluate --dataset synthetic --out runs/evaluate
 
 test: $(STAMP) check-proto lint typecheck
 	$(BIN)/python -m pytest
@@ -50,6 +54,7 @@ check-proto: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python bench/bench_offline.py --out bench/results/offline.json
+	$(BIN)/python bench/bench_swarm.py --out bench/results/swarm.json
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .mypy_cache .ruff_cache

@@ -99,10 +99,13 @@ class RangeIndex:
         if t <= 0:
             return []
         self._grow(t)  # a lock-step query may look past the frames stored so far (zeros)
-        stored = self._counts[:, :t]
-        # Same operations, same order as the offline evaluation: exact integer
-        # sums in float64, then one division with the published epsilon.
-        common = np.minimum(stored, query).sum(axis=2)
+        # Only the query's non-zero bins can have a non-zero minimum; the sums are
+        # of small integers, exact in float64 in any order, so skipping the zero
+        # bins changes no bit of the result (and saves most of the work).
+        bins = np.flatnonzero(query)
+        common = np.minimum(self._counts[:, :t, bins], query[bins]).sum(axis=2)
+        # Then the offline evaluation's operations in its order, and one division
+        # with the published epsilon.
         total = self._sums[:, :t] + query.sum() - common
         values = (common / (total + PARTIAL_EPSILON)).reshape(-1)
         cols = select_candidates(values, n_ret)

@@ -236,7 +236,7 @@ def load_settings(
     the TOML file, ``SWARMREC_*`` environment variables, then flags."""
     layered: dict[str, Any] = dict(defaults or {})
     path = config if config is not None else getattr(args, "config", None)
-    if path is None and (env or os.environ).get(ENV_PREFIX + "CONFIG"):
+    if path is None and (os.environ if env is None else env).get(ENV_PREFIX + "CONFIG"):
         path = Path((env or os.environ)[ENV_PREFIX + "CONFIG"])
     if path is not None:
         layered.update(_from_file(Path(path)))

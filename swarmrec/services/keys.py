@@ -38,7 +38,7 @@ def validate_swarm_name(name: str) -> str:
     Wildcards and slashes in a swarm name would make its keys match another
     swarm's, which is exactly what the name is there to prevent.
     """
-    if not _SWARM_NAME.match(name):
+    if not _SWARM_NAME.fullmatch(name):
         raise ConfigError(f"swarm name must be 1-64 of A-Z a-z 0-9 _ -, got {name!r}")
     return name
 

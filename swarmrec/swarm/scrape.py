@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 from prometheus_client.parser import text_string_to_metric_families
 
-__all__ = ["Scrape", "scrape"]
+__all__ = ["Scrape", "parse_metrics", "scrape"]
 
 
 @dataclass
@@ -50,6 +50,16 @@ class Scrape:
         return dict(out)
 
 
+def parse_metrics(text: str) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+    """The samples of one ``/metrics`` page (Prometheus text format):
+    ``{(sample name, sorted (label, value) pairs): value}``."""
+    series: dict[tuple[str, tuple[tuple[str, str], ...]], float] = {}
+    for family in text_string_to_metric_families(text):
+        for s in family.samples:
+            series[(s.name, tuple(sorted(s.labels.items())))] = float(s.value)
+    return series
+
+
 def scrape(targets: dict[tuple[str, int], str], timeout_s: float = 5.0) -> Scrape:
     """GET every ``/metrics`` URL; an unreachable one is listed in ``failed``."""
     result = Scrape()
@@ -60,9 +70,5 @@ def scrape(targets: dict[tuple[str, int], str], timeout_s: float = 5.0) -> Scrap
         except OSError:
             result.failed.append(f"{service}-{robot}")
             continue
-        series: dict[tuple[str, tuple[tuple[str, str], ...]], float] = {}
-        for family in text_string_to_metric_families(text):
-            for s in family.samples:
-                series[(s.name, tuple(sorted(s.labels.items())))] = float(s.value)
-        result.samples[(service, robot)] = series
+        result.samples[(service, robot)] = parse_metrics(text)
     return result

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import pickle
 from typing import Any
 
@@ -38,6 +39,7 @@ from swarmrec.wire import (
     verify_match_to_proto,
 )
 from swarmrec.wire import messages as pb
+from swarmrec.wire.codec import match_scores
 
 N_LABELS = 80  # a COCO-sized label list
 
@@ -404,6 +406,8 @@ def test_candidates_reply_with_four_candidates_encodes_in_39_bytes() -> None:
         ({"frame_indices": [1]}, "2 robot ids, 1 frame indices and 2 scores"),
         ({"scores": [0.5, float("nan")]}, "candidate 1 has a non-finite score"),
         ({"label_lo": 40}, r"\[40, 40\) is empty"),
+        ({"scores": [0.5]}, "2 robot ids, 2 frame indices and 1 scores"),
+        ({"scores": [0.5, float("inf")]}, "candidate 1 has a non-finite score"),
     ],
 )
 def test_candidates_decoding_rejects_an_inconsistent_reply(
@@ -426,17 +430,80 @@ def test_candidates_encoding_rejects_a_non_finite_score() -> None:
         candidates_to_proto(1, 0, 10, [Candidate(0, 0, float("inf"))])
 
 
+def test_candidates_without_scores_send_no_score_bytes_and_decode_as_nan() -> None:
+    # The 39-byte reply above less its scores field (tag, length, 4 x 4 = 18): 21 bytes.
+    msg = candidates_to_proto(1234, 20, 40, FOUR_CANDIDATES, include_scores=False)
+    data = encode(msg)
+    assert len(data) == 21
+    back = candidates_from_proto(decode(data, pb.CandidatesReply), N_LABELS)
+    assert [(c.robot_id, c.frame_index) for c in back] == [(1, 310), (0, 12), (7, 2047), (1, 0)]
+    assert all(math.isnan(c.score) for c in back)
+
+
+def test_candidates_without_scores_still_refuse_a_non_finite_score_on_encoding() -> None:
+    with pytest.raises(WireError, match="non-finite score"):
+        candidates_to_proto(1, 0, 10, [Candidate(0, 0, float("nan"))], include_scores=False)
+
+
 def test_verify_reply_round_trips_matched_object_pairs() -> None:
     pairs = np.array([[0, 4], [2, 1], [5, 0]])
-    match = verify_match_to_proto(17, 0.9, 0.8, n_matched=3, pairs=pairs)
+    match = verify_match_to_proto(17, 3, 4, 9, pairs=pairs)
     reply = pb.VerifyReply(query_id=5, robot_id=2, matches=[match])
-    back = decode(encode(reply), pb.VerifyReply)
-    np.testing.assert_array_equal(matched_pairs_from_proto(back.matches[0], n_query=6), pairs)
+    back = decode(encode(reply), pb.VerifyReply).matches[0]
+    assert (back.frame_index, back.n_matched, back.n_common, back.n_union) == (17, 3, 4, 9)
+    np.testing.assert_array_equal(matched_pairs_from_proto(back, n_query=6), pairs)
 
 
 def test_verify_match_without_pairs_has_an_empty_pair_array() -> None:
-    match = verify_match_to_proto(17, 0.9, 0.8, n_matched=3)
+    match = verify_match_to_proto(17, 3, 4, 9)
     assert matched_pairs_from_proto(match, n_query=6).shape == (0, 2)
+
+
+def test_verify_match_without_pairs_encodes_in_9_bytes() -> None:
+    # frame_index 1234 (tag 1 + 2) + n_matched 3, n_common 4, n_union 9 (tag 1 + 1 each):
+    # 9 bytes, where the two doubles it replaced cost 18 on their own.
+    assert len(encode(verify_match_to_proto(1234, 3, 4, 9))) == 9
+
+
+def test_match_scores_are_the_ratios_of_the_counts() -> None:
+    # 4 objects in common out of 9: semantic 4/9; 3 of the 4 matched: score 4/9 * 3/4 = 1/3.
+    score, semantic = match_scores(verify_match_to_proto(17, 3, 4, 9))
+    assert semantic == 4 / 9
+    assert score == pytest.approx(1 / 3, rel=1e-15)
+    assert match_scores(verify_match_to_proto(17, 0, 2, 9)) == (0.0, 2 / 9)
+
+
+@pytest.mark.parametrize(
+    ("n_matched", "n_common", "n_union", "match"),
+    [
+        (4, 3, 9, "got 4, 3, 9"),
+        (1, 5, 4, "got 1, 5, 4"),
+        (0, 0, 0, "got 0, 0, 0"),
+        (-1, 2, 3, "got -1, 2, 3"),
+    ],
+)
+def test_verify_match_encoding_rejects_impossible_counts(
+    n_matched: int, n_common: int, n_union: int, match: str
+) -> None:
+    with pytest.raises(WireError, match=match):
+        verify_match_to_proto(17, n_matched, n_common, n_union)
+
+
+def test_verify_match_encoding_rejects_a_pair_count_other_than_n_matched() -> None:
+    with pytest.raises(WireError, match="2 object pairs for 3 matched objects"):
+        verify_match_to_proto(17, 3, 4, 9, pairs=np.array([[0, 1], [1, 0]]))
+
+
+@pytest.mark.parametrize(
+    ("n_matched", "n_common", "n_union"),
+    [(0, 0, 5), (0, 0, 0), (3, 2, 9), (1, 6, 5)],
+)
+def test_match_scores_rejects_counts_that_no_verifier_sends(
+    n_matched: int, n_common: int, n_union: int
+) -> None:
+    msg = pb.VerifyMatch(frame_index=17, n_matched=n_matched, n_common=n_common, n_union=n_union)
+    with pytest.raises(WireError, match="match of frame 17 has inconsistent counts"):
+        match_scores(msg)
 
 
 @pytest.mark.parametrize(

@@ -1,0 +1,173 @@
+"""Swarm benchmark: the real TUM constellations through a local swarm of 10
+robots (41 processes over a real zenoh router on this machine).
+
+    python bench/bench_swarm.py --out bench/results/swarm.json
+
+Two runs, and two baselines measured in the same run:
+
+* lock-step over the whole sequence (2585 frames): wall time, query latency
+  while all ten robots query at the same instant, measured bytes per query,
+  worst shard balance ratio, and whether the pair scores equal the offline
+  evaluation's. Baseline: the offline decentralized evaluation of the same
+  sequence in one process (``swarm_wall / offline_wall``).
+* paced: every robot replays its share at ``--rate`` frames per second at its
+  own phase, as robots that are not synchronised would: query latency of a
+  swarm that is not saturated. Baseline: a bare zenoh request/reply through
+  a router, measured here (``query_p50 / bare_round_trip_p50``): a two-step
+  query makes two rounds of parallel requests, so 2-3x is the floor.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from swarmrec.core.presets import get_preset
+from swarmrec.datasets.constellations import read_constellations
+from swarmrec.datasets.labels import COCO_NAMES
+from swarmrec.evaluation.scoring import score_decentralized
+from swarmrec.swarm.job import SwarmSettings, as_on_the_wire, main
+from swarmrec.swarm.processes import free_port
+
+REPO = Path(__file__).resolve().parents[1]
+TUM_ZIP = REPO.parent / "shared" / "data" / "tum_fr3_long_office_household_constellations.zip"
+
+
+def bare_round_trip(n: int = 2000) -> dict[str, float]:
+    """p50/p99 of a 100-byte request/reply between two client sessions through a router."""
+
+    def conf(mode: str, key: str, endpoint: str) -> zenoh.Config:
+        c = zenoh.Config()
+        c.insert_json5("mode", json.dumps(mode))
+        c.insert_json5(key, json.dumps([endpoint]))
+        c.insert_json5("scouting/multicast/enabled", "false")
+        return c
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with (
+        zenoh.open(conf("router", "listen/endpoints", endpoint)),
+        zenoh.open(conf("client", "connect/endpoints", endpoint)) as server,
+        zenoh.open(conf("client", "connect/endpoints", endpoint)) as client,
+    ):
+        q = server.declare_queryable("bench/echo")
+
+        def serve() -> None:
+            for query in q.handler:
+                with query:
+                    query.reply(query.key_expr, query.payload.to_bytes() if query.payload else b"")
+
+        threading.Thread(target=serve, daemon=True).start()
+        querier = client.declare_querier("bench/echo")
+        deadline = time.monotonic() + 10
+        while not querier.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.01)
+        payload = b"x" * 100
+        for _ in range(100):  # warm-up
+            list(querier.get(payload=payload))
+        times = []
+        for _ in range(n):
+            t0 = time.perf_counter()
+            list(querier.get(payload=payload))
+            times.append(time.perf_counter() - t0)
+        querier.undeclare()
+        q.undeclare()
+    arr = np.asarray(times) * 1e3
+    return {"p50_ms": float(np.percentile(arr, 50)), "p99_ms": float(np.percentile(arr, 99))}
+
+
+def offline_wall(seq_path: Path) -> float:
+    t0 = time.perf_counter()
+    seq = as_on_the_wire(read_constellations(seq_path, COCO_NAMES))
+    score_decentralized(seq, 10, get_preset("paper"))
+    return time.perf_counter() - t0
+
+
+def _run(settings: SwarmSettings) -> dict[str, Any]:
+    t0 = time.perf_counter()
+    s = main(settings)
+    wall = time.perf_counter() - t0
+    return {
+        "wall_s": wall,
+        "timings": s["timings"],
+        "queries": s["queries"]["queried"],
+        "latency_ms": s["queries"]["latency_ms"],
+        "step_latency_ms": s["queries"]["step_latency_ms"],
+        "bytes_per_query": s["bytes"]["per_query"],
+        "bytes_per_frame_slot": s["bytes"]["per_frame"],
+        "bytes_per_query_by_message": s["bytes"]["per_query_by_message"],
+        "balance_ratio": s["shard_load"]["balance_ratio"],
+        "partial_queries_per_shard": s["shard_load"]["partial_queries"],
+        "missing_slots": s["queries"]["missing_slots"],
+        "offline_check": s.get("offline_check"),
+    }
+
+
+def main_bench() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "swarm.json")
+    ap.add_argument("--rate", type=float, default=2.0, help="paced run: frames per second per robot")
+    ap.add_argument("--paced-frames", type=int, default=600, help="paced run: frames of the sequence")
+    args = ap.parse_args()
+    if not TUM_ZIP.exists():
+        raise SystemExit(f"the TUM constellations are needed at {TUM_ZIP}")
+    result: dict[str, Any] = {
+        "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
+        "dataset": TUM_ZIP.name,
+        "robots": 10,
+    }
+    with tempfile.TemporaryDirectory() as tmp:
+        print("baseline: bare zenoh request/reply through a router ...", flush=True)
+        result["bare_round_trip_ms"] = bare_round_trip()
+        print("baseline: offline decentralized evaluation ...", flush=True)
+        result["offline_decentralized_wall_s"] = offline_wall(TUM_ZIP)
+        print("swarm, lock-step, whole sequence ...", flush=True)
+        lock = _run(SwarmSettings(dataset=str(TUM_ZIP), robots=10, out=Path(tmp) / "lockstep", plots=False))
+        result["lockstep"] = lock
+        print(f"swarm, paced at {args.rate:g} frames/s per robot ...", flush=True)
+        paced = _run(
+            SwarmSettings(
+                dataset=str(TUM_ZIP),
+                robots=10,
+                frames=args.paced_frames,
+                pace=f"{args.rate:g}",
+                out=Path(tmp) / "paced",
+                plots=False,
+            )
+        )
+        paced["rate_hz_per_robot"] = args.rate
+        result["paced"] = paced
+    bare = result["bare_round_trip_ms"]["p50_ms"]
+    result["ratios"] = {
+        "lockstep_wall_over_offline": lock["wall_s"] / result["offline_decentralized_wall_s"],
+        "paced_query_p50_over_bare_round_trip": paced["latency_ms"]["p50"] / bare,
+        "lockstep_query_p50_over_bare_round_trip": lock["latency_ms"]["p50"] / bare,
+        "bytes_per_query_over_paper_model_490": lock["bytes_per_query"] / 490.0,
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    print(
+        json.dumps(
+            {k: result[k] for k in ("bare_round_trip_ms", "offline_decentralized_wall_s", "ratios")}, indent=2
+        )
+    )
+    print(
+        f"lock-step: wall {lock['wall_s']:.1f} s, query p50 {lock['latency_ms']['p50']:.2f} ms, "
+        f"{lock['bytes_per_query']:.1f} B/query, balance {lock['balance_ratio']:.2f}, "
+        f"identical to offline: {lock['offline_check'] and lock['offline_check']['identical']}"
+    )
+    print(f"paced: query p50 {paced['latency_ms']['p50']:.2f} ms, p99 {paced['latency_ms']['p99']:.2f} ms")
+    print(f"written to {args.out}")
+
+
+if __name__ == "__main__":
+    main_bench()

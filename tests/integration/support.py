@@ -1,0 +1,152 @@
+"""Helpers the integration tests share: raw requests, metrics, polling, datasets.
+
+Nothing here sleeps to synchronise: :func:`wait_until` polls a condition
+against a deadline, and requests wait on zenoh's own reply stream.
+"""
+
+from __future__ import annotations
+
+import time
+import urllib.request
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TypeVar
+
+import zenoh
+
+# protobuf ships no type stubs (see swarmrec/services/rpc.py for the two codes).
+from google.protobuf.message import Message  # type: ignore[import-untyped, unused-ignore]
+from prometheus_client.parser import text_string_to_metric_families
+
+from swarmrec.services import keys
+from swarmrec.services.rpc import NoReply
+from swarmrec.swarm.processes import LocalSwarm, ServiceProcess
+from swarmrec.synthetic import OfficeConfig, generate_office, write_dataset
+from swarmrec.wire import messages as pb
+from swarmrec.wire.codec import schema_name
+
+T = TypeVar("T")
+
+ERROR_SCHEMA = schema_name(pb.ErrorReply)
+
+
+@dataclass(frozen=True)
+class Answer:
+    """What one raw request got back: a reply payload or an ErrorReply."""
+
+    ok: bytes | None
+    schema: str
+    error: pb.ErrorReply | None
+
+    @property
+    def code(self) -> str:
+        """The ErrorCode name of an error answer; "" for a reply."""
+        return pb.ErrorCode.Name(self.error.code) if self.error is not None else ""
+
+
+def protobuf(schema: str) -> zenoh.Encoding:
+    """``application/protobuf;<schema>``, the encoding every v1 payload travels with."""
+    return zenoh.Encoding.APPLICATION_PROTOBUF.with_schema(schema)
+
+
+def raw_request(
+    session: zenoh.Session,
+    key: str,
+    payload: bytes,
+    encoding: zenoh.Encoding | None,
+    timeout_s: float = 5.0,
+) -> Answer:
+    """Send ``payload`` as is to ``key``; exactly one answer is expected.
+
+    Zero replies raise NoReply (never read as success), a zenoh timeout raises
+    AssertionError; an error reply must carry a decodable ErrorReply.
+    """
+    replies = list(session.get(key, payload=payload, encoding=encoding, timeout=timeout_s))
+    if not replies:
+        raise NoReply(key, "no service answered")
+    assert len(replies) == 1, f"{key}: {len(replies)} replies to one request"
+    rep = replies[0]
+    if rep.ok is not None:
+        return Answer(rep.ok.payload.to_bytes(), str(rep.ok.encoding).partition(";")[2], None)
+    err = rep.err
+    assert err is not None
+    schema = str(err.encoding).partition(";")[2]
+    data = err.payload.to_bytes()
+    assert schema == ERROR_SCHEMA, f"{key}: error reply {data[:200]!r} with encoding {err.encoding}"
+    return Answer(None, schema, pb.ErrorReply.FromString(data))
+
+
+def request(session: zenoh.Session, key: str, msg: Message, timeout_s: float = 5.0) -> Answer:
+    """A well-formed request: ``msg`` with its schema in the encoding."""
+    return raw_request(session, key, msg.SerializeToString(), protobuf(schema_name(msg)), timeout_s)
+
+
+def reply_of(answer: Answer, cls: type[T]) -> T:
+    """The decoded reply of a successful answer; fails the test on an error."""
+    assert answer.error is None, f"expected a {cls.__name__}, got {answer.code}: {answer.error.message}"
+    assert answer.ok is not None
+    assert answer.schema == schema_name(cls), answer.schema
+    msg: T = cls.FromString(answer.ok)  # type: ignore[attr-defined]
+    return msg
+
+
+def metrics_of(url: str) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+    """Every sample of one Prometheus endpoint: ``{(name, sorted labels): value}``."""
+    with urllib.request.urlopen(url, timeout=5.0) as resp:
+        text = resp.read().decode("utf-8")
+    out: dict[tuple[str, tuple[tuple[str, str], ...]], float] = {}
+    for family in text_string_to_metric_families(text):
+        for s in family.samples:
+            out[(s.name, tuple(sorted(s.labels.items())))] = float(s.value)
+    return out
+
+
+def metric(url: str, name: str, **labels: str) -> float:
+    """Sum of ``name`` over the series whose labels include ``labels`` (0 when none)."""
+    return sum(
+        v
+        for (n, lab), v in metrics_of(url).items()
+        if n == name and all(dict(lab).get(k) == val for k, val in labels.items())
+    )
+
+
+def metrics_url(sp: ServiceProcess) -> str:
+    url = sp.info.get("metrics_url")
+    assert isinstance(url, str) and url, f"{sp.name} printed no metrics_url: {sp.info}"
+    return url
+
+
+def wait_until(condition: Callable[[], T], timeout_s: float, what: str, every_s: float = 0.05) -> T:
+    """Poll ``condition`` until it returns something truthy; fail after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"not {what} after {timeout_s:g} s")
+        time.sleep(every_s)
+
+
+def answering(session: zenoh.Session, key: str, msg: Message, timeout_s: float = 30.0) -> Answer:
+    """``request`` retried while nobody answers yet (a service just (re)started
+    is discovered by the router a moment after its readiness line)."""
+
+    def attempt() -> Answer | None:
+        try:
+            return request(session, key, msg)
+        except NoReply:
+            return None
+
+    return wait_until(attempt, timeout_s, f"answered at {key}", every_s=0.1)
+
+
+def endpoint_key(swarm: LocalSwarm, kind: str, robot: int, name: str) -> str:
+    return keys.endpoint(swarm.base.swarm, kind, robot, name)
+
+
+def write_office(folder: Path, n_frames: int = 200) -> Path:
+    """The synthetic office world as constellation files (what ``swarmrec synth`` writes)."""
+    write_dataset(generate_office(OfficeConfig(n_frames=n_frames)), folder)
+    return folder

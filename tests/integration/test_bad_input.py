@@ -1,0 +1,421 @@
+"""Bad input to every queryable of every robot service, over a real router.
+
+One 2-robot swarm (all four services per robot, real processes, a 4096-byte
+request limit) is started for the module and fed six lock-step steps of the
+synthetic office, so shards and verifiers hold data. Each case then sends one
+bad request and checks that
+
+* it comes back as an ErrorReply (encoding ``swarmrec.v1.ErrorReply``) with
+  the expected ErrorCode,
+* the rejection is counted in ``swarmrec_rejected_requests_total{endpoint,code}``
+  on the service's own metrics endpoint (and nothing else is),
+* nothing stored changed: stored-count gauges, the frames queried, every
+  shard's full candidate list and every verifier's answer are identical,
+* every service still answers a valid request.
+
+Positions are integer millimetres on the wire, so a NaN cannot travel in a
+Constellation; a dataset with a non-finite coordinate is refused when the
+detector loads it (the last tests). NaN does travel in float fields
+(VerifyRequest.distance_threshold_m, ReplayRequest.rate_hz,
+LoopClosuresRequest.min_score) and is refused there.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+import zenoh
+
+# protobuf ships no type stubs (see swarmrec/services/rpc.py for the two codes).
+from google.protobuf.message import DecodeError, Message  # type: ignore[import-untyped, unused-ignore]
+
+from swarmrec.client import SwarmClient
+from swarmrec.core.descriptor import semantic_descriptor
+from swarmrec.core.split import split_frames
+from swarmrec.datasets.constellations import read_constellations
+from swarmrec.services.common import MAX_FRAME_INDEX, MAX_N_RET
+from swarmrec.services.config import ServiceSettings
+from swarmrec.swarm.processes import LocalSwarm, SwarmStartError
+from swarmrec.wire import messages as pb
+from swarmrec.wire.codec import constellation_to_proto, partial_descriptor_to_proto, schema_name
+from tests.integration.support import (
+    Answer,
+    endpoint_key,
+    metric,
+    metrics_of,
+    metrics_url,
+    protobuf,
+    raw_request,
+    reply_of,
+    request,
+    write_office,
+)
+
+N_ROBOTS, N_LABELS, LIMIT = 2, 80, 4096
+BOUNDS = (0, 40, 80)  # even ranges of 80 labels over 2 robots
+SEEDED_STEPS = 6
+PROBE_STEP = 2  # each robot's frame used to probe its verifier
+
+
+@dataclass
+class Swarm:
+    """The module's running swarm and what the cases need to know about it."""
+
+    local: LocalSwarm
+    client: SwarmClient
+    frames: dict[int, pb.Constellation]  # robot -> wire form of its PROBE_STEP frame
+
+    @property
+    def session(self) -> zenoh.Session:
+        return self.client.session
+
+    def key(self, kind: str, robot: int, endpoint: str) -> str:
+        return endpoint_key(self.local, kind, robot, endpoint)
+
+    def url(self, kind: str, robot: int) -> str:
+        return metrics_url(self.local.find(kind, robot))
+
+
+@pytest.fixture(scope="module")
+def swarm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Swarm]:
+    tmp = tmp_path_factory.mktemp("bad-input")
+    dataset = write_office(tmp / "dataset", n_frames=200)
+    base = ServiceSettings(
+        swarm="bad-input", n_robots=N_ROBOTS, lockstep=True, request_timeout_s=2.0, max_message_bytes=LIMIT
+    )
+    local = LocalSwarm(base, data_dir=tmp / "data", log_dir=tmp / "logs", dataset=str(dataset))
+    try:
+        local.start(timeout_s=90)
+        with SwarmClient([local.endpoint], base.swarm, timeout_s=5.0) as client:
+            client.wait_for({(k, r) for k in local.services for r in range(N_ROBOTS)})
+            for t in range(SEEDED_STEPS):
+                replies = client.step(t, timeout_s=10)
+                assert sorted(r.robot_id for r in replies if isinstance(r, pb.StepReply)) == [0, 1], replies
+            seq = read_constellations(dataset)
+            blocks = split_frames(len(seq), N_ROBOTS)
+            frames = {
+                r: constellation_to_proto(seq.constellations[blocks[r][PROBE_STEP]], r, PROBE_STEP)
+                for r in range(N_ROBOTS)
+            }
+            assert all(len(f.labels) >= 3 for f in frames.values())  # they verify against themselves
+            yield Swarm(local, client, frames)
+    finally:
+        local.stop()
+
+
+# --- what must not change -------------------------------------------------------
+
+
+def _full_range_query(robot: int) -> pb.PartialQuery:
+    """A read-only query holding every label of shard ``robot``'s range once: it
+    overlaps every stored slice, so its candidates (n_ret 256) list the shard's content."""
+    lo, hi = BOUNDS[robot], BOUNDS[robot + 1]
+    return pb.PartialQuery(
+        n_ret=MAX_N_RET,
+        read_only=True,
+        include_scores=True,
+        descriptor=partial_descriptor_to_proto([1] * N_LABELS, lo, hi, robot=0, frame=0, query_step=0),
+    )
+
+
+def snapshot(s: Swarm) -> dict[str, Any]:
+    """Everything a bad request could have changed, read through valid requests."""
+    out: dict[str, Any] = {}
+    for r in range(N_ROBOTS):
+        cands = reply_of(
+            request(s.session, s.key("index-shard", r, "query"), _full_range_query(r)), pb.CandidatesReply
+        )
+        out[f"shard {r} candidates"] = cands.SerializeToString()
+        ver = reply_of(
+            request(
+                s.session,
+                s.key("verifier", r, "verify"),
+                pb.VerifyRequest(query=s.frames[r], include_pairs=True),
+            ),
+            pb.VerifyReply,
+        )
+        out[f"verifier {r} answer"] = ver.SerializeToString()
+        closures = reply_of(
+            request(s.session, s.key("descriptor", r, "loop_closures"), pb.LoopClosuresRequest()),
+            pb.LoopClosureList,
+        )
+        out[f"descriptor {r} loop closures"] = closures.SerializeToString()
+        out[f"shard {r} stored"] = metric(s.url("index-shard", r), "swarmrec_shard_stored_descriptors")
+        out[f"shard {r} stored queries"] = metric(
+            s.url("index-shard", r), "swarmrec_shard_partial_queries_total"
+        )
+        out[f"verifier {r} stored"] = metric(s.url("verifier", r), "swarmrec_verifier_stored_frames")
+        out[f"descriptor {r} frames queried"] = metric(
+            s.url("descriptor", r), "swarmrec_query_duration_seconds_count"
+        )
+    # The seeded frames are really there (the comparison is about something).
+    assert out["shard 0 stored"] > 0 and out["shard 1 stored"] > 0
+    assert out["verifier 0 stored"] == out["verifier 1 stored"] == SEEDED_STEPS
+    # The read-only probes themselves count as partial queries; take them out of the comparison.
+    return out
+
+
+def rejected(url: str) -> dict[tuple[str, str], float]:
+    """``swarmrec_rejected_requests_total`` of one service by (endpoint, code)."""
+    return {
+        (dict(labels)["endpoint"], dict(labels)["code"]): v
+        for (name, labels), v in metrics_of(url).items()
+        if name == "swarmrec_rejected_requests_total"
+    }
+
+
+def still_serves(s: Swarm) -> None:
+    """Every service answers a valid request with no side effect."""
+    for r in range(N_ROBOTS):
+        # A step past the end of the replay answers "finished" and sends nothing.
+        step = reply_of(request(s.session, s.key("detector", r, "step"), pb.StepRequest(step=10**6)), pb.StepReply)
+        assert step.finished and step.robot_id == r
+    # Shards, verifiers and descriptors answered valid requests in snapshot().
+
+
+# --- the bad requests ---------------------------------------------------------
+
+
+def garbage(cls: type[Message], size: int = 64) -> bytes:
+    """Seeded random bytes that do not parse as ``cls`` (checked here, not assumed)."""
+    rng = random.Random(f"{schema_name(cls)}-{size}")
+    while True:
+        data = rng.randbytes(size)
+        try:
+            cls.FromString(data)
+        except DecodeError:
+            return data
+
+
+def partial(lo: int, hi: int, offsets: list[int], counts: list[int], **fields: int) -> pb.PartialQuery:
+    desc = pb.PartialDescriptor(label_lo=lo, label_hi=hi, label_offsets=offsets, counts=counts)
+    for name, value in fields.items():
+        setattr(desc, name, value)
+    return pb.PartialQuery(descriptor=desc, read_only=False)
+
+
+def constellation(robot: int, frame: int = 3, labels: list[int] | None = None, n_coords: int | None = None) -> pb.Constellation:
+    labels = [0, 41, 56] if labels is None else labels
+    n = 3 * len(labels) if n_coords is None else n_coords
+    return pb.Constellation(robot_id=robot, frame_index=frame, labels=labels, positions_mm=list(range(n)))
+
+
+def big(msg: Message) -> Message:
+    assert msg.ByteSize() > LIMIT
+    return msg
+
+
+@dataclass(frozen=True)
+class Case:
+    kind: str
+    robot: int
+    endpoint: str
+    payload: Callable[[], bytes]
+    encoding: str | None  # schema in application/protobuf;<schema>; None: no encoding at all
+    code: str
+
+    def send(self, s: Swarm) -> Answer:
+        enc = protobuf(self.encoding) if self.encoding is not None else None
+        return raw_request(s.session, s.key(self.kind, self.robot, self.endpoint), self.payload(), enc)
+
+
+def msg_case(kind: str, robot: int, endpoint: str, make: Callable[[], Message], code: str) -> Case:
+    """A message sent with its own schema in the encoding."""
+    return Case(kind, robot, endpoint, lambda: make().SerializeToString(), schema_name(make()), code)
+
+
+REQUEST_OF = {
+    ("index-shard", "query"): pb.PartialQuery,
+    ("verifier", "store"): pb.Constellation,
+    ("verifier", "verify"): pb.VerifyRequest,
+    ("descriptor", "process"): pb.Constellation,
+    ("descriptor", "loop_closures"): pb.LoopClosuresRequest,
+    ("detector", "step"): pb.StepRequest,
+    ("detector", "replay"): pb.ReplayRequest,
+}
+# A well-formed message of another endpoint, sent with its schema in the encoding.
+WRONG_SCHEMA = {
+    pb.PartialQuery: pb.VerifyRequest(query=constellation(1)),
+    pb.Constellation: pb.PartialQuery(descriptor=pb.PartialDescriptor(label_lo=40, label_hi=80)),
+    pb.VerifyRequest: pb.Constellation(robot_id=1, labels=[1], positions_mm=[1, 2, 3]),
+    pb.LoopClosuresRequest: pb.StepRequest(step=1),
+    pb.StepRequest: pb.ReplayRequest(rate_hz=1.0),
+    pb.ReplayRequest: pb.StepRequest(step=0),
+}
+
+CASES: dict[str, Case] = {}
+for (_kind, _ep), _cls in REQUEST_OF.items():
+    _r = 1
+    CASES[f"{_kind} {_ep}: random bytes"] = Case(
+        _kind, _r, _ep, lambda c=_cls: garbage(c), schema_name(_cls), "ERROR_CODE_MALFORMED"
+    )
+    CASES[f"{_kind} {_ep}: random bytes with no encoding"] = Case(
+        _kind, _r, _ep, lambda c=_cls: garbage(c, 97), None, "ERROR_CODE_MALFORMED"
+    )
+    _wrong = WRONG_SCHEMA[_cls]
+    CASES[f"{_kind} {_ep}: a {type(_wrong).__name__} in its encoding"] = Case(
+        _kind, _r, _ep, lambda m=_wrong: m.SerializeToString(), schema_name(_wrong),
+        "ERROR_CODE_INVALID_ARGUMENT",
+    )  # fmt: skip
+    CASES[f"{_kind} {_ep}: random bytes over the size limit"] = Case(
+        _kind, _r, _ep, lambda: random.Random(7).randbytes(LIMIT + 1), schema_name(_cls),
+        "ERROR_CODE_TOO_LARGE",
+    )  # fmt: skip
+
+SHARD, VER, DESC, DET = "index-shard", "verifier", "descriptor", "detector"
+_INVALID, _UNKNOWN, _TOO_LARGE = "ERROR_CODE_INVALID_ARGUMENT", "ERROR_CODE_UNKNOWN_LABEL", "ERROR_CODE_TOO_LARGE"
+_SPECIFIC = [
+    # index-shard query (robot 1 owns labels [40, 80), robot 0 [0, 40))
+    ("shard query: empty payload (no descriptor)", SHARD, 1, "query", lambda: pb.PartialQuery(), _INVALID),
+    ("shard query: a label past the label list", SHARD, 1, "query", lambda: partial(40, 90, [45], [1]), _UNKNOWN),
+    ("shard query: a label outside the slice's range", SHARD, 0, "query", lambda: partial(0, 40, [45], [1]), _INVALID),
+    ("shard query: the other shard's label range", SHARD, 1, "query", lambda: partial(0, 40, [1], [1]), _INVALID),
+    ("shard query: an empty label range", SHARD, 1, "query", lambda: partial(40, 40, [], []), _INVALID),
+    ("shard query: a slice with no labels", SHARD, 1, "query", lambda: partial(40, 80, [], []), _INVALID),
+    ("shard query: more labels than counts", SHARD, 1, "query", lambda: partial(40, 80, [1, 2], [1]), _INVALID),
+    ("shard query: a zero count", SHARD, 1, "query", lambda: partial(40, 80, [1], [0]), _INVALID),
+    ("shard query: a label listed twice", SHARD, 1, "query", lambda: partial(40, 80, [1, 1], [1, 2]), _INVALID),
+    ("shard query: robot id >= n_robots", SHARD, 1, "query",
+     lambda: partial(40, 80, [1], [1], robot_id=N_ROBOTS), _INVALID),
+    ("shard query: frame index 2**20", SHARD, 1, "query",
+     lambda: partial(40, 80, [1], [1], frame_index=MAX_FRAME_INDEX), _INVALID),
+    ("shard query: query step 2**20", SHARD, 1, "query",
+     lambda: partial(40, 80, [1], [1], query_step=MAX_FRAME_INDEX), _INVALID),
+    ("shard query: n_ret 257", SHARD, 1, "query",
+     lambda: pb.PartialQuery(n_ret=MAX_N_RET + 1, descriptor=partial(40, 80, [1], [1]).descriptor), _INVALID),
+    ("shard query: a well-formed query over the size limit", SHARD, 1, "query",
+     lambda: big(partial(40, 80, list(range(40)) * 60, [1] * 2400)), _TOO_LARGE),
+    # verifier store
+    ("verifier store: empty payload (robot 0's frame) to robot 1", VER, 1, "store",
+     lambda: pb.Constellation(), _INVALID),
+    ("verifier store: label index 80 of 80", VER, 1, "store", lambda: constellation(1, labels=[1, 80, 2]), _UNKNOWN),
+    ("verifier store: 7 coordinates for 3 labels", VER, 1, "store", lambda: constellation(1, n_coords=7), _INVALID),
+    ("verifier store: robot id >= n_robots", VER, 1, "store", lambda: constellation(N_ROBOTS), _INVALID),
+    ("verifier store: frame index 2**20", VER, 1, "store",
+     lambda: constellation(1, frame=MAX_FRAME_INDEX), _INVALID),
+    ("verifier store: a well-formed frame over the size limit", VER, 1, "store",
+     lambda: big(constellation(1, labels=[1] * 1000)), _TOO_LARGE),
+    # verifier verify
+    ("verifier verify: empty payload (no query)", VER, 1, "verify", lambda: pb.VerifyRequest(), _INVALID),
+    ("verifier verify: a query label index 80 of 80", VER, 1, "verify",
+     lambda: pb.VerifyRequest(query=constellation(0, labels=[80, 1, 2])), _UNKNOWN),
+    ("verifier verify: 2 coordinates for 3 labels", VER, 1, "verify",
+     lambda: pb.VerifyRequest(query=constellation(0, n_coords=2)), _INVALID),
+    ("verifier verify: query robot id >= n_robots", VER, 1, "verify",
+     lambda: pb.VerifyRequest(query=constellation(N_ROBOTS)), _INVALID),
+    ("verifier verify: query frame index 2**20", VER, 1, "verify",
+     lambda: pb.VerifyRequest(query=constellation(0, frame=MAX_FRAME_INDEX)), _INVALID),
+    ("verifier verify: NaN distance threshold", VER, 1, "verify",
+     lambda: pb.VerifyRequest(query=constellation(0), distance_threshold_m=math.nan), _INVALID),
+    ("verifier verify: negative distance threshold", VER, 1, "verify",
+     lambda: pb.VerifyRequest(query=constellation(0), distance_threshold_m=-0.25), _INVALID),
+    ("verifier verify: a well-formed request over the size limit", VER, 1, "verify",
+     lambda: big(pb.VerifyRequest(query=constellation(0), candidate_frame_indices=range(3000))), _TOO_LARGE),
+    # descriptor process
+    ("descriptor process: empty payload (robot 0's frame) to robot 1", DESC, 1, "process",
+     lambda: pb.Constellation(), _INVALID),
+    ("descriptor process: label index 80 of 80", DESC, 1, "process",
+     lambda: constellation(1, labels=[80, 1, 2]), _UNKNOWN),
+    ("descriptor process: 10 coordinates for 3 labels", DESC, 1, "process",
+     lambda: constellation(1, n_coords=10), _INVALID),
+    ("descriptor process: robot id >= n_robots", DESC, 1, "process", lambda: constellation(N_ROBOTS), _INVALID),
+    ("descriptor process: frame index 2**20", DESC, 1, "process",
+     lambda: constellation(1, frame=MAX_FRAME_INDEX), _INVALID),
+    ("descriptor process: a well-formed frame over the size limit", DESC, 1, "process",
+     lambda: big(constellation(1, labels=[1] * 1000)), _TOO_LARGE),
+    # descriptor loop_closures
+    ("descriptor loop_closures: NaN min score", DESC, 1, "loop_closures",
+     lambda: pb.LoopClosuresRequest(min_score=math.nan), _INVALID),
+    # detector step / replay
+    ("detector replay: NaN rate", DET, 1, "replay", lambda: pb.ReplayRequest(rate_hz=math.nan), _INVALID),
+    ("detector replay: infinite rate", DET, 1, "replay", lambda: pb.ReplayRequest(rate_hz=math.inf), _INVALID),
+    ("detector replay: negative rate", DET, 1, "replay", lambda: pb.ReplayRequest(rate_hz=-1.0), _INVALID),
+]  # fmt: skip
+for _name, _kind, _r, _ep, _make, _code in _SPECIFIC:
+    CASES[_name] = msg_case(_kind, _r, _ep, _make, _code)
+
+# Every queryable of every robot service kind is covered (info is read-only and takes no payload).
+assert {(c.kind, c.endpoint) for c in CASES.values()} == set(REQUEST_OF)
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_bad_request_gets_its_error_code_is_counted_and_changes_nothing(swarm: Swarm, name: str) -> None:
+    case = CASES[name]
+    url = swarm.url(case.kind, case.robot)
+    before, counted_before = snapshot(swarm), rejected(url)
+
+    answer = case.send(swarm)
+
+    assert answer.error is not None, f"{name}: answered with a {answer.schema}, not an ErrorReply"
+    assert answer.code == case.code, f"{name}: {answer.code}: {answer.error.message}"
+    assert answer.error.message  # says why
+    counted = rejected(url)
+    key = (case.endpoint, case.code)
+    assert counted.get(key, 0) == counted_before.get(key, 0) + 1
+    assert sum(counted.values()) == sum(counted_before.values()) + 1
+    after = snapshot(swarm)
+    # The probes of snapshot() are themselves partial queries; nothing else may have been.
+    for r in range(N_ROBOTS):
+        after[f"shard {r} stored queries"] -= 1
+    assert after == before
+    still_serves(swarm)
+
+
+def test_a_step_past_the_end_of_the_replay_answers_finished_and_stores_nothing(swarm: Swarm) -> None:
+    before = snapshot(swarm)
+    for step in (200, MAX_FRAME_INDEX, 2**32 - 1):
+        reply = reply_of(
+            request(swarm.session, swarm.key("detector", 0, "step"), pb.StepRequest(step=step)), pb.StepReply
+        )
+        assert reply.finished and reply.step == step and not reply.HasField("report")
+    after = snapshot(swarm)
+    for r in range(N_ROBOTS):
+        after[f"shard {r} stored queries"] -= 1
+    assert after == before
+
+
+def test_after_all_the_bad_input_the_swarm_still_runs_a_lock_step_step(swarm: Swarm) -> None:
+    stored_before = {r: metric(swarm.url("verifier", r), "swarmrec_verifier_stored_frames") for r in range(N_ROBOTS)}
+    replies = swarm.client.step(SEEDED_STEPS, timeout_s=10)
+    steps = [r for r in replies if isinstance(r, pb.StepReply)]
+    assert sorted(r.robot_id for r in steps) == [0, 1], replies
+    for reply in steps:
+        assert not reply.finished and reply.report.frame_index == SEEDED_STEPS
+        assert not reply.report.failed_shard_robot_ids and not reply.report.failed_verifier_robot_ids
+    for r in range(N_ROBOTS):
+        assert metric(swarm.url("verifier", r), "swarmrec_verifier_stored_frames") == stored_before[r] + 1
+    # Every rejection was logged as a warning, none as an internal error.
+    for sp in swarm.local.procs:
+        log = sp.log_path.read_text()
+        assert sp.robot == 0 or "rejected request" in log, sp.name
+        assert '"level": "ERROR"' not in log, f"{sp.name} logged an error:\n{sp.tail()}"
+
+
+# --- a dataset with a non-finite coordinate ------------------------------------
+
+
+@pytest.mark.parametrize("bad", ["nan", "inf", "-inf"])
+def test_a_detector_refuses_a_dataset_with_a_non_finite_coordinate_and_exits_with_a_clear_error(
+    local_swarm: LocalSwarm, tmp_path: Path, bad: str
+) -> None:
+    folder = tmp_path / "dataset"
+    folder.mkdir()
+    (folder / "1.000.txt").write_text("cup 0.1 0.2 1.5\nchair 1 2 3\nbook 0 0 1\n")
+    (folder / "2.000.txt").write_text(f"cup 0.1 0.2 1.5\nchair 1 {bad} 3\n")
+    local_swarm.dataset = str(folder)
+
+    (detector,) = local_swarm.start_robot(0, kinds=["detector"])
+    with pytest.raises(SwarmStartError, match="exited with code 2 before it was ready"):
+        local_swarm._wait([detector], 60)
+
+    assert detector.proc.wait(timeout=10) == 2
+    log = detector.log_path.read_text()
+    assert f"2.000.txt:2: non-finite coordinate in 'chair 1 {bad} 3'" in log
+    assert "swarmrec serve: error:" in log and "Traceback" not in log
+    assert not detector.ready.is_set()

@@ -1,0 +1,106 @@
+"""Key expressions of the v1 swarm: their layout, the liveliness parser, and
+that two swarms sharing a router can never reach each other's keys."""
+
+from __future__ import annotations
+
+import itertools
+
+import pytest
+import zenoh
+
+from swarmrec.errors import ConfigError
+from swarmrec.services.keys import (
+    KINDS,
+    alive,
+    alive_all,
+    endpoint,
+    event,
+    parse_alive,
+    validate_swarm_name,
+)
+
+
+def test_endpoint_keys_are_swarm_kind_robot_name() -> None:
+    assert endpoint("lab", "index-shard", 3, "query") == "swarmrec/v1/lab/index-shard/3/query"
+    assert endpoint("lab", "verifier", "*", "verify") == "swarmrec/v1/lab/verifier/*/verify"
+
+
+def test_endpoint_accepts_a_robot_id_given_as_a_digit_string() -> None:
+    assert endpoint("lab", "verifier", "7", "verify") == "swarmrec/v1/lab/verifier/7/verify"
+
+
+def test_endpoint_refuses_a_robot_that_is_neither_an_id_nor_a_wildcard() -> None:
+    with pytest.raises(ValueError, match="invalid literal"):
+        endpoint("lab", "verifier", "**", "verify")
+
+
+def test_liveliness_and_event_keys() -> None:
+    assert alive("lab", "verifier", 12) == "swarmrec/v1/lab/alive/verifier/12"
+    assert alive_all("lab") == "swarmrec/v1/lab/alive/**"
+    assert event("lab", "loop-closure", 4) == "swarmrec/v1/lab/events/loop-closure/4"
+    assert event("lab", "loop-closure", "*") == "swarmrec/v1/lab/events/loop-closure/*"
+
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("robot", [0, 9, 4_000_000_000])
+def test_parse_alive_reads_back_every_kind_and_robot(kind: str, robot: int) -> None:
+    assert parse_alive(alive("lab", kind, robot)) == (kind, robot)
+
+
+@pytest.mark.parametrize(
+    "key",
+    [
+        "swarmrec/v1/lab/verifier/3/verify",  # an endpoint
+        "swarmrec/v1/lab/events/loop-closure/3",  # an event
+        "swarmrec/v1/lab/alive/verifier/*",  # a selector, not a token
+        "swarmrec/v1/lab/alive/verifier/-1",
+        "swarmrec/v1/lab/alive/verifier/3/extra",
+        "swarmrec/v1/lab/alive/verifier",
+        "swarmrec/v1/lab/alive/verifier/",
+        "",
+    ],
+)
+def test_parse_alive_returns_none_for_any_other_key(key: str) -> None:
+    assert parse_alive(key) is None
+
+
+@pytest.mark.parametrize("name", ["lab", "a", "A-b_9", "x" * 64])
+def test_a_plain_key_segment_is_a_valid_swarm_name(name: str) -> None:
+    assert validate_swarm_name(name) == name
+
+
+@pytest.mark.parametrize(
+    "name", ["", "x" * 65, "lab/a", "lab*", "*", "**", "$*", "lab a", "lab?", "lab#", "lab/", "ä", "lab\n"]
+)
+def test_a_swarm_name_with_anything_but_letters_digits_dash_underscore_is_refused(name: str) -> None:
+    with pytest.raises(ConfigError, match=r"swarm name must be 1-64 of A-Z a-z 0-9 _ -, got "):
+        validate_swarm_name(name)
+
+
+def every_key(swarm: str) -> list[str]:
+    """Every key and selector a swarm's services declare, query or subscribe to."""
+    out = [alive_all(swarm)]
+    for kind in KINDS:
+        for robot in (0, 1, "*"):
+            out.append(endpoint(swarm, kind, robot, "query"))
+            out.append(event(swarm, "loop-closure", robot))
+        out.append(alive(swarm, kind, 0))
+    return out
+
+
+# Names chosen to be prefixes, case variants and near-misses of each other.
+SWARMS = ["lab", "lab2", "lab-2", "lab_2", "Lab", "l", "alive", "events", "v1", "swarmrec", "-", "_"]
+
+
+def test_two_swarm_names_never_produce_intersecting_keys() -> None:
+    for a, b in itertools.permutations(SWARMS, 2):
+        for ka, kb in itertools.product(every_key(a), every_key(b)):
+            assert not zenoh.KeyExpr(ka).intersects(zenoh.KeyExpr(kb)), (ka, kb)
+
+
+def test_keys_of_one_swarm_reach_each_other() -> None:
+    # The check above is not vacuous: the same selectors do match within a swarm.
+    k = zenoh.KeyExpr
+    assert k(endpoint("lab", "verifier", "*", "query")).includes(k(endpoint("lab", "verifier", 3, "query")))
+    assert k(alive_all("lab")).includes(k(alive("lab", "index-shard", 3)))
+    assert k(event("lab", "loop-closure", "*")).intersects(k(event("lab", "loop-closure", 2)))
