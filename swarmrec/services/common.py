@@ -35,9 +35,12 @@ def label_bounds_of(settings: ServiceSettings) -> IntArray:
 
 def wire_error(e: WireError) -> RequestError:
     """The error reply for a message that decoded but does not validate."""
+    # A label outside the list, or a label range ending past it, names labels the
+    # receiver does not know.
+    text = str(e)
     code = (
         pb.ErrorCode.ERROR_CODE_UNKNOWN_LABEL
-        if "outside the label list" in str(e)
+        if "outside the label list" in text or "past the label list" in text
         else pb.ErrorCode.ERROR_CODE_INVALID_ARGUMENT
     )
     return RequestError(code, str(e))

@@ -128,8 +128,9 @@ class ServiceSettings:
             problems.append(f"workers must be >= 1, got {self.workers}")
         if not (math.isfinite(self.request_timeout_s) and self.request_timeout_s > 0):
             problems.append(f"request_timeout_s must be > 0, got {self.request_timeout_s}")
-        if self.max_message_bytes < 1024:
-            problems.append(f"max_message_bytes must be >= 1024, got {self.max_message_bytes}")
+        if not 1024 <= self.max_message_bytes <= 1 << 24:
+            # Above 16 MiB a stored record would not fit the record log (services/storage.py).
+            problems.append(f"max_message_bytes must be 1024 .. {1 << 24}, got {self.max_message_bytes}")
         if self.frames_per_robot < 0:
             problems.append(f"frames_per_robot must be >= 0, got {self.frames_per_robot}")
         try:
@@ -178,6 +179,9 @@ def _convert(name: str, value: Any) -> Any:
             return Path(value) if str(value) else None
         if origin is Literal:
             return str(value)
+        if base is int and (isinstance(value, bool) or (isinstance(value, float) and not value.is_integer())):
+            # TOML gives typed values: int(2.9) or int(True) would silently become 2 or 1.
+            raise ValueError(f"not an integer: {value!r}")
         return base(value)
     except (TypeError, ValueError) as e:
         raise ConfigError(f"setting {name}: cannot read {value!r} ({e})") from None

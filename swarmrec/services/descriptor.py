@@ -16,6 +16,7 @@ Endpoints:
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Sequence
@@ -129,6 +130,9 @@ class Descriptor:
             return
 
     def loop_closures(self, req: pb.LoopClosuresRequest, _ctx: RequestContext) -> pb.LoopClosureList:
+        if math.isnan(req.min_score):
+            # Every comparison with NaN is false: the answer would be an empty list, read as "none found".
+            raise invalid("min_score must be a number, got NaN")
         with self.lock:
             found = [c for c in self.closures if c.score >= req.min_score]
         return pb.LoopClosureList(robot_id=self.ctx.settings.robot, loop_closures=found)

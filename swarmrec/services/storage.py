@@ -18,10 +18,11 @@ import threading
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["RecordLog"]
+__all__ = ["MAX_RECORD_BYTES", "RecordLog"]
 
 _HEADER = struct.Struct("<I")
-_MAX_RECORD = 1 << 24
+#: Largest record; max_message_bytes is capped below it (services/config.py).
+MAX_RECORD_BYTES = _MAX_RECORD = 1 << 24
 
 
 class RecordLog:
@@ -82,6 +83,9 @@ class RecordLog:
 
     def append(self, record: bytes) -> None:
         """Append one record; it is in the file (and fsynced if asked) on return."""
+        if len(record) > _MAX_RECORD:
+            # The reader would stop at such a record and cut off everything after it.
+            raise ValueError(f"record of {len(record)} bytes exceeds the log's limit of {_MAX_RECORD}")
         if self._file is None:
             return
         with self._lock:

@@ -61,6 +61,9 @@ class Verifier:
         return pb.MemberInfo()
 
     def _constellation(self, msg: pb.Constellation) -> Constellation:
+        n_robots = self.ctx.settings.n_robots
+        if msg.robot_id >= n_robots:
+            raise invalid(f"robot {msg.robot_id} is not in this swarm of {n_robots} robots")
         if msg.frame_index >= MAX_FRAME_INDEX:
             raise invalid(f"frame index must be below {MAX_FRAME_INDEX}, got {msg.frame_index}")
         try:

@@ -40,6 +40,7 @@ _SHARED = (
     "metrics_host",
     "workers",
     "request_timeout_s",
+    "max_message_bytes",
     "lockstep",
     "loop_closure_min_score",
     "log_level",

@@ -369,8 +369,8 @@ def verify_match_to_proto(
     """One verified match, as the counts its scores are computed from (see
     :func:`match_scores`); ``pairs`` is an (n_matched, 2) array of
     (query object, matched object) indices, or None when not requested."""
-    if not 0 <= n_matched <= n_common <= n_union or n_union == 0:
-        raise WireError(f"match counts need 0 <= n_matched <= n_common <= n_union > 0, got "
+    if not 0 <= n_matched <= n_common <= n_union or n_common == 0:
+        raise WireError(f"match counts need 0 <= n_matched <= n_common <= n_union and n_common > 0, got "
                         f"{n_matched}, {n_common}, {n_union}")  # fmt: skip
     msg = verify_pb2.VerifyMatch(
         frame_index=_uint32("frame index", frame_index),

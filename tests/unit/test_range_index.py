@@ -9,10 +9,11 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-import swarmrec.evaluation.scoring as scoring
 from swarmrec.core.index import IndexCandidate, RangeIndex
 from swarmrec.core.presets import get_preset
+from swarmrec.core.selection import select_candidates_many
 from swarmrec.core.types import Constellation, ConstellationSequence
+from swarmrec.evaluation.scoring import score_decentralized
 
 IntArray = npt.NDArray[np.int64]
 FloatArray = npt.NDArray[np.float64]
@@ -47,7 +48,7 @@ def reference_candidates(values: FloatArray, t: int, n_ret: int) -> list[tuple[i
 def tie_straddles_the_cut(values: FloatArray, n_ret: int) -> bool:
     """More than n_ret positive scores reach the n_ret-th best: the sort picks among equals."""
     positive = np.sort(values[values > 0])[::-1]
-    return positive.shape[0] > n_ret and np.count_nonzero(positive >= positive[n_ret - 1]) > n_ret
+    return bool(positive.shape[0] > n_ret and np.count_nonzero(positive >= positive[n_ret - 1]) > n_ret)
 
 
 def as_tuples(found: list[IndexCandidate]) -> list[tuple[int, int, float]]:
@@ -106,7 +107,7 @@ def random_sequence(n_frames: int, seed: int) -> ConstellationSequence:
     for _ in range(n_frames):
         labels = places[rng.integers(len(places))]
         keep = rng.random(labels.shape[0]) < 0.6
-        frames.append(Constellation(labels[keep], rng.uniform(-1, 1, (int(keep.sum()), 3))))
+        frames.append(Constellation(labels[keep], rng.uniform(-1, 1, (np.count_nonzero(keep), 3))))
     return ConstellationSequence(
         frame_ids=tuple(f"{i}.0" for i in range(n_frames)),
         timestamps=np.arange(n_frames, dtype=float),
@@ -115,7 +116,9 @@ def random_sequence(n_frames: int, seed: int) -> ConstellationSequence:
     )
 
 
-@pytest.mark.parametrize(("n_frames", "n_robots", "n_ret", "seed"), [(90, 3, 2, 0), (83, 4, 4, 1), (61, 2, 1, 2)])
+@pytest.mark.parametrize(
+    ("n_frames", "n_robots", "n_ret", "seed"), [(90, 3, 2, 0), (83, 4, 4, 1), (61, 2, 1, 2)]
+)
 def test_a_lock_step_replay_returns_the_offline_evaluations_candidates(
     n_frames: int, n_robots: int, n_ret: int, seed: int, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -124,15 +127,14 @@ def test_a_lock_step_replay_returns_the_offline_evaluations_candidates(
 
     # What the offline evaluation selects: each call's values and chosen columns.
     calls: list[tuple[FloatArray, list[IntArray]]] = []
-    real = scoring.select_candidates_many
 
     def spy(values: FloatArray, n: int) -> list[IntArray]:
-        chosen = real(values, n)
+        chosen = select_candidates_many(values, n)
         calls.append((values.copy(), chosen))
         return chosen
 
-    monkeypatch.setattr(scoring, "select_candidates_many", spy)
-    run = scoring.score_decentralized(seq, n_robots, preset)
+    monkeypatch.setattr("swarmrec.evaluation.scoring.select_candidates_many", spy)
+    run = score_decentralized(seq, n_robots, preset)
 
     # The swarm in lock-step: every robot's step-t frame queries each range with a
     # non-empty slice (before=t), then the shard stores the slice.

@@ -100,7 +100,7 @@ def test_cutting_a_torn_record_is_logged(tmp_path: Path, caplog: pytest.LogCaptu
     with caplog.at_level(logging.WARNING, logger="test.storage"):
         RecordLog(path, log=logging.getLogger("test.storage")).close()
     assert [r.getMessage() for r in caplog.records] == ["cut a truncated record off the log"]
-    assert caplog.records[0].fields == {"path": str(path), "bytes": 7}
+    assert caplog.records[0].__dict__["fields"] == {"path": str(path), "bytes": 7}
 
 
 def test_a_log_of_whole_records_is_not_rewritten(tmp_path: Path) -> None:

@@ -214,7 +214,7 @@ def test_an_unknown_mode_is_refused() -> None:
 
 
 def test_an_unknown_preset_is_refused() -> None:
-    with pytest.raises(ConfigError, match="invalid settings: .*'nonsense'"):
+    with pytest.raises(ConfigError, match=r"invalid settings: .*'nonsense'"):
         load_settings(flags("--preset", "nonsense"), env={})
 
 

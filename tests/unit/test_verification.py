@@ -63,7 +63,9 @@ def test_eq5_counts_are_the_objects_in_common_and_in_either_frame() -> None:
 
 def test_results_are_best_first_with_equal_scores_by_frame() -> None:
     # 3 of the query's 4 objects, in place, among 5: semantic 3 / (4 + 5 - 3), all 3 matched.
-    half = make(("cup", 0, 0, 1), ("chair", 1, 0, 1), ("book", 0, 1, 1), ("laptop", 5, 5, 5), ("mouse", 6, 5, 5))
+    half = make(
+        ("cup", 0, 0, 1), ("chair", 1, 0, 1), ("book", 0, 1, 1), ("laptop", 5, 5, 5), ("mouse", 6, 5, 5)
+    )
     frames = [(7, half), (3, STORED), (5, Constellation.empty()), (1, STORED), (2, half)]
     got = verify(QUERY, (1, 0), 0, frames, N_LABELS, PAPER)
     assert [(m.frame, m.score) for m in got] == [(1, 1.0), (3, 1.0), (2, 0.5), (7, 0.5), (5, 0.0)]
