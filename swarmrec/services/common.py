@@ -11,7 +11,7 @@ from swarmrec.services.config import ServiceSettings
 from swarmrec.services.runner import RequestError
 from swarmrec.wire import messages as pb
 
-__all__ = ["MAX_FRAME_INDEX", "MAX_N_RET", "invalid", "label_bounds_of", "wire_error"]
+__all__ = ["MAX_FRAME_GAP", "MAX_FRAME_INDEX", "MAX_N_RET", "invalid", "label_bounds_of", "wire_error"]
 
 IntArray = npt.NDArray[np.int64]
 
@@ -22,6 +22,11 @@ MAX_N_RET = 256
 #: per-robot arrays indexed by frame, so one absurd index must not allocate gigabytes.
 #: 2**20 frames is 9.7 hours at 30 frames a second.
 MAX_FRAME_INDEX = 1 << 20
+
+#: A robot's frames arrive in order; a shard refuses a frame (or lock-step step) more
+#: than this far past the robot's highest stored frame, so one absurd index cannot
+#: make every later query scan millions of empty slots.
+MAX_FRAME_GAP = 4096
 
 
 def label_bounds_of(settings: ServiceSettings) -> IntArray:

@@ -15,7 +15,14 @@ from collections.abc import Sequence
 from swarmrec.core.index import RangeIndex
 from swarmrec.core.presets import get_preset
 from swarmrec.errors import WireError
-from swarmrec.services.common import MAX_FRAME_INDEX, MAX_N_RET, invalid, label_bounds_of, wire_error
+from swarmrec.services.common import (
+    MAX_FRAME_GAP,
+    MAX_FRAME_INDEX,
+    MAX_N_RET,
+    invalid,
+    label_bounds_of,
+    wire_error,
+)
 from swarmrec.services.runner import Endpoint, RequestContext, ServiceContext
 from swarmrec.services.storage import RecordLog
 from swarmrec.wire import messages as pb
@@ -84,6 +91,11 @@ class IndexShard:
         # A read-only lookup (a client's) searches everything even in a lock-step swarm.
         before = (desc.query_step or desc.frame_index) if s.lockstep and not req.read_only else None
         with self.lock:
+            reach = max(self.index.frames_of(r) for r in range(s.n_robots)) + MAX_FRAME_GAP
+            if desc.frame_index > self.index.frames_of(desc.robot_id) + MAX_FRAME_GAP or (
+                before is not None and before > reach
+            ):
+                raise invalid(f"frame index or step more than {MAX_FRAME_GAP} frames past what is stored")
             found = self.index.candidates(part.counts, n_ret, before=before)
             if not req.read_only:
                 # Stored before the answer leaves: an acknowledged frame survives a crash.

@@ -136,7 +136,8 @@ class LocalSwarm:
     def _spawn(self, kind: str, robot: int, flags: list[str]) -> ServiceProcess:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         log_path = self.log_dir / f"{kind}-{robot}.log"
-        log = log_path.open("w", encoding="utf-8")
+        # Appended, so a restarted service's log follows its predecessor's.
+        log = log_path.open("a", encoding="utf-8")
         self._logs.append(log)
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         proc = subprocess.Popen(

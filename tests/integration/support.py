@@ -117,7 +117,7 @@ def metrics_url(sp: ServiceProcess) -> str:
     return url
 
 
-def wait_until(condition: Callable[[], T], timeout_s: float, what: str, every_s: float = 0.05) -> T:
+def wait_until(condition: Callable[[], T | None], timeout_s: float, what: str, every_s: float = 0.05) -> T:
     """Poll ``condition`` until it returns something truthy; fail after ``timeout_s``."""
     deadline = time.monotonic() + timeout_s
     while True:

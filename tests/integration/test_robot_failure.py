@@ -1,0 +1,132 @@
+"""A robot dies mid-run: the main job finishes and reports what was lost.
+
+Three robots replay 300 synthetic frames in lock-step; after step 20 every
+process of robot 2 is killed with SIGKILL. The run must complete, name robot
+2 as missing, count the failed shard and verifier requests, and robots 0
+and 1 must keep querying. Every query report the descriptors publish is
+collected independently (``events/query/*``) to check that no missing answer
+was taken for "no match": each query after the kill that needed robot 2's
+label range lists robot 2 among its failed shards, and none before it does.
+"""
+
+from __future__ import annotations
+
+import signal
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any, cast
+
+import numpy as np
+import pytest
+
+from swarmrec.client import SwarmClient
+from swarmrec.core.descriptor import semantic_descriptor
+from swarmrec.core.split import split_frames
+from swarmrec.datasets.constellations import read_constellations
+from swarmrec.services import keys
+from swarmrec.swarm.job import SwarmSettings, main
+from swarmrec.swarm.processes import LocalSwarm
+from swarmrec.wire import messages as pb
+from tests.integration.support import wait_until
+
+ROBOTS, FRAMES, KILL_AFTER, DEAD = 3, 300, 20, 2
+STEPS = FRAMES // ROBOTS
+
+
+@pytest.mark.slow
+def test_a_robot_killed_mid_run_is_reported_missing_and_the_others_keep_querying(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    settings = SwarmSettings(
+        robots=ROBOTS,
+        frames=FRAMES,
+        out=out,
+        swarm="robot-failure",
+        request_timeout_s=2.0,
+        progress=False,
+        plots=False,
+    )
+    held: list[LocalSwarm] = []
+    reports: list[pb.QueryReport] = []
+    killed: list[int] = []
+
+    with ExitStack() as stack:
+
+        def hook(swarm: LocalSwarm) -> None:
+            held.append(swarm)
+            client = stack.enter_context(SwarmClient([swarm.endpoint], settings.swarm))
+            sub = client.session.declare_subscriber(
+                keys.event(settings.swarm, "query", "*"),
+                lambda sample: reports.append(pb.QueryReport.FromString(sample.payload.to_bytes())),
+            )
+            stack.callback(sub.undeclare)
+            # The router has the subscription before the first step is asked for:
+            # a publisher of another session sees it as matching.
+            other = stack.enter_context(SwarmClient([swarm.endpoint], settings.swarm))
+            probe = other.session.declare_publisher(keys.event(settings.swarm, "query", ROBOTS))
+            stack.callback(probe.undeclare)
+            # matching_status is a snapshot, read anew each poll; zenoh's stub types it as bool,
+            # it is a MatchingStatus (../shared/ZENOH.md).
+            wait_until(lambda: cast(Any, probe.matching_status).matching, 10, "subscription routed")
+
+        def on_step(t: int) -> None:
+            if t != KILL_AFTER:
+                return
+            for sp in held[0].procs:
+                if sp.robot == DEAD and sp.proc.poll() is None:
+                    sp.proc.send_signal(signal.SIGKILL)
+                    sp.proc.wait(timeout=10)
+                    killed.append(sp.proc.pid)
+
+        summary = main(settings, swarm_hook=hook, on_step=on_step)
+
+    assert len(killed) == 4  # detector, descriptor, index-shard and verifier of robot 2
+    q = summary["queries"]
+    # The run completed and names the dead robot: it missed every step after the kill.
+    assert q["missing_by_robot"] == {str(DEAD): STEPS - KILL_AFTER - 1}
+    assert q["frames_replayed"] == ROBOTS * STEPS - (STEPS - KILL_AFTER - 1)
+    assert any(f"loop closures of robot {DEAD}" in e for e in q["errors"])
+    # Its processes died by SIGKILL; everyone else exited cleanly.
+    codes = summary["exit_codes"]
+    assert {name for name, code in codes.items() if code != 0} == {
+        f"{k}-{DEAD}" for k in ("detector", "descriptor", "index-shard", "verifier")
+    }
+    assert all(
+        codes[f"{k}-{DEAD}"] == -signal.SIGKILL for k in ("detector", "descriptor", "index-shard", "verifier")
+    )
+    # Failed requests to the dead robot are counted in the report.
+    assert q["failed_shard_requests"] > 0
+    assert q["failed_verifier_requests"] > 0
+    assert (
+        sum(summary["peer_failures"].values()) >= q["failed_shard_requests"] + q["failed_verifier_requests"]
+    )
+
+    # Robots 0 and 1 kept querying to the end.
+    seq = read_constellations(out / "dataset")
+    blocks = split_frames(len(seq), ROBOTS)
+    bounds = summary["swarm"]["label_bounds"]
+    lo, hi = bounds[DEAD], bounds[DEAD + 1]
+    by_robot = {r: sorted(rep.frame_index for rep in reports if rep.robot_id == r) for r in range(ROBOTS)}
+    assert by_robot[0] == by_robot[1] == list(range(STEPS))
+    assert by_robot[DEAD] == list(range(KILL_AFTER + 1))
+
+    # No empty answer was taken for "no match".
+    needed_dead_shard = 0
+    for rep in reports:
+        if not rep.queried:
+            continue
+        c = seq.constellations[blocks[rep.robot_id][rep.frame_index]]
+        asks_dead = bool(semantic_descriptor(c, seq.n_labels)[lo:hi].any())
+        if rep.frame_index <= KILL_AFTER:
+            assert not rep.failed_shard_robot_ids and not rep.failed_verifier_robot_ids, rep
+            continue
+        assert list(rep.failed_shard_robot_ids) == ([DEAD] if asks_dead else []), rep
+        assert set(rep.failed_verifier_robot_ids) <= {DEAD}, rep
+        assert DEAD not in [m.match_robot_id for m in rep.matches], rep
+        needed_dead_shard += asks_dead
+    assert needed_dead_shard > 10
+    assert q["failed_shard_requests"] == needed_dead_shard
+    assert q["failed_verifier_requests"] == sum(len(r.failed_verifier_robot_ids) for r in reports)
+    # The survivors still found matches after the kill.
+    late = [r for r in reports if r.frame_index > KILL_AFTER and r.matches]
+    assert len(late) > 10
+    assert np.all([r.robot_id != DEAD for r in late])
