@@ -59,6 +59,11 @@ class RangeIndex:
         """One past the highest frame index stored for ``robot``."""
         return int(self._frames[robot])
 
+    @property
+    def frames(self) -> int:
+        """One past the highest frame index stored for any robot."""
+        return int(self._frames.max(initial=0))
+
     def _grow(self, frames: int) -> None:
         cap = self._counts.shape[1]
         if frames <= cap:
@@ -95,7 +100,7 @@ class RangeIndex:
         robot (lock-step replay at step ``before``); None searches everything.
         """
         query = np.asarray(counts, dtype=np.float64).reshape(-1)
-        t = before if before is not None else int(self._frames.max(initial=0))
+        t = before if before is not None else self.frames
         if t <= 0:
             return []
         self._grow(t)  # a lock-step query may look past the frames stored so far (zeros)

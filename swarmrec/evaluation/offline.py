@@ -33,6 +33,7 @@ from swarmrec.evaluation.groundtruth import Rules, ground_truth
 from swarmrec.evaluation.pr import PRCurve, precision_recall
 from swarmrec.evaluation.scoring import (
     ScoreMatrix,
+    label_frequency_prior,
     score_centralized,
     score_decentralized,
     split_frames,
@@ -189,8 +190,7 @@ def main(settings: EvaluationSettings) -> dict[str, Any]:
     if settings.mode in ("decentralized", "both"):
         load_prior = None
         if preset.ranges == "balanced":
-            # Oracle prior: how many frames of this dataset hold each label.
-            load_prior = np.count_nonzero(table.desc, axis=0).astype(np.float64)
+            load_prior = label_frequency_prior(table)
         t0 = time.perf_counter()
         steps = max(len(split_frames(len(seq), settings.robots)[0]) - 1, 0)
         with _bar(settings.progress, steps, f"decentralized x{settings.robots}") as bar:

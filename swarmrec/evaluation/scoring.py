@@ -28,6 +28,7 @@ import numpy as np
 import numpy.typing as npt
 
 from swarmrec.core.association import FrameTable, build_table, score_pairs
+from swarmrec.core.index import PARTIAL_EPSILON
 from swarmrec.core.presets import Preset
 from swarmrec.core.ranges import balanced_ranges, even_ranges, validate_bounds
 from swarmrec.core.selection import select_candidates_many, select_robots
@@ -38,7 +39,9 @@ from swarmrec.errors import ConfigError
 __all__ = [
     "DecentralizedRun",
     "ScoreMatrix",
+    "decentralized_marks",
     "label_bounds",
+    "label_frequency_prior",
     "score_centralized",
     "score_decentralized",
     "split_frames",
@@ -48,9 +51,6 @@ IntArray = npt.NDArray[np.int64]
 FloatArray = npt.NDArray[np.float64]
 Progress = Callable[[int], None]
 
-# The published scripts add this to every partial-score denominator; it
-# changes the order of equal fractions (2/4 ranks above 1/2), so it is kept.
-PARTIAL_EPSILON = 1e-12
 
 
 @dataclass(frozen=True, eq=False)
@@ -135,6 +135,23 @@ def score_centralized(
         ignored=~valid,
         ignored_marked=~valid,
     )
+
+
+def decentralized_marks(valid: npt.NDArray[np.bool_], blocks: list[range]) -> npt.NDArray[np.bool_]:
+    """The ignored frames a decentralized run marks -2: those that queried,
+    i.e. every invalid frame but a robot's first (as the scripts do)."""
+    marked = ~valid
+    for block in blocks:
+        if len(block):
+            marked[block.start] = False
+    return marked
+
+
+def label_frequency_prior(table: FrameTable) -> FloatArray:
+    """How many frames hold each label: the oracle prior the ``balanced``
+    preset balances label ranges on (the dataset's own frequencies)."""
+    prior: FloatArray = np.count_nonzero(table.desc, axis=0).astype(np.float64)
+    return prior
 
 
 def label_bounds(preset: Preset, n_labels: int, n_holders: int, label_load: FloatArray | None) -> IntArray:
@@ -248,11 +265,7 @@ def score_decentralized(
         table, lo, hi, d=preset.d, min_common=preset.min_common,
         same_label_only=preset.same_label_only,
     )  # fmt: skip
-    # Ignored frames are marked -2 only when they queried (not a robot's first frame).
-    marked = ~valid.copy()
-    for block in blocks:
-        if len(block):
-            marked[block.start] = False
+    marked = decentralized_marks(valid, blocks)
     nonzero = sem != 0
     holder_of_bin = np.repeat(np.arange(n_ranges), np.diff(bounds))
     labels_per_holder = np.bincount(

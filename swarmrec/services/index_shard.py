@@ -91,9 +91,8 @@ class IndexShard:
         # A read-only lookup (a client's) searches everything even in a lock-step swarm.
         before = (desc.query_step or desc.frame_index) if s.lockstep and not req.read_only else None
         with self.lock:
-            reach = max(self.index.frames_of(r) for r in range(s.n_robots)) + MAX_FRAME_GAP
             if desc.frame_index > self.index.frames_of(desc.robot_id) + MAX_FRAME_GAP or (
-                before is not None and before > reach
+                before is not None and before > self.index.frames + MAX_FRAME_GAP
             ):
                 raise invalid(f"frame index or step more than {MAX_FRAME_GAP} frames past what is stored")
             found = self.index.candidates(part.counts, n_ret, before=before)

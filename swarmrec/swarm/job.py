@@ -127,13 +127,12 @@ def _prepare_dataset(
 
 def _bounds(settings: SwarmSettings, seq: ConstellationSequence) -> npt.NDArray[np.int64]:
     from swarmrec.core.association import build_table
-    from swarmrec.evaluation.scoring import label_bounds
+    from swarmrec.evaluation.scoring import label_bounds, label_frequency_prior
 
     preset = get_preset(settings.preset)
     load = None
     if preset.ranges == "balanced":
-        # Oracle prior, as the offline evaluation: how many frames hold each label.
-        load = np.count_nonzero(build_table(seq.constellations, seq.n_labels).desc, axis=0).astype(np.float64)
+        load = label_frequency_prior(build_table(seq.constellations, seq.n_labels))
     return label_bounds(preset, seq.n_labels, settings.robots, load)
 
 
@@ -231,13 +230,6 @@ def _replay_free(client: Any, blocks: list[range], settings: SwarmSettings) -> _
     seen = {(r.robot_id, r.frame_index) for r in reports}
     missing = [(r, t) for r, b in enumerate(blocks) for t in range(len(b)) if (r, t) not in seen]
     return _Replay(reports, missing, errors, [], time.perf_counter() - t0)
-
-
-def _percentiles(values: list[float]) -> dict[str, float]:
-    if not values:
-        return {}
-    arr = np.asarray(values)
-    return {f"p{q}": float(np.percentile(arr, q)) for q in (50, 90, 99)} | {"mean": float(arr.mean())}
 
 
 def main(

@@ -21,7 +21,7 @@ import numpy.typing as npt
 from swarmrec.core.presets import Preset
 from swarmrec.core.types import ConstellationSequence, Trajectory
 from swarmrec.evaluation.bandwidth import HolderLoad
-from swarmrec.evaluation.scoring import ScoreMatrix
+from swarmrec.evaluation.scoring import ScoreMatrix, decentralized_marks
 from swarmrec.services.config import ServiceSettings
 from swarmrec.swarm.scrape import Scrape
 from swarmrec.wire import messages as pb
@@ -54,10 +54,7 @@ def pair_matrix(
     hi = np.array([k[1] for k in keys_sorted], np.int64)
     sizes = np.array([len(c) for c in seq.constellations])
     valid = sizes >= preset.min_objects
-    marked = ~valid.copy()
-    for b in blocks:
-        if len(b):
-            marked[b.start] = False
+    marked = decentralized_marks(valid, blocks)
     values = np.array([scores[k] for k in keys_sorted], np.float64)
     return ScoreMatrix(lo, hi, values, n, preset.exclusion, ~valid, marked), conflicts
 
