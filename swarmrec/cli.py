@@ -115,6 +115,49 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="skip comparing the pair scores with the offline evaluation",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument(
+        "--attach",
+        type=Path,
+        metavar="DIR",
+        help="start nothing: replay through the running swarm that `swarmrec compose up --out DIR` "
+        "started (its dataset, robots and preset; --pace, --out, --no-plots still apply)",
+    )
+
+
+def _add_compose(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    from swarmrec.swarm.compose import MAX_ROBOTS
+
+    p = sub.add_parser(
+        "compose",
+        help="the swarm as containers: write a compose file for N robots, bring it up or down",
+        description=(
+            "write: generate compose.yml (router, each robot's detector, descriptor, index-shard and "
+            "verifier, Prometheus), prometheus.yml, swarm.json and the dataset under --out. "
+            "up: write, then start every container and wait until all are healthy. "
+            "down: stop and remove the containers, the network and (unless --keep-volumes) the volumes. "
+            "Build the images first (make images). Then `swarmrec run --attach DIR` replays through it."
+        ),
+    )
+    p.add_argument("action", choices=("write", "up", "down"))
+    p.add_argument("--robots", type=int, default=4, help=f"robots, 1 .. {MAX_ROBOTS} (default 4)")
+    p.add_argument("--dataset", default="synthetic", help="'synthetic' or a folder/.zip of constellations")
+    p.add_argument("--seed", type=int, default=0, help="seed of the synthetic world (default 0)")
+    p.add_argument("--frames", type=int, help="use only the first N frames (synthetic: generate N)")
+    p.add_argument("--labels", type=Path, help="label list, one name a line (default: COCO 80)")
+    p.add_argument("--groundtruth", type=Path, help="TUM trajectory for precision-recall")
+    p.add_argument("--preset", choices=sorted(PRESETS), default="paper", help="(default paper)")
+    p.add_argument("--swarm", default="compose", help="swarm name (default compose)")
+    p.add_argument("--project", default="swarmrec", help="compose project name (default swarmrec)")
+    p.add_argument("--router-port", type=int, default=7447, help="router port on 127.0.0.1 (default 7447)")
+    p.add_argument(
+        "--prometheus-port", type=int, default=9090, help="Prometheus port on 127.0.0.1 (default 9090)"
+    )
+    p.add_argument(
+        "--free", action="store_true", help="compose for free replay (--pace fast or a rate), not lock-step"
+    )
+    p.add_argument("--timeout", type=float, default=5.0, help="seconds a service waits for a peer")
+    p.add_argument("--out", type=Path, default=Path("runs/compose"), help="folder (default runs/compose)")
+    p.add_argument("--keep-volumes", action="store_true", help="down: keep the named volumes")
 
 
 def _add_serve(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -170,6 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_evaluate(sub)
     _add_synth(sub)
     _add_run(sub)
+    _add_compose(sub)
     _add_serve(sub)
     _add_clients(sub)
     return parser
@@ -243,6 +287,20 @@ def _run(args: argparse.Namespace) -> int:
     from swarmrec.swarm.job import SwarmSettings
     from swarmrec.swarm.job import main as run_swarm
 
+    if args.attach is not None:
+        from swarmrec.swarm.attached import main_attached
+
+        out = args.out if args.out != Path("runs/swarm") else args.attach / "report"
+        s = main_attached(
+            args.attach,
+            out=out,
+            pace=args.pace,
+            plots=not args.no_plots,
+            progress=not args.quiet,
+            check_offline=not args.no_offline_check,
+        )
+        _print_summary(s, out)
+        return 0
     settings = SwarmSettings(
         dataset=args.dataset,
         seed=args.seed,
@@ -260,10 +318,16 @@ def _run(args: argparse.Namespace) -> int:
         check_offline=not args.no_offline_check,
     )
     s = run_swarm(settings)
-    q, b, load = s["queries"], s["bytes"], s["shard_load"]
+    _print_summary(s, settings.out)
+    return 0
+
+
+def _print_summary(s: dict[str, Any], out: Path) -> None:
+    q, b, load, sw = s["queries"], s["bytes"], s["shard_load"], s["swarm"]
+    where = f"{sw['processes']} processes" if sw["processes"] else sw["deployment"]
     print(
-        f"swarm of {settings.robots} robots on {s['dataset']['name']} ({s['dataset']['frames']} frames, "
-        f"{s['swarm']['processes']} processes), pace {settings.pace}"
+        f"swarm of {sw['robots']} robots on {s['dataset']['name']} ({s['dataset']['frames']} frames, "
+        f"{where}), pace {sw['pace']}"
     )
     auc = f"AUC {s['auc']:.4f}" if "auc" in s else "AUC n/a (no ground truth)"
     print(f"  {q['queried']} queries, {s['loop_closures']['count']} loop closures, {auc}")
@@ -281,9 +345,46 @@ def _run(args: argparse.Namespace) -> int:
         print(f"  pair scores vs offline decentralized evaluation: {verdict}")
     if q["missing_slots"]:
         print(f"  missing answers: {q['missing_slots']} (by robot {q['missing_by_robot']})")
+    if s["scrape_failed"]:
+        print(f"  metrics not read from: {', '.join(s['scrape_failed'])}")
     t = s["timings"]
-    print(f"  time: start {t['start_s']:.1f} s, replay {t['replay_s']:.1f} s, total {t['total_s']:.1f} s")
-    print(f"  written to {settings.out}/ (summary.json, pairs.csv, loop_closures.csv, *.png, logs/)")
+    start = f"start {t['start_s']:.1f} s, " if "start_s" in t else ""
+    print(f"  time: {start}replay {t['replay_s']:.1f} s, total {t['total_s']:.1f} s")
+    print(f"  written to {out}/ (summary.json, pairs.csv, loop_closures.csv, *.png)")
+
+
+def _compose(args: argparse.Namespace) -> int:
+    from swarmrec.swarm import compose
+
+    settings = compose.ComposeSettings(
+        robots=args.robots,
+        dataset=args.dataset,
+        seed=args.seed,
+        frames=args.frames,
+        labels=args.labels,
+        groundtruth=args.groundtruth,
+        preset=args.preset,
+        swarm=args.swarm,
+        project=args.project,
+        out=args.out,
+        router_port=args.router_port,
+        prometheus_port=args.prometheus_port,
+        lockstep=not args.free,
+        request_timeout_s=args.timeout,
+    )
+    if args.action == "down":
+        info = compose.read_swarm_file(args.out)
+        compose.down(info, volumes=not args.keep_volumes)
+        print(f"compose project {info.project}: containers and network removed", end="")
+        print("" if args.keep_volumes else ", volumes removed")
+        return 0
+    info = compose.write_compose(settings)
+    print(f"wrote {info.compose_file} ({settings.robots} robots, {4 * settings.robots + 2} containers)")
+    if args.action == "up":
+        print("starting containers; waiting until every one is healthy ...", flush=True)
+        seconds = compose.up(info)
+        print(f"swarm up in {seconds:.1f} s: router {info.router_endpoint}, Prometheus {info.prometheus_url}")
+        print(f"replay through it: swarmrec run --attach {args.out}")
     return 0
 
 
@@ -405,6 +506,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "query": _query,
         "members": _members,
         "loop-closures": _loop_closures,
+        "compose": _compose,
     }
     try:
         return handlers[args.command](args)

@@ -54,6 +54,8 @@ class Member:
     n_labels: int
     version: str
     metrics_url: str
+    #: Partial descriptors (index shard) or constellations (verifier) held; 0 otherwise.
+    stored_items: int = 0
 
 
 @dataclass(frozen=True)
@@ -158,6 +160,7 @@ class SwarmClient:
                     n_labels=info.n_labels,
                     version=info.version,
                     metrics_url=info.metrics_url,
+                    stored_items=info.stored_items,
                 )
             )
         return sorted(out, key=lambda m: (m.kind, m.robot))

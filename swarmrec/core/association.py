@@ -39,7 +39,7 @@ import numpy.typing as npt
 from swarmrec.core.descriptor import semantic_descriptors
 from swarmrec.core.types import Constellation
 
-__all__ = ["FrameTable", "PairScore", "associate", "build_table", "full_score", "score_pairs"]
+__all__ = ["FrameTable", "PairScore", "associate", "build_table", "full_score", "score_pairs", "warm_up"]
 
 IntArray = npt.NDArray[np.int64]
 FloatArray = npt.NDArray[np.float64]
@@ -311,3 +311,13 @@ def associate(
     return full_score(
         a, b, n_labels, d=d, min_common=min_common, same_label_only=same_label_only
     ).matches
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the kernels a verifier uses.
+
+    Called where paying the compile once saves it many times over: the main job
+    before it starts ten verifiers, the service image at build time.
+    """
+    probe = Constellation(np.array([0, 1, 2]), np.eye(3))
+    full_score(probe, probe, 3)

@@ -66,7 +66,7 @@ class IndexShard:
         return [Endpoint("query", pb.PartialQuery, self.query)]
 
     def member_info(self) -> pb.MemberInfo:
-        return pb.MemberInfo(label_lo=self.lo, label_hi=self.hi)
+        return pb.MemberInfo(label_lo=self.lo, label_hi=self.hi, stored_items=self.index.size)
 
     def query(self, req: pb.PartialQuery, _ctx: RequestContext) -> pb.CandidatesReply:
         s = self.ctx.settings

@@ -19,6 +19,7 @@ has no per-key traffic statistics (../shared/ZENOH.md).
 
 from __future__ import annotations
 
+import socket
 import threading
 from dataclasses import dataclass
 
@@ -56,6 +57,7 @@ class ServiceMetrics:
     stored_frames: Gauge
     loop_closures: Counter
     query_seconds: Histogram
+    ready: Gauge
     url: str = ""
 
     @classmethod
@@ -127,6 +129,11 @@ class ServiceMetrics:
                 buckets=_LATENCY_BUCKETS,
                 registry=reg,
             ),
+            ready=Gauge(
+                "swarmrec_service_ready",
+                "1 while the service serves (liveliness token declared), 0 while starting or stopping",
+                registry=reg,
+            ),
         )
 
     def count_sent(self, message: str, scope: str, size: int) -> None:
@@ -141,7 +148,9 @@ class ServiceMetrics:
         """Serve ``/metrics`` over HTTP on a daemon thread; returns its URL."""
         server, _thread = start_http_server(port, addr=host, registry=self.registry)
         self._server = server
-        self.url = f"http://{host}:{server.server_port}/metrics"
+        # Bound to every interface (a container): peers reach it by host name.
+        shown = socket.gethostname() if host in ("0.0.0.0", "::", "") else host
+        self.url = f"http://{shown}:{server.server_port}/metrics"
         return self.url
 
     def close(self) -> None:

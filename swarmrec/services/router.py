@@ -3,7 +3,8 @@ the same routing runtime as zenohd; ../shared/ZENOH.md).
 
 It listens on ``--listen`` endpoints and routes every other service's
 traffic; it holds no state, so restarting it loses nothing (clients
-reconnect on their own).
+reconnect on their own). Like every service it serves Prometheus metrics
+(``swarmrec_service_ready`` for health checks) unless ``--metrics-port -1``.
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ import threading
 import zenoh
 
 from swarmrec.services.config import ServiceSettings
-from swarmrec.services.runner import _install_signals, _logger, zenoh_config
+from swarmrec.services.metrics import ServiceMetrics
+from swarmrec.services.runner import install_signals, service_logger, zenoh_config
 
 __all__ = ["run_router"]
 
@@ -22,14 +24,28 @@ __all__ = ["run_router"]
 def run_router(settings: ServiceSettings, *, stop: threading.Event | None = None) -> int:
     """Route until SIGTERM/SIGINT (or ``stop``)."""
     stop = stop or threading.Event()
-    _install_signals(stop)
-    log = _logger("router", settings.robot, settings.log_level)
+    install_signals(stop)
+    log = service_logger("router", settings.robot, settings.log_level)
     settings = settings.with_(mode="router")
+    metrics = ServiceMetrics.create("router", settings.robot, settings.swarm)
     with zenoh.open(zenoh_config(settings)):
-        log.info("ready", extra={"fields": {"listen": list(settings.listen)}})
+        if settings.metrics_port >= 0:
+            metrics.serve(settings.metrics_host, settings.metrics_port)
+        metrics.ready.set(1)
+        log.info("ready", extra={"fields": {"listen": list(settings.listen), "metrics_url": metrics.url}})
         print(
-            json.dumps({"event": "ready", "service": "router", "listen": list(settings.listen)}), flush=True
+            json.dumps(
+                {
+                    "event": "ready",
+                    "service": "router",
+                    "listen": list(settings.listen),
+                    "metrics_url": metrics.url,
+                }
+            ),
+            flush=True,
         )
         stop.wait()
+        metrics.ready.set(0)
         log.info("stopping")
+    metrics.close()
     return 0

@@ -50,7 +50,9 @@ __all__ = [
     "RequestError",
     "Service",
     "ServiceContext",
+    "install_signals",
     "run_service",
+    "service_logger",
     "zenoh_config",
 ]
 
@@ -138,7 +140,7 @@ class _JsonFormatter(logging.Formatter):
         return json.dumps(entry)
 
 
-def _logger(kind: str, robot: int, level: str) -> logging.Logger:
+def service_logger(kind: str, robot: int, level: str) -> logging.Logger:
     log = logging.getLogger(f"swarmrec.{kind}.{robot}")
     log.handlers.clear()
     handler = logging.StreamHandler(sys.stderr)
@@ -164,7 +166,7 @@ def zenoh_config(settings: ServiceSettings) -> zenoh.Config:
     return conf
 
 
-def _install_signals(stop: threading.Event) -> None:
+def install_signals(stop: threading.Event) -> None:
     if threading.current_thread() is not threading.main_thread():
         return  # only the main thread may set handlers (tests run services in threads)
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -252,8 +254,8 @@ def run_service(
 ) -> int:
     """Run one service until ``stop`` is set (or SIGTERM/SIGINT); returns an exit code."""
     stop = stop or threading.Event()
-    _install_signals(stop)
-    log = _logger(kind, settings.robot, settings.log_level)
+    install_signals(stop)
+    log = service_logger(kind, settings.robot, settings.log_level)
     metrics = ServiceMetrics.create(kind, settings.robot, settings.swarm)
     with zenoh.open(zenoh_config(settings)) as session:
         if settings.metrics_port >= 0:
@@ -288,6 +290,7 @@ def run_service(
             t.start()
             threads.append(t)
             token = session.liveliness().declare_token(keys.alive(settings.swarm, kind, settings.robot))
+            metrics.ready.set(1)
             info = _member_info(service, settings, kind, metrics.url)
             log.info("ready", extra={"fields": {"metrics_url": metrics.url}})
             print(
@@ -300,6 +303,7 @@ def run_service(
                 on_ready(info)
             stop.wait()
             log.info("stopping")
+            metrics.ready.set(0)
             token.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
         finally:
             for q in queryables:

@@ -58,7 +58,8 @@ class Verifier:
         ]
 
     def member_info(self) -> pb.MemberInfo:
-        return pb.MemberInfo()
+        with self.lock:
+            return pb.MemberInfo(stored_items=len(self.frames))
 
     def _constellation(self, msg: pb.Constellation) -> Constellation:
         n_robots = self.ctx.settings.n_robots

@@ -25,9 +25,10 @@ import numpy as np
 import numpy.typing as npt
 from tqdm import tqdm
 
+from swarmrec.core.association import warm_up
 from swarmrec.core.presets import get_preset
 from swarmrec.core.split import split_frames
-from swarmrec.core.types import Constellation, ConstellationSequence, Trajectory
+from swarmrec.core.types import ConstellationSequence, Trajectory
 from swarmrec.errors import ConfigError
 from swarmrec.services.config import ServiceSettings
 from swarmrec.swarm.processes import LocalSwarm
@@ -134,15 +135,6 @@ def _bounds(settings: SwarmSettings, seq: ConstellationSequence) -> npt.NDArray[
     if preset.ranges == "balanced":
         load = label_frequency_prior(build_table(seq.constellations, seq.n_labels))
     return label_bounds(preset, seq.n_labels, settings.robots, load)
-
-
-def _warm_numba() -> None:
-    # Compile (or load from cache) the association kernels once here, so ten
-    # verifier processes do not all compile them at their first request.
-    from swarmrec.core.association import full_score
-
-    c = Constellation(np.array([0, 1, 2]), np.eye(3))
-    full_score(c, c, 3)
 
 
 @dataclass
@@ -253,7 +245,8 @@ def main(
     preset = get_preset(settings.preset)
     bounds = _bounds(settings, seq)
     blocks = split_frames(len(seq), settings.robots)
-    _warm_numba()
+    # Compiled once here, ten verifier processes load the kernels from numba's cache.
+    warm_up()
     base = ServiceSettings(
         swarm=settings.swarm,
         n_robots=settings.robots,

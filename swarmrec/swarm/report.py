@@ -125,6 +125,7 @@ def write_report(
     closures: list[pb.LoopClosure],
     exit_codes: dict[str, int],
     timings: dict[str, float],
+    deployment: str = "local processes",
 ) -> dict[str, Any]:
     out = settings.out
     matrix, conflicts = pair_matrix(replay.reports, wire_seq, blocks, preset)
@@ -149,6 +150,7 @@ def write_report(
             "pace": settings.pace,
             "preset": asdict(preset),
             "label_bounds": [int(b) for b in bounds],
+            "deployment": deployment,
             "processes": len(exit_codes),
         },
         "queries": {

@@ -21,7 +21,7 @@ SERVICE_KIND_VERIFIER: ServiceKind
 SERVICE_KIND_FUSION: ServiceKind
 
 class MemberInfo(_message.Message):
-    __slots__ = ("kind", "robot_id", "label_lo", "label_hi", "version", "n_labels", "metrics_url", "swarm")
+    __slots__ = ("kind", "robot_id", "label_lo", "label_hi", "version", "n_labels", "metrics_url", "swarm", "stored_items")
     KIND_FIELD_NUMBER: _ClassVar[int]
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     LABEL_LO_FIELD_NUMBER: _ClassVar[int]
@@ -30,6 +30,7 @@ class MemberInfo(_message.Message):
     N_LABELS_FIELD_NUMBER: _ClassVar[int]
     METRICS_URL_FIELD_NUMBER: _ClassVar[int]
     SWARM_FIELD_NUMBER: _ClassVar[int]
+    STORED_ITEMS_FIELD_NUMBER: _ClassVar[int]
     kind: ServiceKind
     robot_id: int
     label_lo: int
@@ -38,4 +39,5 @@ class MemberInfo(_message.Message):
     n_labels: int
     metrics_url: str
     swarm: str
-    def __init__(self, kind: _Optional[_Union[ServiceKind, str]] = ..., robot_id: _Optional[int] = ..., label_lo: _Optional[int] = ..., label_hi: _Optional[int] = ..., version: _Optional[str] = ..., n_labels: _Optional[int] = ..., metrics_url: _Optional[str] = ..., swarm: _Optional[str] = ...) -> None: ...
+    stored_items: int
+    def __init__(self, kind: _Optional[_Union[ServiceKind, str]] = ..., robot_id: _Optional[int] = ..., label_lo: _Optional[int] = ..., label_hi: _Optional[int] = ..., version: _Optional[str] = ..., n_labels: _Optional[int] = ..., metrics_url: _Optional[str] = ..., swarm: _Optional[str] = ..., stored_items: _Optional[int] = ...) -> None: ...

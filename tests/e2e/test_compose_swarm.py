@@ -1,0 +1,145 @@
+"""A 4-robot swarm of containers (docker compose), driven from the host.
+
+One swarm for the module: it replays 800 frames of the synthetic world in
+lock-step through the router's published loopback port. Its loop closures
+must be those of the local process swarm on the same input, its Prometheus
+must scrape every service, and ``compose down`` must leave nothing behind.
+The last test takes the swarm down, so the tests run in file order.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import urllib.parse
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import docker
+import pytest
+
+from swarmrec.swarm.attached import main_attached
+from swarmrec.swarm.compose import SwarmFile, down
+from swarmrec.swarm.job import SwarmSettings, main
+from tests.e2e.conftest import project_leftovers, start_swarm
+
+ROBOTS, FRAMES = 4, 800
+KINDS = ("detector", "descriptor", "index-shard", "verifier")
+
+
+@pytest.fixture(scope="module")
+def swarm(engine: docker.DockerClient, tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
+    tmp = tmp_path_factory.mktemp("compose-swarm")
+    info = start_swarm(tmp / "compose", f"swarmrec-e2e-swarm-{os.getpid()}", ROBOTS, FRAMES)
+    try:
+        summary = main_attached(tmp / "compose", out=tmp / "attached", progress=False, plots=False)
+        yield {"info": info, "summary": summary, "tmp": tmp}
+    finally:
+        down(info)
+
+
+def _closures(folder: Path) -> list[dict[str, str]]:
+    with (folder / "loop_closures.csv").open() as f:
+        return list(csv.DictReader(f))
+
+
+def _prometheus(info: SwarmFile, path: str, **params: str) -> Any:
+    url = f"{info.prometheus_url}{path}?{urllib.parse.urlencode(params)}"
+    with urllib.request.urlopen(url, timeout=10) as resp:
+        body = json.loads(resp.read())
+    assert body["status"] == "success", body
+    return body["data"]
+
+
+@pytest.mark.slow
+def test_compose_swarm_finds_the_loop_closures_of_the_local_process_swarm(
+    swarm: dict[str, Any], tmp_path: Path
+) -> None:
+    summary = swarm["summary"]
+    assert summary["queries"]["missing_slots"] == 0
+    assert summary["queries"]["errors"] == []
+    assert summary["offline_check"]["identical"] is True
+    local = main(
+        SwarmSettings(
+            robots=ROBOTS,
+            frames=FRAMES,
+            out=tmp_path / "local",
+            swarm="e2e_local",
+            progress=False,
+            plots=False,
+        )
+    )
+    assert local["offline_check"]["identical"] is True
+    in_containers = _closures(swarm["tmp"] / "attached")
+    assert len(in_containers) > 50  # the synthetic world revisits places: a swarm that finds none is broken
+    assert in_containers == _closures(tmp_path / "local")
+    assert summary["loop_closures"]["count"] == local["loop_closures"]["count"] == len(in_containers)
+    # Same frames, same protocol: the same bytes crossed between robots.
+    assert summary["bytes"]["per_query"] == pytest.approx(local["bytes"]["per_query"])
+
+
+@pytest.mark.slow
+def test_prometheus_scrapes_every_service_and_sees_bytes_and_shard_load(swarm: dict[str, Any]) -> None:
+    info: SwarmFile = swarm["info"]
+    targets = _prometheus(info, "/api/v1/targets", state="active")["activeTargets"]
+    seen = {(t["labels"]["service"], t["labels"]["robot"]): t["health"] for t in targets}
+    expected = {("router", "0")} | {(k, str(r)) for r in range(ROBOTS) for k in KINDS}
+    assert seen == dict.fromkeys(expected, "up")
+
+    sent = _prometheus(
+        info, "/api/v1/query", query='sum by (robot) (swarmrec_message_bytes_sent_total{scope="swarm"})'
+    )["result"]
+    per_robot = {s["metric"]["robot"]: float(s["value"][1]) for s in sent}
+    assert set(per_robot) == {str(r) for r in range(ROBOTS)}
+    assert all(v > 0 for v in per_robot.values()), per_robot
+
+    load = _prometheus(
+        info, "/api/v1/query", query='swarmrec_shard_partial_queries_total{service="index-shard"}'
+    )["result"]
+    per_shard = {s["metric"]["robot"]: float(s["value"][1]) for s in load}
+    assert set(per_shard) == {str(r) for r in range(ROBOTS)}
+    assert all(v > 0 for v in per_shard.values()), per_shard
+    # The report read the same counters through Prometheus.
+    assert swarm["summary"]["shard_load"]["partial_queries"] == [
+        int(per_shard[str(r)]) for r in range(ROBOTS)
+    ]
+
+
+@pytest.mark.slow
+def test_containers_are_healthy_unprivileged_and_published_on_loopback_only(
+    swarm: dict[str, Any], engine: docker.DockerClient
+) -> None:
+    info: SwarmFile = swarm["info"]
+    containers = engine.containers.list(filters={"label": f"com.docker.compose.project={info.project}"})
+    assert len(containers) == 4 * ROBOTS + 2
+    published: dict[str, list[str]] = {}
+    for c in containers:
+        state = c.attrs["State"]
+        assert state["Health"]["Status"] == "healthy", c.name
+        service = c.labels["com.docker.compose.service"]
+        if service != "prometheus":
+            assert c.attrs["Config"]["User"] == "swarmrec", c.name
+        for bindings in (c.attrs["NetworkSettings"]["Ports"] or {}).values():
+            for b in bindings or []:
+                published.setdefault(service, []).append(f"{b['HostIp']}:{b['HostPort']}")
+    router_port = info.router_endpoint.rsplit(":", 1)[1]
+    prometheus_port = info.prometheus_url.rsplit(":", 1)[1]
+    assert published == {
+        "router": [f"127.0.0.1:{router_port}"],
+        "prometheus": [f"127.0.0.1:{prometheus_port}"],
+    }
+
+
+@pytest.mark.slow
+def test_compose_down_leaves_no_containers_networks_or_volumes(
+    swarm: dict[str, Any], engine: docker.DockerClient
+) -> None:
+    info: SwarmFile = swarm["info"]
+    before = project_leftovers(engine, info.project)
+    assert len(before["containers"]) == 4 * ROBOTS + 2
+    assert len(before["volumes"]) == 3 * ROBOTS + 1  # shard, verifier, descriptor per robot; Prometheus
+    down(info)
+    assert project_leftovers(engine, info.project) == {"containers": [], "networks": [], "volumes": []}
