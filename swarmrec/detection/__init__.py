@@ -1,0 +1,35 @@
+"""The detector stage: RGB-D frame -> YOLO detections -> one 3D point per object.
+
+An image goes through :class:`OnnxDetector` (letterbox, ONNX model, decode of
+the v5 or v8 output layout, confidence threshold, class-aware NMS) to
+:class:`Detection` boxes in the image's own pixels; :func:`object_points`
+turns the boxes and the depth image into the constellation's points.
+"""
+
+from swarmrec.detection.decode import Candidates, Layout, decode_output, detect_layout
+from swarmrec.detection.errors import DetectionError, ModelError, OutputLayoutError
+from swarmrec.detection.letterbox import PAD_VALUE, Letterbox, letterbox
+from swarmrec.detection.nms import non_max_suppression
+from swarmrec.detection.points import CameraIntrinsics, ObjectPoints, object_points, transform_points
+from swarmrec.detection.yolo import Detection, DetectorSettings, OnnxDetector
+
+__all__ = [
+    "PAD_VALUE",
+    "CameraIntrinsics",
+    "Candidates",
+    "Detection",
+    "DetectionError",
+    "DetectorSettings",
+    "Layout",
+    "Letterbox",
+    "ModelError",
+    "ObjectPoints",
+    "OnnxDetector",
+    "OutputLayoutError",
+    "decode_output",
+    "detect_layout",
+    "letterbox",
+    "non_max_suppression",
+    "object_points",
+    "transform_points",
+]
