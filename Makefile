@@ -3,8 +3,12 @@
 #
 #   make run     the main job: a local swarm of 10 robots (real processes, real zenoh router) on the synthetic world
 #   make evaluate  the offline evaluation (no processes): centralized and 10 robots
-#   make test    regenerated-code check, lint, types, all tests
+#   make test    regenerated-code check, lint, types, all tests (unit, local processes, containers)
 #   make bench   benchmarks, figures written to bench/results/
+#   make images  container engine (installed and started if none answers) and the swarm's images
+#   make swarm-up ROBOTS=4   a compose swarm of ROBOTS robots (3 to 10) + Prometheus, on this host
+#   make swarm-run           replay the synthetic world through it (report in runs/compose/report)
+#   make swarm-down          remove its containers, network and volumes
 #
 # Every target sets up its own virtual environment first (.venv, pinned by
 # requirements.lock), so a fresh clone needs only python3 and make.
@@ -14,8 +18,10 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 RUN_OUT ?= runs/swarm
+ROBOTS  ?= 4
+COMPOSE_OUT ?= runs/compose
 
-.PHONY: help venv run evaluate test unit lint typecheck proto check-proto bench clean
+.PHONY: help venv run evaluate test unit lint typecheck proto check-proto bench images swarm-up swarm-run swarm-down clean
 
 help:
 	@sed -n 's/^#   //p' Makefile
@@ -55,6 +61,19 @@ check-proto: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python bench/bench_offline.py --out bench/results/offline.json
 	$(BIN)/python bench/bench_swarm.py --out bench/results/swarm.json
+	$(BIN)/python bench/bench_compose.py --rebuild-base --out bench/results/compose.json
+
+images: $(STAMP)
+	PYTHON=$(BIN)/python deploy/build.sh
+
+swarm-up: images
+	$(BIN)/swarmrec compose up --robots $(ROBOTS) --out $(COMPOSE_OUT)
+
+swarm-run: $(STAMP)
+	$(BIN)/swarmrec run --attach $(COMPOSE_OUT)
+
+swarm-down: $(STAMP)
+	$(BIN)/swarmrec compose down --out $(COMPOSE_OUT)
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .mypy_cache .ruff_cache
