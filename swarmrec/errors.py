@@ -8,7 +8,15 @@ so a caller can catch the whole family in one place::
     ├── DatasetError           input data cannot be read (names the file and line)
     │   ├── MalformedLineError a line of a text file does not parse
     │   └── UnknownLabelError  a label is not in the label list
-    └── WireError              a message on the bus does not decode or validate
+    ├── WireError              a message on the bus does not decode or validate
+    ├── detection.DetectionError   an image, a model or its output cannot be used
+    │   ├── ModelError             the ONNX model cannot be loaded or has unusable inputs/outputs
+    │   └── OutputLayoutError      a model output is neither YOLO layout (or both)
+    ├── fusion.LikelihoodError     a classifier output is not a usable probability vector
+    └── swarm.compose.ComposeError the compose tool failed or containers did not become healthy
+
+The last three families live beside the code that raises them
+(``swarmrec.detection.errors``, ``swarmrec.fusion.wnbc``, ``swarmrec.swarm.compose``).
 """
 
 from __future__ import annotations

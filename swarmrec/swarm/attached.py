@@ -20,7 +20,7 @@ from swarmrec.core.presets import get_preset
 from swarmrec.core.split import split_frames
 from swarmrec.errors import ConfigError
 from swarmrec.swarm.compose import read_swarm_file
-from swarmrec.swarm.job import SwarmSettings, _prepare_dataset, _replay_free, _replay_lockstep, as_on_the_wire
+from swarmrec.swarm.job import SwarmSettings, as_on_the_wire, prepare_dataset, replay_free, replay_lockstep
 from swarmrec.swarm.scrape import scrape_prometheus
 
 __all__ = ["main_attached"]
@@ -65,7 +65,7 @@ def main_attached(
         )
     t_start = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
-    _source, _labels, seq, trajectory = _prepare_dataset(settings)
+    _source, _labels, seq, trajectory = prepare_dataset(settings)
     if seq.n_labels != info.n_labels:
         raise ConfigError(f"{info.dataset} has {seq.n_labels} labels, the swarm {info.n_labels}")
     wire_seq = as_on_the_wire(seq)
@@ -84,9 +84,9 @@ def main_attached(
                 "bring it down with its volumes (swarmrec compose down) and up again"
             )
         replay = (
-            _replay_lockstep(client, blocks, settings, on_step)
+            replay_lockstep(client, blocks, settings, on_step)
             if settings.lockstep
-            else _replay_free(client, blocks, settings)
+            else replay_free(client, blocks, settings)
         )
         timings["replay_s"] = replay.wall_s
         t0 = time.perf_counter()

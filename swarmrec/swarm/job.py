@@ -36,7 +36,16 @@ from swarmrec.swarm.scrape import scrape
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import constellation_from_proto, constellation_to_proto
 
-__all__ = ["SwarmSettings", "as_on_the_wire", "main"]
+__all__ = [
+    "Replay",
+    "SwarmSettings",
+    "as_on_the_wire",
+    "main",
+    "prepare_dataset",
+    "replay_free",
+    "replay_lockstep",
+    "swarm_label_bounds",
+]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -91,7 +100,7 @@ def as_on_the_wire(seq: ConstellationSequence) -> ConstellationSequence:
     )
 
 
-def _prepare_dataset(
+def prepare_dataset(
     settings: SwarmSettings,
 ) -> tuple[str, Path | None, ConstellationSequence, Trajectory | None]:
     """The dataset folder the detectors replay, and the sequence and poses it holds."""
@@ -126,7 +135,8 @@ def _prepare_dataset(
     return source, labels_file, seq, read_trajectory(gt_path) if gt_path else None
 
 
-def _bounds(settings: SwarmSettings, seq: ConstellationSequence) -> npt.NDArray[np.int64]:
+def swarm_label_bounds(settings: SwarmSettings, seq: ConstellationSequence) -> npt.NDArray[np.int64]:
+    """The shards' label ranges for the preset (``balanced`` weighs labels by their frequency in ``seq``)."""
     from swarmrec.core.association import build_table
     from swarmrec.evaluation.scoring import label_bounds, label_frequency_prior
 
@@ -138,7 +148,9 @@ def _bounds(settings: SwarmSettings, seq: ConstellationSequence) -> npt.NDArray[
 
 
 @dataclass
-class _Replay:
+class Replay:
+    """What a replay got back: the query reports, the slots with no answer, errors, timings."""
+
     reports: list[pb.QueryReport]
     missing: list[tuple[int, int]]  # (robot, step) slots with no answer
     errors: list[str]
@@ -146,9 +158,9 @@ class _Replay:
     wall_s: float
 
 
-def _replay_lockstep(
+def replay_lockstep(
     client: Any, blocks: list[range], settings: SwarmSettings, on_step: Callable[[int], None] | None
-) -> _Replay:
+) -> Replay:
     per = max((len(b) for b in blocks), default=0)
     reports: list[pb.QueryReport] = []
     missing: list[tuple[int, int]] = []
@@ -178,10 +190,10 @@ def _replay_lockstep(
             bar.update(1)
             if on_step is not None:
                 on_step(t)
-    return _Replay(reports, missing, errors, step_s, time.perf_counter() - t0)
+    return Replay(reports, missing, errors, step_s, time.perf_counter() - t0)
 
 
-def _replay_free(client: Any, blocks: list[range], settings: SwarmSettings) -> _Replay:
+def replay_free(client: Any, blocks: list[range], settings: SwarmSettings) -> Replay:
     import zenoh
 
     from swarmrec.services import keys
@@ -221,7 +233,7 @@ def _replay_free(client: Any, blocks: list[range], settings: SwarmSettings) -> _
             bar.update(1)
     seen = {(r.robot_id, r.frame_index) for r in reports}
     missing = [(r, t) for r, b in enumerate(blocks) for t in range(len(b)) if (r, t) not in seen]
-    return _Replay(reports, missing, errors, [], time.perf_counter() - t0)
+    return Replay(reports, missing, errors, [], time.perf_counter() - t0)
 
 
 def main(
@@ -240,10 +252,10 @@ def main(
     t_start = time.perf_counter()
     out = settings.out
     out.mkdir(parents=True, exist_ok=True)
-    source, labels_file, seq, trajectory = _prepare_dataset(settings)
+    source, labels_file, seq, trajectory = prepare_dataset(settings)
     wire_seq = as_on_the_wire(seq)
     preset = get_preset(settings.preset)
-    bounds = _bounds(settings, seq)
+    bounds = swarm_label_bounds(settings, seq)
     blocks = split_frames(len(seq), settings.robots)
     # Compiled once here, ten verifier processes load the kernels from numba's cache.
     warm_up()
@@ -274,9 +286,9 @@ def main(
             if swarm_hook is not None:
                 swarm_hook(swarm)
             replay = (
-                _replay_lockstep(client, blocks, settings, on_step)
+                replay_lockstep(client, blocks, settings, on_step)
                 if settings.lockstep
-                else _replay_free(client, blocks, settings)
+                else replay_free(client, blocks, settings)
             )
             timings["replay_s"] = replay.wall_s
             targets = {

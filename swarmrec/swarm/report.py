@@ -27,7 +27,7 @@ from swarmrec.swarm.scrape import Scrape
 from swarmrec.wire import messages as pb
 
 if TYPE_CHECKING:
-    from swarmrec.swarm.job import SwarmSettings, _Replay
+    from swarmrec.swarm.job import Replay, SwarmSettings
 
 __all__ = ["pair_matrix", "write_report"]
 
@@ -120,7 +120,7 @@ def write_report(
     preset: Preset,
     bounds: npt.NDArray[np.int64],
     blocks: list[range],
-    replay: _Replay,
+    replay: Replay,
     metrics: Scrape,
     closures: list[pb.LoopClosure],
     exit_codes: dict[str, int],
