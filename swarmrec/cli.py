@@ -460,10 +460,10 @@ def _members(args: argparse.Namespace) -> int:
     if not members:
         print(f"no live member in swarm {args.swarm!r}", file=sys.stderr)
         return 3
-    print(f"{'service':<12} {'robot':>5} {'labels':>10} {'version':>8}  metrics")
+    print(f"{'service':<12} {'robot':>5} {'labels':>10} {'stored':>7} {'version':>8}  metrics")
     for m in members:
         rng = f"{m.label_range[0]}-{m.label_range[1]}" if m.label_range else ""
-        print(f"{m.kind:<12} {m.robot:>5} {rng:>10} {m.version:>8}  {m.metrics_url}")
+        print(f"{m.kind:<12} {m.robot:>5} {rng:>10} {m.stored_items:>7} {m.version:>8}  {m.metrics_url}")
     return 0
 
 

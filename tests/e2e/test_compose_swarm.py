@@ -12,6 +12,9 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
+import subprocess
+import sys
 import urllib.parse
 import urllib.request
 from collections.abc import Iterator
@@ -106,6 +109,28 @@ def test_prometheus_scrapes_every_service_and_sees_bytes_and_shard_load(swarm: d
     assert swarm["summary"]["shard_load"]["partial_queries"] == [
         int(per_shard[str(r)]) for r in range(ROBOTS)
     ]
+
+
+@pytest.mark.slow
+def test_a_user_on_the_host_lists_the_swarm_with_the_cli_and_opens_prometheus_web_page(
+    swarm: dict[str, Any],
+) -> None:
+    info: SwarmFile = swarm["info"]
+    cli = Path(sys.executable).with_name("swarmrec")
+    out = subprocess.run(
+        [str(cli), "members", "--connect", info.router_endpoint, "--swarm", info.swarm],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    ).stdout
+    for r in range(ROBOTS):
+        for kind in KINDS:
+            assert re.search(rf"^{kind}\s+{r}\b", out, re.MULTILINE), (kind, r, out)
+    with urllib.request.urlopen(f"{info.prometheus_url}/", timeout=10) as resp:
+        page = resp.read().decode()
+        assert resp.status == 200
+    assert "Prometheus" in page
 
 
 @pytest.mark.slow

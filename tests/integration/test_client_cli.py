@@ -94,9 +94,12 @@ def test_members_prints_a_table_by_default(running: Running) -> None:
 
     assert done.returncode == 0, done.stderr
     lines = done.stdout.splitlines()
-    assert lines[0].split() == ["service", "robot", "labels", "version", "metrics"]
+    assert lines[0].split() == ["service", "robot", "labels", "stored", "version", "metrics"]
     assert len(lines) == 1 + 4 * N_ROBOTS
     assert any(line.split()[:3] == ["index-shard", "1", "40-80"] for line in lines)
+    # Each verifier holds its own robot's replayed frames, one a step.
+    verifiers = [line.split() for line in lines if line.startswith("verifier")]
+    assert [(v[1], v[2]) for v in verifiers] == [(str(r), str(STEPS)) for r in range(N_ROBOTS)]
 
 
 def _replayed_frame(running: Running) -> tuple[int, int, Path]:
