@@ -76,4 +76,4 @@ swarm-down: $(STAMP)
 	$(BIN)/swarmrec compose down --out $(COMPOSE_OUT)
 
 clean:
-	rm -rf $(VENV) runs .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) .venv-train runs .pytest_cache .mypy_cache .ruff_cache
