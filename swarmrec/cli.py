@@ -75,6 +75,20 @@ def _add_synth(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--frames", type=int, help="number of frames (default: the world's default)")
 
 
+def _add_dataset_arguments(p: argparse.ArgumentParser) -> None:
+    """What the swarm replays: shared by `run` and `compose`."""
+    p.add_argument(
+        "--dataset",
+        default="synthetic",
+        help="'synthetic' (built-in office world) or a folder/.zip of constellation files",
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of the synthetic world (default 0)")
+    p.add_argument("--frames", type=int, help="use only the first N frames (synthetic: generate N)")
+    p.add_argument("--labels", type=Path, help="label list, one name a line (default: COCO 80)")
+    p.add_argument("--groundtruth", type=Path, help="TUM trajectory for precision-recall")
+    p.add_argument("--preset", choices=sorted(PRESETS), default="paper", help="(default paper)")
+
+
 def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "run",
@@ -87,17 +101,8 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
             "query and shard load scraped from the services' Prometheus metrics, query latency."
         ),
     )
-    p.add_argument(
-        "--dataset",
-        default="synthetic",
-        help="'synthetic' (built-in office world) or a folder/.zip of constellation files",
-    )
-    p.add_argument("--seed", type=int, default=0, help="seed of the synthetic world (default 0)")
-    p.add_argument("--frames", type=int, help="use only the first N frames (synthetic: generate N)")
-    p.add_argument("--labels", type=Path, help="label list, one name a line (default: COCO 80)")
-    p.add_argument("--groundtruth", type=Path, help="TUM trajectory for precision-recall")
+    _add_dataset_arguments(p)
     p.add_argument("--robots", type=int, default=10, help="robots in the swarm (default 10)")
-    p.add_argument("--preset", choices=sorted(PRESETS), default="paper", help="(default paper)")
     p.add_argument(
         "--pace",
         default="lockstep",
@@ -140,12 +145,7 @@ def _add_compose(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     )
     p.add_argument("action", choices=("write", "up", "down"))
     p.add_argument("--robots", type=int, default=4, help=f"robots, 1 .. {MAX_ROBOTS} (default 4)")
-    p.add_argument("--dataset", default="synthetic", help="'synthetic' or a folder/.zip of constellations")
-    p.add_argument("--seed", type=int, default=0, help="seed of the synthetic world (default 0)")
-    p.add_argument("--frames", type=int, help="use only the first N frames (synthetic: generate N)")
-    p.add_argument("--labels", type=Path, help="label list, one name a line (default: COCO 80)")
-    p.add_argument("--groundtruth", type=Path, help="TUM trajectory for precision-recall")
-    p.add_argument("--preset", choices=sorted(PRESETS), default="paper", help="(default paper)")
+    _add_dataset_arguments(p)
     p.add_argument("--swarm", default="compose", help="swarm name (default compose)")
     p.add_argument("--project", default="swarmrec", help="compose project name (default swarmrec)")
     p.add_argument("--router-port", type=int, default=7447, help="router port on 127.0.0.1 (default 7447)")
