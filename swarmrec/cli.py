@@ -166,7 +166,7 @@ def _add_serve(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
 
     p = sub.add_parser(
         "serve",
-        help="run one service of one robot (router, detector, descriptor, index-shard, verifier)",
+        help="run one service of one robot (router, detector, descriptor, index-shard, verifier, fusion)",
         description=(
             "Run one swarm service until SIGTERM/SIGINT. Settings come from defaults < --config "
             "TOML file < SWARMREC_* environment < flags. Prints one JSON 'ready' line on stdout "

@@ -5,6 +5,7 @@ Data flow, one robot::
     detector --Constellation--> descriptor --PartialQuery--> index-shard (each robot's, by label range)
                                            --VerifyRequest--> verifier (the chosen robots')
                                            --LoopClosure event-->
+    classifier output --start_round--> fusion --ClassifierOutput--> fusion of each neighbour (flooding)
 
 ``python -m swarmrec serve <kind>`` runs one service (see :data:`SERVICES`).
 """
@@ -17,7 +18,7 @@ from swarmrec.services.runner import Service, ServiceContext
 
 __all__ = ["SERVICES", "service_factory"]
 
-SERVICES = ("router", "detector", "descriptor", "index-shard", "verifier")
+SERVICES = ("router", "detector", "descriptor", "index-shard", "verifier", "fusion")
 
 
 def service_factory(kind: str) -> Callable[[ServiceContext], Service]:
@@ -38,4 +39,8 @@ def service_factory(kind: str) -> Callable[[ServiceContext], Service]:
         from swarmrec.services.verifier import Verifier
 
         return Verifier
+    if kind == "fusion":
+        from swarmrec.services.fusion import FusionService
+
+        return FusionService
     raise ValueError(f"unknown service {kind!r}; services: {', '.join(SERVICES)}")

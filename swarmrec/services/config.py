@@ -40,6 +40,7 @@ __all__ = ["ENV_PREFIX", "ServiceSettings", "add_arguments", "load_settings", "s
 ENV_PREFIX = "SWARMREC_"
 
 ZenohMode = Literal["client", "peer", "router"]
+FusionLaw = Literal["paper", "agreement"]
 
 
 @dataclass(frozen=True)
@@ -87,6 +88,17 @@ class ServiceSettings:
     labels_file: Path | None = None
     #: Detector: frames replayed by each robot; 0 splits the dataset evenly over n_robots.
     frames_per_robot: int = 0
+    #: Fusion: classes of the shared class list (the paper's street has 19 landmarks).
+    n_classes: int = 19
+    #: Fusion: weight law P(R) of a received message (swarmrec.fusion.wnbc): "paper" (Eq. 16)
+    #: or "agreement" (the paper's weight as a prior, updated with the message).
+    fusion_law: FusionLaw = "paper"
+    #: Fusion: lambda of Eq. 14; unset: the law's own default (paper 2, agreement 1).
+    fusion_lambda: float | None = None
+    #: Fusion: r_max of Sec. 3.4, the most hops a message travels; 0: no limit.
+    fusion_r_max: int = 0
+    #: Fusion: messages kept per round that arrive before this robot starts that round.
+    fusion_early_messages: int = 1024
     #: Logging level.
     log_level: str = "INFO"
 
@@ -133,6 +145,18 @@ class ServiceSettings:
             problems.append(f"max_message_bytes must be 1024 .. {1 << 24}, got {self.max_message_bytes}")
         if self.frames_per_robot < 0:
             problems.append(f"frames_per_robot must be >= 0, got {self.frames_per_robot}")
+        if self.n_classes < 2:
+            problems.append(f"n_classes must be >= 2, got {self.n_classes}")
+        if self.fusion_law not in ("paper", "agreement"):
+            problems.append(f"fusion_law must be paper or agreement, got {self.fusion_law!r}")
+        if self.fusion_lambda is not None and not (
+            math.isfinite(self.fusion_lambda) and self.fusion_lambda >= 0
+        ):
+            problems.append(f"fusion_lambda must be finite and >= 0, got {self.fusion_lambda}")
+        if self.fusion_r_max < 0:
+            problems.append(f"fusion_r_max must be >= 0 (0: no limit), got {self.fusion_r_max}")
+        if self.fusion_early_messages < 0:
+            problems.append(f"fusion_early_messages must be >= 0, got {self.fusion_early_messages}")
         try:
             get_preset(self.preset)
         except ConfigError as e:

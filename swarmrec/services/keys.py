@@ -7,6 +7,7 @@ sharing one router never see each other's messages.
     swarmrec/v1/<swarm>/<kind>/<robot>/<endpoint>     request/response (queryables)
     swarmrec/v1/<swarm>/alive/<kind>/<robot>          liveliness token, one per service
     swarmrec/v1/<swarm>/events/<event>/<robot>        published events
+    swarmrec/v1/<swarm>/fusion/<robot>/inbox          put, not queried: flooded ClassifierOutputs
 """
 
 from __future__ import annotations
@@ -22,12 +23,13 @@ __all__ = [
     "alive_all",
     "endpoint",
     "event",
+    "fusion_inbox",
     "parse_alive",
     "validate_swarm_name",
 ]
 
 PREFIX = "swarmrec/v1"
-KINDS = ("detector", "descriptor", "index-shard", "verifier", "router")
+KINDS = ("detector", "descriptor", "index-shard", "verifier", "fusion", "router")
 
 _SWARM_NAME = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
@@ -73,3 +75,12 @@ def parse_alive(key: str) -> tuple[str, int] | None:
 def event(swarm: str, name: str, robot: int | str) -> str:
     """Key of a published event (``robot="*"``: every robot)."""
     return f"{PREFIX}/{swarm}/events/{name}/{_robot(robot)}"
+
+
+def fusion_inbox(swarm: str, robot: int | str) -> str:
+    """Key a robot's fusion service subscribes to for its neighbours' ClassifierOutputs.
+
+    It sits beside the service's endpoints (``fusion/<robot>/inbox``) but is a
+    publication, not a query: flooding sends each message once and needs no answer.
+    """
+    return endpoint(swarm, "fusion", robot, "inbox")

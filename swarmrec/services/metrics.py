@@ -8,7 +8,8 @@ bytes, seconds) and every label has a small fixed set of values:
   (between robots: the radio traffic the paper counts), ``client`` (to or
   from a tool outside the swarm: the main job, the CLI),
 * ``endpoint``: one of a service's few endpoint names,
-* ``code``: an ErrorCode name; ``reason``: why a peer failed.
+* ``code``: an ErrorCode name; ``reason``: why a peer failed, or why the
+  fusion service rejected a flooded message (a few fixed names, docs/fusion.md).
 
 Each message is counted once by its sender (``*_sent_*``) and once by its
 receiver (``*_received_*``); the report sums the senders' ``scope="swarm"``
@@ -57,6 +58,11 @@ class ServiceMetrics:
     stored_frames: Gauge
     loop_closures: Counter
     query_seconds: Histogram
+    fusion_rounds: Counter
+    fusion_incorporated: Counter
+    fusion_duplicates: Counter
+    fusion_rejected: Counter
+    fusion_early: Counter
     ready: Gauge
     url: str = ""
 
@@ -128,6 +134,24 @@ class ServiceMetrics:
                 "Time of one two-step query, frame in to last verifier reply",
                 buckets=_LATENCY_BUCKETS,
                 registry=reg,
+            ),
+            fusion_rounds=counter("swarmrec_fusion_rounds", "Fusion rounds this robot started"),
+            fusion_incorporated=counter(
+                "swarmrec_fusion_incorporated",
+                "Other robots' classifier outputs folded into this robot's posterior",
+            ),
+            fusion_duplicates=counter(
+                "swarmrec_fusion_duplicates",
+                "Flooded copies of an already-heard origin, ignored (Algorithm 1 line 11)",
+            ),
+            fusion_rejected=counter(
+                "swarmrec_fusion_rejected",
+                "Flooded messages rejected by the fusion service, by reason",
+                ("reason",),
+            ),
+            fusion_early=counter(
+                "swarmrec_fusion_early_messages",
+                "Flooded messages that arrived before this robot started their round, kept for it",
             ),
             ready=Gauge(
                 "swarmrec_service_ready",

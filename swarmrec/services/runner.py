@@ -61,6 +61,7 @@ KIND_ENUM = {
     "descriptor": pb.ServiceKind.SERVICE_KIND_DESCRIPTOR,
     "index-shard": pb.ServiceKind.SERVICE_KIND_INDEX_SHARD,
     "verifier": pb.ServiceKind.SERVICE_KIND_VERIFIER,
+    "fusion": pb.ServiceKind.SERVICE_KIND_FUSION,
 }
 
 

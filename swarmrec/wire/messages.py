@@ -22,7 +22,15 @@ from swarmrec.wire.gen.swarmrec.v1.constellation_pb2 import Constellation
 from swarmrec.wire.gen.swarmrec.v1.descriptor_pb2 import PartialDescriptor, SemanticDescriptor
 from swarmrec.wire.gen.swarmrec.v1.errors_pb2 import ErrorCode, ErrorReply
 from swarmrec.wire.gen.swarmrec.v1.events_pb2 import LoopClosure, QueryReport, VerifiedPair
-from swarmrec.wire.gen.swarmrec.v1.fusion_pb2 import ClassifierOutput
+from swarmrec.wire.gen.swarmrec.v1.fusion_pb2 import (
+    ClassifierOutput,
+    FusionPosterior,
+    FusionRoundStart,
+    FusionRoundStarted,
+    FusionStep,
+    FusionUpdate,
+    PosteriorRequest,
+)
 from swarmrec.wire.gen.swarmrec.v1.health_pb2 import MemberInfo, ServiceKind
 from swarmrec.wire.gen.swarmrec.v1.query_pb2 import CandidatesReply, PartialQuery
 from swarmrec.wire.gen.swarmrec.v1.replay_pb2 import (
@@ -43,12 +51,18 @@ __all__ = [
     "Constellation",
     "ErrorCode",
     "ErrorReply",
+    "FusionPosterior",
+    "FusionRoundStart",
+    "FusionRoundStarted",
+    "FusionStep",
+    "FusionUpdate",
     "LoopClosure",
     "LoopClosureList",
     "LoopClosuresRequest",
     "MemberInfo",
     "PartialDescriptor",
     "PartialQuery",
+    "PosteriorRequest",
     "QueryReport",
     "ReplayReply",
     "ReplayRequest",
@@ -71,12 +85,18 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         ClassifierOutput,
         Constellation,
         ErrorReply,
+        FusionPosterior,
+        FusionRoundStart,
+        FusionRoundStarted,
+        FusionStep,
+        FusionUpdate,
         LoopClosure,
         LoopClosureList,
         LoopClosuresRequest,
         MemberInfo,
         PartialDescriptor,
         PartialQuery,
+        PosteriorRequest,
         QueryReport,
         ReplayReply,
         ReplayRequest,

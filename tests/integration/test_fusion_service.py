@@ -1,0 +1,246 @@
+"""Five fusion services on a line graph 0-1-2-3-4, over a real router, as real processes.
+
+Each robot gets known class probabilities and a yaw and hears only its line
+neighbours. The robots are started last-first, so every robot but the last gets
+messages of the round before it starts it (kept and processed at the start).
+Before the round, bad messages are put on two robots' inboxes: bytes that do not
+decode, a payload of another schema, a sender that lies about who it is, a vector
+with a NaN from a neighbour, and a good-looking message from a robot out of range.
+
+Checked: each robot folds in the 4 others (waited for on the published events), at
+exactly ``|i - j|`` hops, each first delivered by one of its neighbours; its
+posterior equals what swarmrec.fusion's FusionState computes from the same vectors
+in the order the robot recorded (so the service's wiring is checked against the
+core, not against itself); every duplicate a broadcast flood must produce on a line
+is counted; each robot sends each of the 5 outputs once to each neighbour; the bad
+messages are counted by reason and the round still completes.
+"""
+
+from __future__ import annotations
+
+import math
+import queue
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from swarmrec.client import SwarmClient
+from swarmrec.fusion import FusionState, make_weight_law
+from swarmrec.services import keys
+from swarmrec.services.config import ServiceSettings
+from swarmrec.swarm.processes import LocalSwarm
+from swarmrec.wire import messages as pb
+from swarmrec.wire.codec import schema_name
+from tests.integration.conftest import swarm_name
+from tests.integration.support import (
+    endpoint_key,
+    metric,
+    metrics_url,
+    protobuf,
+    reply_of,
+    request,
+    wait_until,
+)
+
+N = 5
+N_CLASSES = 19
+ROUND = 3
+LAW = "agreement"  # its weight depends on the posterior, so the order of messages matters
+LINE = [[j for j in (i - 1, i + 1) if 0 <= j < N] for i in range(N)]
+RNG = np.random.default_rng(11)
+# float32 as on the wire, so the core below sees exactly what the services see.
+PROBS = RNG.dirichlet(np.full(N_CLASSES, 0.3), size=N).astype(np.float32)
+YAWS = RNG.uniform(-math.pi, math.pi, N).astype(np.float32)
+CLASSIFIER = schema_name(pb.ClassifierOutput)
+
+
+@pytest.fixture
+def fusion_swarm(
+    request: pytest.FixtureRequest, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> Iterator[LocalSwarm]:
+    """A router and one fusion service per robot; the weight law comes from the
+    environment, as a robot's would."""
+    monkeypatch.setenv("SWARMREC_FUSION_LAW", LAW)
+    base = ServiceSettings(swarm=swarm_name(request), n_robots=N, request_timeout_s=2.0)
+    swarm = LocalSwarm(
+        base, data_dir=tmp_path / "data", log_dir=tmp_path / "logs", dataset="", services=("fusion",)
+    )
+    try:
+        swarm.start(timeout_s=60.0)
+        yield swarm
+    finally:
+        swarm.stop()
+
+
+def put(
+    session: zenoh.Session, swarm: str, robot: int, payload: bytes, schema: str, sender: int | None = None
+) -> None:
+    """A raw put on a robot's inbox, as a faulty or lying robot would send it."""
+    session.put(
+        keys.fusion_inbox(swarm, robot),
+        payload,
+        encoding=protobuf(schema),
+        attachment=None if sender is None else str(sender).encode(),
+        congestion_control=zenoh.CongestionControl.BLOCK,
+    )
+
+
+def output(origin: int, sender: int, hops: int, probs: list[float]) -> bytes:
+    msg = pb.ClassifierOutput(
+        origin_robot_id=origin,
+        round_id=ROUND,
+        probabilities=probs,
+        yaw_rad=0.0,
+        hop_count=hops,
+        sender_robot_id=sender,
+    )
+    return bytes(msg.SerializeToString())
+
+
+def rejected(url: str, reason: str) -> float:
+    return metric(url, "swarmrec_fusion_rejected_total", reason=reason)
+
+
+def test_five_robots_on_a_line_flood_to_neighbours_only_and_fuse_as_the_core_does(
+    fusion_swarm: LocalSwarm,
+) -> None:
+    t0 = time.monotonic()
+    swarm = fusion_swarm.base.swarm
+    urls = [metrics_url(fusion_swarm.find("fusion", r)) for r in range(N)]
+    events: queue.Queue[pb.FusionUpdate] = queue.Queue()
+    with SwarmClient([fusion_swarm.endpoint], swarm, timeout_s=5.0) as client:
+        session = client.session
+        # The token is declared after the inbox subscriber: once the router shows it,
+        # puts to that inbox are routed.
+        client.wait_for({("fusion", r) for r in range(N)})
+        sub = session.declare_subscriber(
+            keys.event(swarm, "fusion", "*"),
+            lambda s: events.put(pb.FusionUpdate.FromString(s.payload.to_bytes())),
+        )
+        try:
+            # --- bad messages, before any round starts ---------------------------------
+            good = [float(p) for p in PROBS[1]]
+            put(session, swarm, 2, b"\x1a\x05\x00", CLASSIFIER)  # truncated: does not decode
+            put(session, swarm, 2, output(1, 1, 0, good), schema_name(pb.FusionUpdate))
+            put(session, swarm, 2, output(1, 1, 0, good), CLASSIFIER, sender=4)  # robot 4 claims to be 1
+            put(session, swarm, 0, output(1, 1, 0, [math.nan] * N_CLASSES), CLASSIFIER)  # from a neighbour
+            put(session, swarm, 0, output(3, 3, 0, good), CLASSIFIER)  # robot 3 is out of robot 0's range
+            wait_until(
+                lambda: (
+                    all(rejected(urls[2], r) == 1 for r in ("malformed", "wrong_schema", "sender_mismatch"))
+                    and metric(urls[0], "swarmrec_fusion_early_messages_total") == 2
+                ),
+                10.0,
+                "bad messages counted",
+            )
+
+            # --- the round, last robot first ---------------------------------------------
+            for i in reversed(range(N)):
+                start = pb.FusionRoundStart(
+                    round_id=ROUND,
+                    probabilities=[float(p) for p in PROBS[i]],
+                    yaw_rad=float(YAWS[i]),
+                    neighbour_robot_ids=LINE[i],
+                )
+                started = reply_of(
+                    request(session, endpoint_key(fusion_swarm, "fusion", i, "start_round"), start),
+                    pb.FusionRoundStarted,
+                )
+                assert (started.robot_id, started.round_id, started.sent) == (i, ROUND, len(LINE[i]))
+                if i == N - 1:
+                    assert started.early_messages == 0  # nobody had started before it
+                if i == 0:
+                    assert started.early_messages >= 2  # the two bad ones, at least
+
+            seen: dict[int, list[pb.FusionUpdate]] = {r: [] for r in range(N)}
+            deadline = time.monotonic() + 15.0
+            while any(len(seen[r]) < N - 1 for r in range(N)):
+                ev = events.get(timeout=max(deadline - time.monotonic(), 0.01))
+                seen[ev.robot_id].append(ev)
+        finally:
+            sub.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
+
+        law = make_weight_law(LAW)
+        for i in range(N):
+            key = endpoint_key(fusion_swarm, "fusion", i, "posterior")
+            expected_duplicates = N * len(LINE[i]) - (N - 1)
+
+            def settled(key: str = key, expected: int = expected_duplicates) -> pb.FusionPosterior | None:
+                # Copies of heard origins may still arrive after the 4th new one.
+                post = reply_of(request(session, key, pb.PosteriorRequest()), pb.FusionPosterior)
+                return post if post.duplicates == expected else None
+
+            post = wait_until(settled, 10.0, f"robot {i}'s duplicates counted")
+            history = list(post.history)
+            assert (post.robot_id, post.round_id, post.incorporated, post.heard_all) == (
+                i,
+                ROUND,
+                N - 1,
+                True,
+            )
+            assert list(post.neighbour_robot_ids) == LINE[i]
+            assert {s.origin_robot_id: s.hops for s in history} == {j: abs(i - j) for j in range(N) if j != i}
+            assert all(s.sender_robot_id in LINE[i] for s in history), history
+
+            # The core, fed the same float32 vectors and yaws in the recorded order.
+            core = FusionState(PROBS[i].astype(np.float64), float(YAWS[i]), law, own_id=i)
+            for s in history:
+                step = core.incorporate(
+                    s.origin_robot_id,
+                    PROBS[s.origin_robot_id].astype(np.float64),
+                    s.hops,
+                    float(YAWS[s.origin_robot_id]),
+                )
+                assert step is not None and step.weight == s.weight
+                assert s.decision_after == int(np.argmax(step.posterior))
+            assert np.array_equal(core.posterior, np.array(post.posterior))
+            assert post.decision == core.decision
+
+            # The events said the same, in the same order.
+            assert [e.step.origin_robot_id for e in seen[i]] == [s.origin_robot_id for s in history]
+            assert [e.incorporated for e in seen[i]] == list(range(1, N))
+            assert np.array_equal(np.array(seen[i][-1].posterior), core.posterior)
+
+            # Metrics: each output goes once to each neighbour, robot to robot.
+            url = urls[i]
+            assert metric(url, "swarmrec_fusion_incorporated_total") == N - 1
+            assert metric(url, "swarmrec_fusion_duplicates_total") == expected_duplicates
+            sent = metric(url, "swarmrec_messages_sent_total", message="ClassifierOutput", scope="swarm")
+            got = metric(url, "swarmrec_messages_received_total", message="ClassifierOutput", scope="swarm")
+            assert sent == N * len(LINE[i])
+            # Robot 2 also got the put whose attachment said robot 4 (radio traffic, though refused).
+            assert got == N * len(LINE[i]) + (i == 2)
+            assert (
+                metric(url, "swarmrec_message_bytes_sent_total", message="ClassifierOutput", scope="swarm")
+                > 0
+            )
+
+        # The bad messages: counted by reason, and the rounds completed regardless.
+        assert rejected(urls[0], "not_finite") == 1
+        assert rejected(urls[0], "not_neighbour") == 1
+        assert (
+            reply_of(
+                request(session, endpoint_key(fusion_swarm, "fusion", 0, "posterior"), pb.PosteriorRequest()),
+                pb.FusionPosterior,
+            ).rejected
+            == 2
+        )
+        assert rejected(urls[2], "malformed") == 1
+        for i in (1, 3, 4):
+            assert metric(urls[i], "swarmrec_fusion_rejected_total") == 0
+
+        # A round that was never started here is reported as NOT_FOUND, not as an empty posterior.
+        missing = request(
+            session,
+            endpoint_key(fusion_swarm, "fusion", 0, "posterior"),
+            pb.PosteriorRequest(round_id=ROUND + 1),
+        )
+        assert missing.code == "ERROR_CODE_NOT_FOUND"
+    # SIGTERM: subscriber undeclared, inbox worker drained, session closed, exit 0.
+    codes = fusion_swarm.stop()
+    assert all(code == 0 for code in codes.values()), codes
+    assert time.monotonic() - t0 < 30.0
