@@ -3,15 +3,21 @@
 #
 #   make run     the main job: a local swarm of 10 robots (real processes, real zenoh router) on the synthetic world
 #   make evaluate  the offline evaluation (no processes): centralized and 10 robots
-#   make test    regenerated-code check, lint, types, all tests (unit, local processes, containers)
+#   make test    regenerated-code check, lint, types, all tests (unit, local processes, containers, training)
+#   make landmarks  the cooperative landmark recognition simulation (10 robots, 118 configurations) and its figures
 #   make bench   benchmarks, figures written to bench/results/
 #   make images  container engine (installed and started if none answers) and the swarm's images
 #   make swarm-up ROBOTS=4   a compose swarm of ROBOTS robots (3 to 10) + Prometheus, on this host
 #   make swarm-run           replay the synthetic world through it (report in runs/compose/report)
 #   make swarm-down          remove its containers, network and volumes
+#   make train-env           the model-training environment (.venv-train: PyPI torch, several GB)
+#   make train-landmarks     retrain models/landmarks/landmark_cnn.onnx (CPU, about 6 minutes)
+#   make train-detector      retrain models/detector/office_detector.onnx
 #
 # Every target sets up its own virtual environment first (.venv, pinned by
-# requirements.lock), so a fresh clone needs only python3 and make.
+# requirements.lock), so a fresh clone needs only python3 and make. Training
+# has its own (.venv-train, pinned by models/landmarks/requirements-train.txt):
+# PyPI's torch is the multi-GB CUDA build and never enters .venv or an image.
 
 PYTHON ?= python3
 VENV   := .venv
@@ -20,8 +26,12 @@ STAMP  := $(VENV)/.installed-stamp
 RUN_OUT ?= runs/swarm
 ROBOTS  ?= 4
 COMPOSE_OUT ?= runs/compose
+LANDMARKS_OUT ?= runs/landmarks
+TRAIN_VENV  := .venv-train
+TRAIN_STAMP := $(TRAIN_VENV)/.installed-stamp
+TRAIN_REQS  := models/landmarks/requirements-train.txt
 
-.PHONY: help venv run evaluate test unit lint typecheck proto check-proto bench images swarm-up swarm-run swarm-down clean
+.PHONY: help venv train-env train-landmarks train-detector landmarks run evaluate test unit lint typecheck proto check-proto bench images swarm-up swarm-run swarm-down clean
 
 help:
 	@sed -n 's/^#   //p' Makefile
@@ -34,13 +44,33 @@ $(STAMP): pyproject.toml requirements.lock
 
 venv: $(STAMP)
 
+# --no-deps for swarmrec itself: training needs only its renderers (numpy, opencv),
+# which the pinned requirements already hold.
+$(TRAIN_STAMP): $(TRAIN_REQS) pyproject.toml
+	@test -x $(TRAIN_VENV)/bin/python || $(PYTHON) -m venv $(TRAIN_VENV)
+	$(TRAIN_VENV)/bin/python -m pip install --quiet --upgrade pip
+	$(TRAIN_VENV)/bin/python -m pip install --quiet -r $(TRAIN_REQS)
+	$(TRAIN_VENV)/bin/python -m pip install --quiet --no-deps -e .
+	@touch $(TRAIN_STAMP)
+
+train-env: $(TRAIN_STAMP)
+
+train-landmarks: $(TRAIN_STAMP)
+	$(TRAIN_VENV)/bin/python models/landmarks/train.py
+
+train-detector: $(TRAIN_STAMP)
+	$(TRAIN_VENV)/bin/python models/detector/train.py
+
+landmarks: $(STAMP)
+	$(BIN)/swarmrec landmarks --out $(LANDMARKS_OUT)
+
 run: $(STAMP)
 	$(BIN)/swarmrec run --dataset synthetic --robots 10 --out $(RUN_OUT)
 
 evaluate: $(STAMP)
 	$(BIN)/swarmrec evaluate --dataset synthetic --out runs/evaluate
 
-test: $(STAMP) check-proto lint typecheck
+test: $(STAMP) $(TRAIN_STAMP) check-proto lint typecheck
 	$(BIN)/python -m pytest
 
 unit: $(STAMP)

@@ -31,6 +31,10 @@ if [ "$BASE" = swarmrec-base:bookworm ] || [ "$PROM_BASE" = swarmrec-prometheus-
 fi
 t1=$(date +%s.%N)
 deploy/wheelhouse.sh
+# The shipped ONNX models, laid out as models/ (swarmrec.models finds them via $SWARMREC_MODELS).
+rm -rf deploy/.models
+mkdir -p deploy/.models
+(cd models && find . -name '*.onnx' -exec cp --parents {} ../deploy/.models/ \;)
 t2=$(date +%s.%N)
 log "building $IMAGE from $BASE"
 docker build --quiet --build-arg BASE_IMAGE="$BASE" -t "$IMAGE" -f deploy/Dockerfile deploy 2> >(grep -v -e DEPRECATED -e "legacy builder" -e buildx -e "^ *$" >&2) >/dev/null

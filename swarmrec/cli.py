@@ -120,6 +120,43 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="skip comparing the pair scores with the offline evaluation",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    pixels = p.add_argument_group(
+        "from pixels",
+        "detectors find objects in RGB-D frames with an ONNX model instead of replaying constellations "
+        "(docs/detector.md)",
+    )
+    pixels.add_argument(
+        "--from-pixels",
+        action="store_true",
+        help="render the synthetic world (--seed, --frames) as RGB-D frames into OUT/rgbd and detect in them",
+    )
+    pixels.add_argument(
+        "--rgbd",
+        type=Path,
+        metavar="DIR",
+        help="a TUM-format RGB-D folder (rgb.txt, depth.txt, images; groundtruth.txt for precision-recall)",
+    )
+    pixels.add_argument(
+        "--model",
+        default="",
+        metavar="ONNX",
+        help="a YOLO-style ONNX export (v5 or v8 output, one class per label; default: the project's model)",
+    )
+    pixels.add_argument(
+        "--conf-threshold",
+        type=float,
+        help="keep boxes at least this confident (default: the project's model's recommended one, else 0.25)",
+    )
+    pixels.add_argument(
+        "--detector-threads", type=int, default=1, help="onnxruntime threads per detector (default 1)"
+    )
+    pixels.add_argument(
+        "--camera",
+        type=_camera,
+        metavar="FX,FY,CX,CY",
+        help="depth camera intrinsics in pixels (default: a render's own, else TUM freiburg3's)",
+    )
+    pixels.add_argument("--depth-scale", type=float, help="depth units per metre (default 5000, TUM's)")
     p.add_argument(
         "--attach",
         type=Path,
@@ -127,6 +164,16 @@ def _add_run(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="start nothing: replay through the running swarm that `swarmrec compose up --out DIR` "
         "started (its dataset, robots and preset; --pace, --out, --no-plots still apply)",
     )
+
+
+def _camera(text: str) -> tuple[float, float, float, float]:
+    try:
+        fx, fy, cx, cy = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected FX,FY,CX,CY such as 535.4,539.2,320.1,247.6, got {text!r}"
+        ) from None
+    return fx, fy, cx, cy
 
 
 def _add_compose(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -140,11 +187,20 @@ def _add_compose(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
             "verifier, Prometheus), prometheus.yml, swarm.json and the dataset under --out. "
             "up: write, then start every container and wait until all are healthy. "
             "down: stop and remove the containers, the network and (unless --keep-volumes) the volumes. "
-            "Build the images first (make images). Then `swarmrec run --attach DIR` replays through it."
+            "Build the images first (make images). Then `swarmrec run --attach DIR` replays through it "
+            "(--workload landmarks: a detector in classifier mode and a fusion service per robot, "
+            "driven by `swarmrec landmarks --attach DIR`)."
         ),
     )
     p.add_argument("action", choices=("write", "up", "down"))
     p.add_argument("--robots", type=int, default=4, help=f"robots, 1 .. {MAX_ROBOTS} (default 4)")
+    p.add_argument(
+        "--workload",
+        choices=("places", "landmarks"),
+        default="places",
+        help="places: detector, descriptor, index-shard, verifier per robot; landmarks: detector "
+        "(classifier mode) and fusion per robot (default places)",
+    )
     _add_dataset_arguments(p)
     p.add_argument("--swarm", default="compose", help="swarm name (default compose)")
     p.add_argument("--project", default="swarmrec", help="compose project name (default swarmrec)")
@@ -204,6 +260,51 @@ def _add_clients(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     common(p)
 
 
+def _add_landmarks(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    from swarmrec.swarm.landmarks import DEFAULT_LAWS, VIEW_PRESETS
+
+    p = sub.add_parser(
+        "landmarks",
+        help="cooperative landmark recognition: a simulated street, each robot's CNN, fusion over zenoh",
+        description=(
+            "Simulate a swarm in a street of 19 landmarks (the WNBC paper's experiment): each robot "
+            "renders what it faces, its detector (classifier mode) classifies it, the fusion services "
+            "flood the outputs to their radio neighbours over a real zenoh router and fuse them with "
+            "the weighted naive Bayes classifier. Writes the recognition rate against incorporated "
+            "messages per weight law (Fig. 3), two configurations (Fig. 4), the confusion matrix "
+            "(Fig. 5), bytes per round and checks to OUT (docs/landmarks.md)."
+        ),
+    )
+    p.add_argument("--configurations", type=int, default=118, help="street configurations (default 118)")
+    p.add_argument("--robots", type=int, default=10, help="robots (default 10)")
+    p.add_argument(
+        "--laws",
+        default=",".join(law.key for law in DEFAULT_LAWS),
+        help="weight laws to compare, comma-separated: paper:LAMBDA or agreement[:PRIOR_LAMBDA] "
+        "(default: the paper's four lambdas and the adaptive law)",
+    )
+    p.add_argument(
+        "--views",
+        choices=sorted(VIEW_PRESETS),
+        default="nominal",
+        help="nominal: the nuisances the CNN was trained on; harsh: occluded, dark, noisy views "
+        "(single robot near the paper's 68 %%) (default nominal)",
+    )
+    p.add_argument("--radio-range", type=float, default=7.0, help="talk below this distance (m, default 7)")
+    p.add_argument("--seed", type=int, default=0, help="configurations and views (default 0)")
+    p.add_argument("--model", default="", help="classifier ONNX (default: the shipped one)")
+    p.add_argument("--figure-law", help="law of Figs. 4 and 5 (default paper:2 when run)")
+    p.add_argument(
+        "--attach",
+        type=Path,
+        metavar="DIR",
+        help="run the rounds through the compose swarm of DIR (swarmrec compose up --workload landmarks) "
+        "instead of starting local processes",
+    )
+    p.add_argument("--out", type=Path, default=Path("runs/landmarks"), help="report folder")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="swarmrec",
@@ -214,6 +315,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_synth(sub)
     _add_run(sub)
     _add_compose(sub)
+    _add_landmarks(sub)
     _add_serve(sub)
     _add_clients(sub)
     return parser
@@ -316,6 +418,13 @@ def _run(args: argparse.Namespace) -> int:
         plots=not args.no_plots,
         progress=not args.quiet,
         check_offline=not args.no_offline_check,
+        from_pixels=args.from_pixels,
+        rgbd=args.rgbd,
+        model=args.model,
+        conf_threshold=args.conf_threshold,
+        detector_threads=args.detector_threads,
+        camera=args.camera,
+        depth_scale=args.depth_scale,
     )
     s = run_swarm(settings)
     _print_summary(s, settings.out)
@@ -330,6 +439,8 @@ def _print_summary(s: dict[str, Any], out: Path) -> None:
         f"{where}), pace {sw['pace']}"
     )
     auc = f"AUC {s['auc']:.4f}" if "auc" in s else "AUC n/a (no ground truth)"
+    if "detector" in s:
+        _print_detector(s["detector"])
     print(f"  {q['queried']} queries, {s['loop_closures']['count']} loop closures, {auc}")
     lat = q["latency_ms"]
     if lat:
@@ -353,11 +464,28 @@ def _print_summary(s: dict[str, Any], out: Path) -> None:
     print(f"  written to {out}/ (summary.json, pairs.csv, loop_closures.csv, *.png)")
 
 
+def _print_detector(d: dict[str, Any]) -> None:
+    if d.get("render"):
+        r = d["render"]
+        print(f"  rendered {r['frames']} RGB-D frames in {r['total_s']:.1f} s into {r['folder']}")
+    skipped = ", ".join(f"{k} {v}" for k, v in d["skipped"].items()) or "none"
+    dropped = sum(d["boxes_dropped"].values())
+    stages = ", ".join(f"{k} {v:.1f} ms" for k, v in d["stage_ms_mean"].items())
+    print(
+        f"  detector {Path(d['model']).name} (conf {d['conf_threshold']:g}): {d['frames']} frames, "
+        f"skipped: {skipped}; {d['objects_per_frame']:.1f} objects per frame, "
+        f"{dropped} boxes dropped (no depth)"
+    )
+    if stages:
+        print(f"  detector time per frame: {stages}")
+
+
 def _compose(args: argparse.Namespace) -> int:
     from swarmrec.swarm import compose
 
     settings = compose.ComposeSettings(
         robots=args.robots,
+        workload=args.workload,
         dataset=args.dataset,
         seed=args.seed,
         frames=args.frames,
@@ -379,12 +507,17 @@ def _compose(args: argparse.Namespace) -> int:
         print("" if args.keep_volumes else ", volumes removed")
         return 0
     info = compose.write_compose(settings)
-    print(f"wrote {info.compose_file} ({settings.robots} robots, {4 * settings.robots + 2} containers)")
+    containers = len(info.services) * settings.robots + 2
+    what = f"{settings.robots} robots, {settings.workload}, {containers} containers"
+    print(f"wrote {info.compose_file} ({what})")
     if args.action == "up":
         print("starting containers; waiting until every one is healthy ...", flush=True)
         seconds = compose.up(info)
         print(f"swarm up in {seconds:.1f} s: router {info.router_endpoint}, Prometheus {info.prometheus_url}")
-        print(f"replay through it: swarmrec run --attach {args.out}")
+        if settings.workload == "landmarks":
+            print(f"simulate the street through it: swarmrec landmarks --attach {args.out}")
+        else:
+            print(f"replay through it: swarmrec run --attach {args.out}")
     return 0
 
 
@@ -496,6 +629,44 @@ def _loop_closures(args: argparse.Namespace) -> int:
     return 0
 
 
+def _landmarks(args: argparse.Namespace) -> int:
+    from swarmrec.swarm.landmarks import LandmarkSettings, parse_law
+    from swarmrec.swarm.landmarks import main as simulate
+
+    laws = tuple(parse_law(text) for text in args.laws.split(",") if text.strip())
+    if args.figure_law and args.figure_law not in {law.key for law in laws}:
+        raise ConfigError(f"--figure-law {args.figure_law} is not one of --laws ({args.laws})")
+    settings = LandmarkSettings(
+        out=args.out,
+        configurations=args.configurations,
+        robots=args.robots,
+        seed=args.seed,
+        laws=laws,
+        views=args.views,
+        radio_range=args.radio_range,
+        model=args.model,
+        progress=not args.quiet,
+    )
+    summary = simulate(settings, args.figure_law, attach=args.attach)
+    st, checks = summary["settings"], summary["checks"]
+    print(
+        f"{st['configurations']} configurations x {st['robots']} robots, {st['views']} views: "
+        f"{checks['robot_rounds']} of {checks['expected_robot_rounds']} robot-rounds recorded"
+    )
+    print(f"correct recognition (%) after k incorporated messages, k = 0 .. {st['robots'] - 1}:")
+    for key, rec in summary["recognition"].items():
+        rates = " ".join("  - " if r is None else f"{100 * r:4.1f}" for r in rec["rate"])
+        print(f"  {key:<14} {rates}")
+    b = summary["bytes"]
+    print(
+        f"bytes between robots per round: {b['classifier_output_bytes_per_round']:.0f} "
+        f"({b['classifier_output_messages_per_round']:.0f} ClassifierOutput messages)"
+    )
+    print(f"core check: largest posterior difference {checks['core_max_difference']}")
+    print(f"report: {args.out / 'report.md'}")
+    return 0 if checks["robot_rounds"] == checks["expected_robot_rounds"] else 1
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     handlers = {
@@ -507,6 +678,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "members": _members,
         "loop-closures": _loop_closures,
         "compose": _compose,
+        "landmarks": _landmarks,
     }
     try:
         return handlers[args.command](args)

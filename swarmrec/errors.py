@@ -7,16 +7,22 @@ so a caller can catch the whole family in one place::
     ├── ConfigError            a setting is missing, out of range or inconsistent
     ├── DatasetError           input data cannot be read (names the file and line)
     │   ├── MalformedLineError a line of a text file does not parse
-    │   └── UnknownLabelError  a label is not in the label list
+    │   ├── UnknownLabelError  a label is not in the label list
+    │   └── datasets.tum_rgbd.RgbdImageError  a frame's RGB or depth image is missing, corrupt or mismatched
     ├── WireError              a message on the bus does not decode or validate
     ├── detection.DetectionError   an image, a model or its output cannot be used
     │   ├── ModelError             the ONNX model cannot be loaded or has unusable inputs/outputs
     │   └── OutputLayoutError      a model output is neither YOLO layout (or both)
     ├── fusion.LikelihoodError     a classifier output is not a usable probability vector
+    ├── fusion.classifier.ClassifierError   views the landmark classifier cannot take
+    │   └── ClassifierModelError            its ONNX file is missing, does not load or is not a 19-way softmax
+    ├── services.fusion.RoundError a fusion round that cannot start (answered INVALID_ARGUMENT)
+    ├── models.ModelNotFound       a shipped model is in none of the places models are looked up
     └── swarm.compose.ComposeError the compose tool failed or containers did not become healthy
 
-The last three families live beside the code that raises them
-(``swarmrec.detection.errors``, ``swarmrec.fusion.wnbc``, ``swarmrec.swarm.compose``).
+The families below the first four live beside the code that raises them
+(``swarmrec.detection.errors``, ``swarmrec.fusion``, ``swarmrec.services.fusion``,
+``swarmrec.models``, ``swarmrec.swarm.compose``).
 """
 
 from __future__ import annotations

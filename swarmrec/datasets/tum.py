@@ -1,7 +1,9 @@
-"""TUM RGB-D trajectory files (``groundtruth.txt``).
+"""TUM RGB-D trajectory files (``groundtruth.txt``), and the constants of the TUM RGB-D format.
 
 Format: comment lines start with ``#``; every other line is
 ``timestamp tx ty tz qx qy qz qw`` (camera to world, metres, unit quaternion).
+The RGB-D frames themselves are read by :mod:`swarmrec.datasets.tum_rgbd`;
+its constants live here so that settings can name them without loading OpenCV.
 """
 
 from __future__ import annotations
@@ -15,7 +17,13 @@ import numpy.typing as npt
 from swarmrec.core.types import Trajectory
 from swarmrec.errors import DatasetError, MalformedLineError
 
-__all__ = ["associate_poses", "read_trajectory", "write_trajectory"]
+__all__ = ["DEFAULT_MAX_DT", "TUM_DEPTH_SCALE", "associate_poses", "read_trajectory", "write_trajectory"]
+
+#: Depth units per metre in TUM's 16-bit depth PNGs (and in the synthetic renders).
+TUM_DEPTH_SCALE = 5000.0
+#: Seconds; TUM's associate.py default for pairing RGB and depth images, well under the
+#: 1/30 s between frames.
+DEFAULT_MAX_DT = 0.02
 
 
 def read_trajectory(path: str | Path) -> Trajectory:

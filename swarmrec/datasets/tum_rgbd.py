@@ -12,7 +12,10 @@ when one is within ``pose_max_dt`` (ground truth has gaps where the motion
 capture lost the camera), otherwise ``None``.
 
 Images are decoded only when asked for (:meth:`TumRgbdSequence.images`), RGB
-as BGR ``uint8`` and depth as the PNG's ``uint16`` (5000 units per metre).
+as BGR ``uint8`` and depth as the PNG's ``uint16`` (:data:`TUM_DEPTH_SCALE`
+units per metre). An image that cannot be used raises :class:`RgbdImageError`,
+whose ``problem`` says why (missing, corrupt, size mismatch), so a replay can
+count its skips by cause.
 """
 
 from __future__ import annotations
@@ -21,18 +24,22 @@ import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
-from swarmrec.datasets.tum import associate_poses, read_trajectory
+from swarmrec.core.geometry import quaternion_to_matrix
+from swarmrec.datasets.tum import DEFAULT_MAX_DT, TUM_DEPTH_SCALE, associate_poses, read_trajectory
 from swarmrec.errors import ConfigError, DatasetError, MalformedLineError
-from swarmrec.evaluation.groundtruth import quaternion_to_matrix
 
 __all__ = [
     "DEFAULT_MAX_DT",
+    "TUM_DEPTH_SCALE",
+    "ImageProblem",
     "RgbdFrame",
+    "RgbdImageError",
     "TumRgbdSequence",
     "associate",
     "load_rgbd",
@@ -45,8 +52,17 @@ IntArray = npt.NDArray[np.int64]
 ImageArray = npt.NDArray[np.uint8]
 DepthArray = npt.NDArray[np.uint16]
 
-#: Seconds; TUM's associate.py default, well under the 1/30 s between frames.
-DEFAULT_MAX_DT = 0.02
+#: Why a frame's image cannot be used: ``missing`` (no such file), ``corrupt`` (unreadable, not
+#: an image, or a depth image that is not 16-bit single-channel), ``size_mismatch`` (RGB and depth
+#: of different sizes).
+ImageProblem = Literal["missing", "corrupt", "size_mismatch"]
+
+
+@dataclass
+class RgbdImageError(DatasetError):
+    """One frame's RGB or depth image cannot be used; ``source`` is the file, ``problem`` the cause."""
+
+    problem: ImageProblem = "corrupt"
 
 
 @dataclass(frozen=True, eq=False)
@@ -217,15 +233,15 @@ def _decode(path: Path, flags: int, what: str) -> npt.NDArray[np.generic]:
     try:
         data = path.read_bytes()
     except FileNotFoundError:
-        raise DatasetError(path, f"{what} image is missing") from None
+        raise RgbdImageError(path, f"{what} image is missing", problem="missing") from None
     except OSError as exc:
-        raise DatasetError(path, f"cannot read {what} image: {exc}") from exc
+        raise RgbdImageError(path, f"cannot read {what} image: {exc}") from exc
     try:
         image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
     except cv2.error as exc:
-        raise DatasetError(path, f"cannot decode {what} image: {exc}") from exc
+        raise RgbdImageError(path, f"cannot decode {what} image: {exc}") from exc
     if image is None:
-        raise DatasetError(path, f"cannot decode {what} image (corrupt, truncated or not an image)")
+        raise RgbdImageError(path, f"cannot decode {what} image (corrupt, truncated or not an image)")
     result: npt.NDArray[np.generic] = image
     return result
 
@@ -235,19 +251,21 @@ def load_rgbd(rgb_path: str | Path, depth_path: str | Path) -> tuple[ImageArray,
 
     A depth image of another type (an 8-bit or colour PNG) would silently
     give wrong metres, and depth of another size than the RGB image would put
-    every object's depth at the wrong pixels: both are errors naming the file.
+    every object's depth at the wrong pixels: both are errors naming the file
+    (:class:`RgbdImageError`, as are a missing or undecodable image).
     """
     rgb_path, depth_path = Path(rgb_path), Path(depth_path)
     rgb = _decode(rgb_path, cv2.IMREAD_COLOR, "RGB")
     depth = _decode(depth_path, cv2.IMREAD_UNCHANGED, "depth")
     if depth.dtype != np.uint16 or depth.ndim != 2:
-        raise DatasetError(
+        raise RgbdImageError(
             depth_path, f"depth must be a 16-bit single-channel PNG, got {depth.dtype} of shape {depth.shape}"
         )
     if rgb.shape[:2] != depth.shape:
-        raise DatasetError(
+        raise RgbdImageError(
             depth_path,
             f"depth is {depth.shape[1]}x{depth.shape[0]} but its RGB image {rgb_path.name} "
             f"is {rgb.shape[1]}x{rgb.shape[0]}",
+            problem="size_mismatch",
         )
     return rgb.astype(np.uint8, copy=False), depth.astype(np.uint16, copy=False)

@@ -3,13 +3,15 @@
 An image goes through :class:`OnnxDetector` (letterbox, ONNX model, decode of
 the v5 or v8 output layout, confidence threshold, class-aware NMS) to
 :class:`Detection` boxes in the image's own pixels; :func:`object_points`
-turns the boxes and the depth image into the constellation's points.
+turns the boxes and the depth image into the constellation's points;
+:class:`RgbdPipeline` does both for a frame and gives its constellation.
 """
 
 from swarmrec.detection.decode import Candidates, Layout, decode_output, detect_layout
 from swarmrec.detection.errors import DetectionError, ModelError, OutputLayoutError
 from swarmrec.detection.letterbox import PAD_VALUE, Letterbox, letterbox
 from swarmrec.detection.nms import non_max_suppression
+from swarmrec.detection.pipeline import FrameObjects, RgbdPipeline
 from swarmrec.detection.points import CameraIntrinsics, ObjectPoints, object_points, transform_points
 from swarmrec.detection.yolo import Detection, DetectorSettings, OnnxDetector
 
@@ -20,12 +22,14 @@ __all__ = [
     "Detection",
     "DetectionError",
     "DetectorSettings",
+    "FrameObjects",
     "Layout",
     "Letterbox",
     "ModelError",
     "ObjectPoints",
     "OnnxDetector",
     "OutputLayoutError",
+    "RgbdPipeline",
     "decode_output",
     "detect_layout",
     "letterbox",

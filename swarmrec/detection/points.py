@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from swarmrec.datasets.tum import TUM_DEPTH_SCALE
 from swarmrec.detection.errors import DetectionError
 from swarmrec.errors import ConfigError
 
@@ -34,15 +35,16 @@ IntArray = npt.NDArray[np.int64]
 class CameraIntrinsics:
     """Pinhole intrinsics of the depth image and its units; defaults are TUM freiburg3's.
 
-    ``depth_scale`` is depth units per metre (5000 in TUM's 16-bit PNGs; 1 for
-    a float depth image already in metres).
+    ``depth_scale`` is depth units per metre (TUM's 16-bit PNGs:
+    :data:`~swarmrec.datasets.tum.TUM_DEPTH_SCALE`, 5000; 1 for a float
+    depth image already in metres).
     """
 
     fx: float = 535.4
     fy: float = 539.2
     cx: float = 320.1
     cy: float = 247.6
-    depth_scale: float = 5000.0
+    depth_scale: float = TUM_DEPTH_SCALE
 
     def __post_init__(self) -> None:
         for name in ("fx", "fy", "depth_scale"):
@@ -108,14 +110,18 @@ def object_points(
         valid &= z <= max_depth
     points = np.zeros((b.shape[0], 3))
     has_point = np.zeros(b.shape[0], dtype=bool)
+    # Pixel offsets from the principal point, once per column and row: a box only gathers them.
+    du = np.arange(w) - cam.cx
+    dv = (np.arange(h) - cam.cy)[:, None]
     # Boxes differ in size, so each is one slice; the per-pixel work inside is vectorised.
     for k, ((c0, c1), (r0, r1)) in enumerate(zip(cols.tolist(), rows.tolist(), strict=True)):
-        v, u = np.nonzero(valid[r0:r1, c0:c1])
-        if v.size == 0:
+        mask = valid[r0:r1, c0:c1]
+        zz = z[r0:r1, c0:c1][mask]
+        if zz.size == 0:
             continue
-        zz = z[r0:r1, c0:c1][v, u]
-        xyz = np.stack([((u + c0) - cam.cx) * zz / cam.fx, ((v + r0) - cam.cy) * zz / cam.fy, zz])
-        points[k] = np.median(xyz, axis=1)
+        xx = np.broadcast_to(du[c0:c1], mask.shape)[mask] * zz / cam.fx
+        yy = np.broadcast_to(dv[r0:r1], mask.shape)[mask] * zz / cam.fy
+        points[k] = (np.median(xx), np.median(yy), np.median(zz))
         has_point[k] = True
     kept = np.flatnonzero(has_point).astype(np.int64)
     return ObjectPoints(points[kept], kept, np.flatnonzero(~has_point).astype(np.int64))

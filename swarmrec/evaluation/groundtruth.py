@@ -19,6 +19,7 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
+from swarmrec.core.geometry import quaternion_to_matrix
 from swarmrec.core.types import ConstellationSequence, Trajectory
 from swarmrec.datasets.tum import associate_poses
 
@@ -26,21 +27,6 @@ __all__ = ["GroundTruth", "ground_truth", "quaternion_to_matrix", "scene_points"
 
 FloatArray = npt.NDArray[np.float64]
 Rules = Literal["none", "tum-fr3-office"]
-
-
-def quaternion_to_matrix(q: FloatArray) -> FloatArray:
-    """Rotation matrices (…, 3, 3) of unit quaternions (…, 4) given as qx qy qz qw."""
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
 
 
 def scene_points(seq: ConstellationSequence, poses: Trajectory) -> FloatArray:

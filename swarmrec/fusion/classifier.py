@@ -26,16 +26,13 @@ import onnxruntime as ort  # type: ignore[import-untyped]  # onnxruntime ships n
 
 from swarmrec.errors import ConfigError, SwarmrecError
 from swarmrec.fusion.wnbc import N_LANDMARKS
+from swarmrec.models import LANDMARK_MODEL, ModelNotFound, shipped_model
 
 __all__ = ["ClassifierError", "ClassifierModelError", "LandmarkClassifier", "default_model_path"]
 
 ImageArray = npt.NDArray[np.uint8]
 FloatArray = npt.NDArray[np.float64]
 
-#: The committed model, relative to the repository root (models/ is not part of the package).
-MODEL_IN_REPO = Path("models") / "landmarks" / "landmark_cnn.onnx"
-#: swarmrec/fusion/classifier.py -> the repository root, for a source checkout or an editable install.
-_REPO_ROOT = Path(__file__).resolve().parents[2]
 #: How far a model's probabilities may sum from 1 (float32 softmax) before it is not taken for a softmax.
 _SUM_TOLERANCE = 1e-3
 
@@ -56,19 +53,12 @@ class ClassifierModelError(ClassifierError):
 
 
 def default_model_path() -> Path:
-    """The committed ``models/landmarks/landmark_cnn.onnx`` of the repository this package runs from.
-
-    It exists in a source checkout (or an editable install); an installed wheel has no
-    ``models/``, so there the path must be given, e.g. where a container copies the file.
-    """
-    path = _REPO_ROOT / MODEL_IN_REPO
-    if not path.is_file():
-        raise ClassifierModelError(
-            str(path),
-            f"no landmark model here: it lives in the repository's {MODEL_IN_REPO} (not in the installed "
-            "package); pass the model path, or train one with models/landmarks/train.py",
-        )
-    return path
+    """The shipped landmark model (:data:`swarmrec.models.LANDMARK_MODEL`): from ``$SWARMREC_MODELS``
+    (set in the container image) or the source checkout's ``models/``; ``ModelNotFound`` otherwise."""
+    try:
+        return shipped_model(LANDMARK_MODEL)
+    except ModelNotFound as e:
+        raise ClassifierModelError(str(e.model), str(e)) from None
 
 
 def _static_dim(dim: object) -> int | None:

@@ -22,11 +22,12 @@ SERVICES = ("router", "detector", "descriptor", "index-shard", "verifier", "fusi
 
 
 def service_factory(kind: str) -> Callable[[ServiceContext], Service]:
-    """The class that implements ``kind`` (imported on demand: a shard need not load numba)."""
+    """The class that implements ``kind`` (imported on demand: a shard need not load numba);
+    for the detector, a factory that picks the class of its ``detector_mode``."""
     if kind == "detector":
-        from swarmrec.services.detector import DetectorReplay
+        from swarmrec.services.detector import make_detector
 
-        return DetectorReplay
+        return make_detector
     if kind == "descriptor":
         from swarmrec.services.descriptor import Descriptor
 

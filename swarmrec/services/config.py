@@ -29,18 +29,31 @@ import typing
 from collections.abc import Mapping, Sequence
 from dataclasses import MISSING, dataclass, fields, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from swarmrec.core.presets import get_preset
+from swarmrec.datasets.tum import DEFAULT_MAX_DT, TUM_DEPTH_SCALE
 from swarmrec.errors import ConfigError
 from swarmrec.services.keys import validate_swarm_name
 
-__all__ = ["ENV_PREFIX", "ServiceSettings", "add_arguments", "load_settings", "settings_to_flags"]
+if TYPE_CHECKING:
+    from swarmrec.detection.points import CameraIntrinsics
+
+__all__ = [
+    "DETECTOR_MODES",
+    "ENV_PREFIX",
+    "ServiceSettings",
+    "add_arguments",
+    "load_settings",
+    "settings_to_flags",
+]
 
 ENV_PREFIX = "SWARMREC_"
 
 ZenohMode = Literal["client", "peer", "router"]
 FusionLaw = Literal["paper", "agreement"]
+DetectorMode = Literal["replay", "rgbd", "classifier"]
+DETECTOR_MODES: tuple[str, ...] = ("replay", "rgbd", "classifier")
 
 
 @dataclass(frozen=True)
@@ -82,12 +95,37 @@ class ServiceSettings:
     max_message_bytes: int = 1 << 20
     #: A verified match at least this good is published as a loop closure.
     loop_closure_min_score: float = 0.3
-    #: Detector: dataset to replay (folder or zip of constellation files).
+    #: Detector: "replay" sends recorded constellations; "rgbd" detects objects in RGB-D
+    #: frames with an ONNX model (docs/detector.md); "classifier" runs the landmark classifier.
+    detector_mode: DetectorMode = "replay"
+    #: Detector: what to replay: a folder or zip of constellation files (replay), a TUM
+    #: RGB-D folder with rgb.txt and depth.txt (rgbd).
     dataset: str = ""
-    #: Detector: label names file for the dataset (default: COCO).
+    #: Detector: label names file for the dataset, or the model's classes (default: COCO).
     labels_file: Path | None = None
     #: Detector: frames replayed by each robot; 0 splits the dataset evenly over n_robots.
     frames_per_robot: int = 0
+    #: Detector (rgbd): YOLO-style ONNX model (v5 or v8 output, n_labels classes); empty: the
+    #: project's own (models/detector/office_detector.onnx, or under $SWARMREC_MODELS).
+    detector_model: str = ""
+    #: Detector (rgbd): keep boxes at least this confident; unset: the recommended threshold in
+    #: the model's metrics.json when it has one, else 0.25.
+    conf_threshold: float | None = None
+    #: Detector (rgbd): boxes of one class overlapping a better one more than this are dropped (NMS).
+    iou_threshold: float = 0.45
+    #: Detector (rgbd): onnxruntime threads for one frame (0: onnxruntime decides).
+    detector_threads: int = 1
+    #: Detector (rgbd): depth camera intrinsics in pixels (defaults: TUM freiburg3, 640x480).
+    camera_fx: float = 535.4
+    camera_fy: float = 539.2
+    camera_cx: float = 320.1
+    camera_cy: float = 247.6
+    #: Detector (rgbd): depth units per metre of the depth PNGs (TUM: 5000).
+    depth_scale: float = TUM_DEPTH_SCALE
+    #: Detector (rgbd): RGB and depth images further apart than this (seconds) are not paired.
+    rgbd_max_dt: float = DEFAULT_MAX_DT
+    #: Detector (classifier): the landmark classifier's ONNX model; empty: the project's own.
+    classifier_model: str = ""
     #: Fusion: classes of the shared class list (the paper's street has 19 landmarks).
     n_classes: int = 19
     #: Fusion: weight law P(R) of a received message (swarmrec.fusion.wnbc): "paper" (Eq. 16)
@@ -145,6 +183,23 @@ class ServiceSettings:
             problems.append(f"max_message_bytes must be 1024 .. {1 << 24}, got {self.max_message_bytes}")
         if self.frames_per_robot < 0:
             problems.append(f"frames_per_robot must be >= 0, got {self.frames_per_robot}")
+        if self.detector_mode not in DETECTOR_MODES:
+            problems.append(f"detector_mode must be {', '.join(DETECTOR_MODES)}; got {self.detector_mode!r}")
+        if self.conf_threshold is not None and not 0.0 <= self.conf_threshold <= 1.0:
+            problems.append(f"conf_threshold must be in [0, 1], got {self.conf_threshold}")
+        if not 0.0 < self.iou_threshold <= 1.0:
+            problems.append(f"iou_threshold must be in (0, 1], got {self.iou_threshold}")
+        if self.detector_threads < 0:
+            problems.append(f"detector_threads must be >= 0 (0: automatic), got {self.detector_threads}")
+        # The same rules as CameraIntrinsics, checked here without loading the detection stack.
+        for name in ("camera_fx", "camera_fy", "depth_scale"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                problems.append(f"{name} must be a positive number, got {value}")
+        if not (math.isfinite(self.camera_cx) and math.isfinite(self.camera_cy)):
+            problems.append(f"camera_cx, camera_cy must be finite, got ({self.camera_cx}, {self.camera_cy})")
+        if not (math.isfinite(self.rgbd_max_dt) and self.rgbd_max_dt > 0):
+            problems.append(f"rgbd_max_dt must be > 0 (seconds), got {self.rgbd_max_dt}")
         if self.n_classes < 2:
             problems.append(f"n_classes must be >= 2, got {self.n_classes}")
         if self.fusion_law not in ("paper", "agreement"):
@@ -163,6 +218,14 @@ class ServiceSettings:
             problems.append(str(e))
         if problems:
             raise ConfigError("invalid settings: " + "; ".join(problems))
+
+    def camera(self) -> CameraIntrinsics:
+        """The rgbd detector's depth camera."""
+        from swarmrec.detection.points import CameraIntrinsics
+
+        return CameraIntrinsics(
+            self.camera_fx, self.camera_fy, self.camera_cx, self.camera_cy, self.depth_scale
+        )
 
     def with_(self, **changes: Any) -> ServiceSettings:
         """A copy with some settings changed (validated again)."""

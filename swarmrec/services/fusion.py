@@ -49,7 +49,7 @@ import numpy as np
 import numpy.typing as npt
 import zenoh
 
-from swarmrec.errors import SwarmrecError, WireError
+from swarmrec.errors import ConfigError, SwarmrecError, WireError
 from swarmrec.fusion.flooding import SUM_TOLERANCE, FloodingNode, FloodMessage, Outcome
 from swarmrec.fusion.wnbc import (
     FusionState,
@@ -83,6 +83,7 @@ __all__ = [
     "Step",
     "classifier_output_to_flood",
     "flood_to_classifier_output",
+    "round_law",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -275,9 +276,17 @@ class FusionRobot:
         self._rounds: OrderedDict[int, RoundRecord] = OrderedDict()
 
     def start_round(
-        self, round_id: int, probabilities: npt.ArrayLike, yaw: float, neighbours: Sequence[int]
+        self,
+        round_id: int,
+        probabilities: npt.ArrayLike,
+        yaw: float,
+        neighbours: Sequence[int],
+        law: WeightLaw | None = None,
     ) -> RoundStart:
         """Begin ``round_id`` (Algorithm 1 lines 1-2); raises RoundError for a bad request.
+
+        ``law`` weighs this round's messages instead of the robot's own law (the
+        flooding does not depend on it, so one swarm can compare laws on the same views).
 
         The own output must already be a probability vector (as neighbours will check
         it, :data:`~swarmrec.fusion.flooding.SUM_TOLERANCE`): a robot whose every
@@ -298,7 +307,7 @@ class FusionRobot:
                 f"(robot {self.robot} is this one), got {bad}"
             )
         message = self.node.start_round(round_id, own, float(yaw))
-        state = FusionState(own, float(yaw), self.law, own_id=self.robot, r_max=self.r_max)
+        state = FusionState(own, float(yaw), law or self.law, own_id=self.robot, r_max=self.r_max)
         record = RoundRecord(round_id, ids, state)
         self.current = record
         self._rounds[round_id] = record
@@ -385,6 +394,13 @@ class FusionRobot:
     @property
     def rounds_kept(self) -> int:
         return len(self._rounds)
+
+
+def round_law(spec: pb.WeightLaw) -> WeightLaw:
+    """The weight law a ``FusionRoundStart.weight_law`` names; ConfigError for an unknown
+    name or a lambda that is negative or not a number."""
+    lam = float(getattr(spec, "lambda")) if spec.HasField("lambda") else None  # a Python keyword
+    return make_weight_law(spec.name, lam=lam)
 
 
 def classifier_output_to_flood(msg: pb.ClassifierOutput) -> FloodMessage:
@@ -482,10 +498,16 @@ class FusionService:
     # --- endpoints ------------------------------------------------------------------
 
     def start_round(self, req: pb.FusionRoundStart, _ctx: RequestContext) -> pb.FusionRoundStarted:
+        law = None
+        if req.HasField("weight_law"):
+            try:
+                law = round_law(req.weight_law)
+            except ConfigError as e:
+                raise invalid(f"weight_law: {e}") from None
         with self.lock:
             try:
                 started = self.robot.start_round(
-                    req.round_id, list(req.probabilities), req.yaw_rad, list(req.neighbour_robot_ids)
+                    req.round_id, list(req.probabilities), req.yaw_rad, list(req.neighbour_robot_ids), law
                 )
             except RoundError as e:
                 raise invalid(str(e)) from None

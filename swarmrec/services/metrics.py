@@ -9,7 +9,10 @@ bytes, seconds) and every label has a small fixed set of values:
   from a tool outside the swarm: the main job, the CLI),
 * ``endpoint``: one of a service's few endpoint names,
 * ``code``: an ErrorCode name; ``reason``: why a peer failed, or why the
-  fusion service rejected a flooded message (a few fixed names, docs/fusion.md).
+  fusion service rejected a flooded message (a few fixed names, docs/fusion.md),
+  or why the detector dropped a box,
+* ``outcome``: what the detector made of a frame, ``stage``: a step of its
+  frame pipeline (docs/detector.md).
 
 Each message is counted once by its sender (``*_sent_*``) and once by its
 receiver (``*_received_*``); the report sums the senders' ``scope="swarm"``
@@ -32,6 +35,8 @@ SCOPES = ("robot", "swarm", "client")
 
 # Request latencies on loopback are 0.2-5 ms; buckets resolve that range.
 _LATENCY_BUCKETS = (0.0002, 0.0005, 0.001, 0.002, 0.003, 0.005, 0.0075, 0.01, 0.02, 0.05, 0.1, 0.5, 2.0)
+# The detector's stages take 0.1 ms (object points) to 100 ms (a model on a busy core).
+_STAGE_BUCKETS = (0.0001, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.03, 0.05, 0.1, 0.2, 0.5, 2.0)
 
 
 def scope_between(own_robot: int | None, other_robot: int | None) -> str:
@@ -63,6 +68,10 @@ class ServiceMetrics:
     fusion_duplicates: Counter
     fusion_rejected: Counter
     fusion_early: Counter
+    detector_frames: Counter
+    detector_boxes_dropped: Counter
+    detector_objects: Counter
+    detector_stage_seconds: Histogram
     ready: Gauge
     url: str = ""
 
@@ -152,6 +161,26 @@ class ServiceMetrics:
             fusion_early=counter(
                 "swarmrec_fusion_early_messages",
                 "Flooded messages that arrived before this robot started their round, kept for it",
+            ),
+            detector_frames=counter(
+                "swarmrec_detector_frames",
+                "RGB-D frames the detector handled, by outcome (detected, no_objects, or why it skipped)",
+                ("outcome",),
+            ),
+            detector_boxes_dropped=counter(
+                "swarmrec_detector_boxes_dropped",
+                "Detected boxes left out of the constellation, by reason (no_depth: no valid depth pixel)",
+                ("reason",),
+            ),
+            detector_objects=counter(
+                "swarmrec_detector_objects", "Objects in the constellations the detector made"
+            ),
+            detector_stage_seconds=Histogram(
+                "swarmrec_detector_stage_seconds",
+                "Time of one frame in each detector stage (decode, detect, points)",
+                ("stage",),
+                buckets=_STAGE_BUCKETS,
+                registry=reg,
             ),
             ready=Gauge(
                 "swarmrec_service_ready",

@@ -44,6 +44,11 @@ def main_attached(
     from swarmrec.swarm.report import write_report
 
     info = read_swarm_file(folder)
+    if info.workload != "places":
+        raise ConfigError(
+            f"the swarm in {folder} runs the {info.workload} workload; "
+            f"use `swarmrec landmarks --attach {folder}`"
+        )
     settings = SwarmSettings(
         dataset=info.dataset,
         labels=Path(info.labels) if info.labels else None,

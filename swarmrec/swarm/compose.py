@@ -3,15 +3,19 @@
 ``write_compose(settings)`` prepares the dataset the detectors replay and
 writes, under ``settings.out``:
 
-* ``compose.yml``: the router, each robot's detector, descriptor, index-shard
-  and verifier, and Prometheus. Compose Specification, read alike by
+* ``compose.yml``: the router, each robot's services and Prometheus. The
+  ``places`` workload (place recognition, the default) gives each robot a
+  detector, descriptor, index-shard and verifier; the ``landmarks`` workload
+  (cooperative landmark recognition, docs/landmarks.md) a detector in
+  classifier mode and a fusion service. Compose Specification, read alike by
   ``docker-compose`` 1.29 and ``docker compose`` v2. Stateful services keep
   their data in a named volume each; only the router and Prometheus are
   published, on loopback.
 * ``prometheus.yml``: a scrape target per service, labelled with its
   ``service`` and ``robot``.
 * ``swarm.json``: what a client on the host needs to drive and report on the
-  swarm (``swarmrec run --attach DIR``): endpoints, settings, dataset.
+  swarm (``swarmrec run --attach DIR``, ``swarmrec landmarks --attach DIR``):
+  endpoints, settings, dataset.
 
 :func:`compose_command`, :func:`up` and :func:`down` run the compose tool
 that is installed (deploy/engine.sh installs one when none is).
@@ -50,6 +54,8 @@ __all__ = [
 #: Largest swarm the generator writes (ten robots are 42 containers; more fit, but are untested).
 MAX_ROBOTS = 16
 ROBOT_SERVICES = ("index-shard", "verifier", "descriptor", "detector")
+#: Each robot's services per workload.
+WORKLOADS: dict[str, tuple[str, ...]] = {"places": ROBOT_SERVICES, "landmarks": ("fusion", "detector")}
 STATEFUL = ("index-shard", "verifier", "descriptor")
 METRICS_PORT = 9464  # every container serves its metrics here (its own network namespace)
 ROUTER_PORT = 7447
@@ -64,6 +70,8 @@ class ComposeSettings:
     """One containerised swarm; validated on construction."""
 
     robots: int = 4
+    #: ``places`` (place recognition) or ``landmarks`` (cooperative landmark recognition).
+    workload: str = "places"
     dataset: str = "synthetic"
     seed: int = 0
     frames: int | None = None
@@ -89,6 +97,10 @@ class ComposeSettings:
         problems = []
         if not 1 <= self.robots <= MAX_ROBOTS:
             problems.append(f"robots must be 1 .. {MAX_ROBOTS}, got {self.robots}")
+        if self.workload not in WORKLOADS:
+            problems.append(f"workload must be {' or '.join(WORKLOADS)}, got {self.workload!r}")
+        elif self.workload == "landmarks" and self.robots < 2:
+            problems.append("a landmarks swarm needs at least 2 robots")
         if not self.project or not all(c.isalnum() or c in "-_" for c in self.project):
             problems.append(f"project must be letters, digits, - and _, got {self.project!r}")
         elif self.project != self.project.lower():
@@ -128,6 +140,13 @@ class SwarmFile:
     labels: str | None
     groundtruth: str | None
     compose_file: str
+    #: ``places`` or ``landmarks`` (files written before the landmarks workload have none).
+    workload: str = "places"
+
+    @property
+    def services(self) -> tuple[str, ...]:
+        """Each robot's service kinds."""
+        return WORKLOADS[self.workload]
 
 
 def service_name(kind: str, robot: int) -> str:
@@ -150,7 +169,10 @@ def _robot_service(s: ComposeSettings, kind: str, robot: int, env: dict[str, str
     }
     if kind in STATEFUL:
         svc["volumes"] = [f"{name}-data:/var/lib/swarmrec"]
-    if kind == "detector":
+    if kind == "detector" and s.workload == "landmarks":
+        # Its views come with each request; the shipped classifier is in the image.
+        svc["environment"]["SWARMREC_DETECTOR_MODE"] = "classifier"
+    elif kind == "detector":
         svc["volumes"] = ["./dataset:/data/dataset:ro"]
         svc["environment"]["SWARMREC_DATASET"] = "/data/dataset"
         if s.labels is not None:
@@ -165,13 +187,16 @@ def compose_document(s: ComposeSettings, n_labels: int, bounds: Sequence[int]) -
         "SWARMREC_SWARM": s.swarm,
         "SWARMREC_N_ROBOTS": str(s.robots),
         "SWARMREC_CONNECT": f"tcp/router:{ROUTER_PORT}",
-        "SWARMREC_PRESET": s.preset,
-        "SWARMREC_N_LABELS": str(n_labels),
-        "SWARMREC_LABEL_BOUNDS": ",".join(str(int(b)) for b in bounds),
-        "SWARMREC_LOCKSTEP": "true" if s.lockstep else "false",
         "SWARMREC_REQUEST_TIMEOUT_S": str(s.request_timeout_s),
         "SWARMREC_LOG_LEVEL": s.log_level,
     }
+    if s.workload == "places":
+        env |= {
+            "SWARMREC_PRESET": s.preset,
+            "SWARMREC_N_LABELS": str(n_labels),
+            "SWARMREC_LABEL_BOUNDS": ",".join(str(int(b)) for b in bounds),
+            "SWARMREC_LOCKSTEP": "true" if s.lockstep else "false",
+        }
     services: dict[str, Any] = {
         "router": {
             "image": s.image,
@@ -186,7 +211,7 @@ def compose_document(s: ComposeSettings, n_labels: int, bounds: Sequence[int]) -
     }
     volumes: dict[str, Any] = {}
     for robot in range(s.robots):
-        for kind in ROBOT_SERVICES:
+        for kind in WORKLOADS[s.workload]:
             name = service_name(kind, robot)
             services[name] = _robot_service(s, kind, robot, env)
             if kind in STATEFUL:
@@ -209,7 +234,7 @@ def prometheus_document(s: ComposeSettings) -> dict[str, Any]:
         {"targets": [f"router:{METRICS_PORT}"], "labels": {"service": "router", "robot": "0"}}
     ]
     for robot in range(s.robots):
-        for kind in ROBOT_SERVICES:
+        for kind in WORKLOADS[s.workload]:
             groups.append(
                 {
                     "targets": [f"{service_name(kind, robot)}:{METRICS_PORT}"],
@@ -264,11 +289,13 @@ def render_yaml(doc: Any, indent: int = 0) -> str:
 
 
 def write_compose(s: ComposeSettings) -> SwarmFile:
-    """Prepare the dataset and write compose.yml, prometheus.yml and swarm.json."""
-    from swarmrec.swarm.job import SwarmSettings, prepare_dataset, swarm_label_bounds
-
+    """Prepare the dataset (places) and write compose.yml, prometheus.yml and swarm.json."""
     out = s.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
+    if s.workload == "landmarks":
+        return _write_files(s, out, n_labels=0, bounds=[], dataset="", labels=None, groundtruth=None)
+    from swarmrec.swarm.job import SwarmSettings, prepare_dataset, swarm_label_bounds
+
     job = SwarmSettings(
         dataset=s.dataset,
         seed=s.seed,
@@ -296,28 +323,51 @@ def write_compose(s: ComposeSettings) -> SwarmFile:
     if groundtruth is None and (dataset / "groundtruth.txt").is_file():
         groundtruth = dataset / "groundtruth.txt"
     bounds = [int(b) for b in swarm_label_bounds(job, seq)]
+    return _write_files(
+        s,
+        out,
+        n_labels=seq.n_labels,
+        bounds=bounds,
+        dataset=str(dataset),
+        labels=str(out / "labels.txt") if labels_file is not None else None,
+        groundtruth=str(groundtruth) if groundtruth is not None else None,
+    )
+
+
+def _write_files(
+    s: ComposeSettings,
+    out: Path,
+    *,
+    n_labels: int,
+    bounds: list[int],
+    dataset: str,
+    labels: str | None,
+    groundtruth: str | None,
+) -> SwarmFile:
     compose_file = out / "compose.yml"
     header = (
         f"# Generated by `swarmrec compose` (swarmrec {swarmrec.__version__}): {s.robots} robots, "
-        f"swarm {s.swarm!r}.\n# Edit the generator (swarmrec/swarm/compose.py), not this file.\n"
+        f"{s.workload} workload, swarm {s.swarm!r}.\n"
+        "# Edit the generator (swarmrec/swarm/compose.py), not this file.\n"
     )
-    compose_file.write_text(header + render_yaml(compose_document(s, seq.n_labels, bounds)) + "\n")
+    compose_file.write_text(header + render_yaml(compose_document(s, n_labels, bounds)) + "\n")
     (out / "prometheus.yml").write_text(header + render_yaml(prometheus_document(s)) + "\n")
     info = SwarmFile(
         project=s.project,
         swarm=s.swarm,
         robots=s.robots,
         preset=s.preset,
-        n_labels=seq.n_labels,
+        n_labels=n_labels,
         label_bounds=bounds,
         lockstep=s.lockstep,
         request_timeout_s=s.request_timeout_s,
         router_endpoint=f"tcp/127.0.0.1:{s.router_port}",
         prometheus_url=f"http://127.0.0.1:{s.prometheus_port}",
-        dataset=str(dataset),
-        labels=str(out / "labels.txt") if labels_file is not None else None,
-        groundtruth=str(groundtruth) if groundtruth is not None else None,
+        dataset=dataset,
+        labels=labels,
+        groundtruth=groundtruth,
         compose_file=str(compose_file),
+        workload=s.workload,
     )
     (out / "swarm.json").write_text(json.dumps(asdict(info), indent=2) + "\n")
     return info
@@ -328,11 +378,13 @@ def read_swarm_file(folder: Path) -> SwarmFile:
     path = folder / "swarm.json"
     try:
         data = json.loads(path.read_text())
-        return SwarmFile(**data)
+        info = SwarmFile(**data)
+        info.services  # noqa: B018  # an unknown workload fails here, as a bad file
+        return info
     except FileNotFoundError:
         hint = f"swarmrec compose up --out {folder}"
         raise ConfigError(f"{path} not found: write it first with `{hint}`") from None
-    except (json.JSONDecodeError, TypeError) as e:
+    except (json.JSONDecodeError, TypeError, KeyError) as e:
         raise ConfigError(f"{path} is not a swarm file written by this version of swarmrec: {e}") from None
 
 

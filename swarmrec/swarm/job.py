@@ -10,14 +10,20 @@ summary.json, the pair scores, the loop closures and PNG figures.
 In lock-step mode (the default) step t of every robot finishes before step
 t + 1 starts, exactly as the offline decentralized evaluation simulates, and
 the report checks that the swarm's pair scores equal the offline ones.
+
+From pixels (``from_pixels`` renders the synthetic world, ``rgbd`` names a
+TUM-format folder) the detectors detect objects in RGB-D frames instead of
+replaying constellations, and the report scores the constellations they made
+(:mod:`swarmrec.swarm.pixels`, docs/detector.md).
 """
 
 from __future__ import annotations
 
 import math
+import shutil
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +35,7 @@ from swarmrec.core.association import warm_up
 from swarmrec.core.presets import get_preset
 from swarmrec.core.split import split_frames
 from swarmrec.core.types import ConstellationSequence, Trajectory
+from swarmrec.datasets.tum import DEFAULT_MAX_DT
 from swarmrec.errors import ConfigError
 from swarmrec.services.config import ServiceSettings
 from swarmrec.swarm.processes import LocalSwarm
@@ -70,6 +77,22 @@ class SwarmSettings:
     progress: bool = True
     #: Compare the pair scores with the offline decentralized evaluation (lock-step only).
     check_offline: bool = True
+    #: Start from pixels: render the synthetic world as RGB-D frames and detect objects in them.
+    from_pixels: bool = False
+    #: Start from pixels: a TUM-format RGB-D folder (rgb.txt, depth.txt, images) to detect objects in.
+    rgbd: Path | None = None
+    #: From pixels: the detectors' ONNX model; empty: the project's own.
+    model: str = ""
+    #: From pixels: the detectors' confidence threshold; None: the model's recommended one.
+    conf_threshold: float | None = None
+    #: From pixels: onnxruntime threads of each detector.
+    detector_threads: int = 1
+    #: From pixels: depth camera fx, fy, cx, cy; None: a render's own (boxes.json) or TUM fr3's.
+    camera: tuple[float, float, float, float] | None = None
+    #: From pixels: depth units per metre; None: a render's own or TUM's 5000.
+    depth_scale: float | None = None
+    #: From pixels: RGB and depth images further apart (seconds) are not paired.
+    rgbd_max_dt: float = DEFAULT_MAX_DT
 
     def __post_init__(self) -> None:
         if self.robots < 1:
@@ -84,10 +107,30 @@ class SwarmSettings:
             if not (math.isfinite(rate) and rate > 0):
                 raise ConfigError(f"pace must be lockstep, fast or a rate > 0 (frames/s), got {self.pace!r}")
         get_preset(self.preset)
+        if self.from_pixels and self.rgbd is not None:
+            raise ConfigError("--from-pixels renders the synthetic world; --rgbd names a recording: pick one")
+        if self.from_pixels and self.dataset != "synthetic":
+            raise ConfigError(
+                "--from-pixels renders the synthetic world (--dataset synthetic); "
+                "for a recording use --rgbd DIR"
+            )
+        if self.rgbd is not None and self.dataset != "synthetic":
+            raise ConfigError("--rgbd DIR replaces --dataset: give one of them")
+        if self.conf_threshold is not None and not 0.0 <= self.conf_threshold <= 1.0:
+            raise ConfigError(f"conf_threshold must be in [0, 1], got {self.conf_threshold}")
+        if self.detector_threads < 0:
+            raise ConfigError(f"detector_threads must be >= 0, got {self.detector_threads}")
+        if self.camera is not None and len(self.camera) != 4:
+            raise ConfigError(f"camera must be fx, fy, cx, cy, got {self.camera}")
 
     @property
     def lockstep(self) -> bool:
         return self.pace == "lockstep"
+
+    @property
+    def pixels(self) -> bool:
+        """Whether the detectors start from RGB-D frames."""
+        return self.from_pixels or self.rgbd is not None
 
 
 def as_on_the_wire(seq: ConstellationSequence) -> ConstellationSequence:
@@ -135,16 +178,30 @@ def prepare_dataset(
     return source, labels_file, seq, read_trajectory(gt_path) if gt_path else None
 
 
-def swarm_label_bounds(settings: SwarmSettings, seq: ConstellationSequence) -> npt.NDArray[np.int64]:
-    """The shards' label ranges for the preset (``balanced`` weighs labels by their frequency in ``seq``)."""
+def swarm_label_bounds(
+    settings: SwarmSettings, seq: ConstellationSequence | None, n_labels: int | None = None
+) -> npt.NDArray[np.int64]:
+    """The shards' label ranges for the preset (``balanced`` weighs labels by their frequency in ``seq``).
+
+    ``seq`` may be None (frames not detected yet) for even ranges of ``n_labels``.
+    """
     from swarmrec.core.association import build_table
     from swarmrec.evaluation.scoring import label_bounds, label_frequency_prior
 
     preset = get_preset(settings.preset)
     load = None
     if preset.ranges == "balanced":
+        if seq is None:
+            raise ConfigError(
+                "the balanced preset balances label ranges on the dataset's label frequencies, which "
+                "RGB-D frames do not have before detection (a synthetic render has them in its "
+                "constellations/); use --preset paper"
+            )
         load = label_frequency_prior(build_table(seq.constellations, seq.n_labels))
-    return label_bounds(preset, seq.n_labels, settings.robots, load)
+    labels = seq.n_labels if seq is not None else n_labels
+    if labels is None:
+        raise ValueError("swarm_label_bounds needs seq or n_labels")
+    return label_bounds(preset, labels, settings.robots, load)
 
 
 @dataclass
@@ -252,26 +309,40 @@ def main(
     t_start = time.perf_counter()
     out = settings.out
     out.mkdir(parents=True, exist_ok=True)
-    source, labels_file, seq, trajectory = prepare_dataset(settings)
-    wire_seq = as_on_the_wire(seq)
+    pixels = None
+    detector: dict[str, Any] = {}
+    if settings.pixels:
+        from swarmrec.swarm.pixels import detector_flags_settings, prepare_pixels
+
+        pixels = prepare_pixels(settings)
+        source, labels_file, trajectory = str(pixels.folder), pixels.labels_file, pixels.trajectory
+        n_frames, n_labels = len(pixels), len(pixels.label_names)
+        bounds = swarm_label_bounds(settings, pixels.exact, n_labels)
+        detector = detector_flags_settings(pixels, settings)
+    else:
+        source, labels_file, seq, trajectory = prepare_dataset(settings)
+        n_frames, n_labels = len(seq), seq.n_labels
+        bounds = swarm_label_bounds(settings, seq)
     preset = get_preset(settings.preset)
-    bounds = swarm_label_bounds(settings, seq)
-    blocks = split_frames(len(seq), settings.robots)
+    blocks = split_frames(n_frames, settings.robots)
     # Compiled once here, ten verifier processes load the kernels from numba's cache.
     warm_up()
     base = ServiceSettings(
         swarm=settings.swarm,
         n_robots=settings.robots,
         preset=settings.preset,
-        n_labels=seq.n_labels,
+        n_labels=n_labels,
         label_bounds=tuple(int(b) for b in bounds),
         lockstep=settings.lockstep,
         request_timeout_s=settings.request_timeout_s,
         connect=("tcp/127.0.0.1:7447",),
+        **detector,
     )
     timings: dict[str, float] = {"prepare_s": time.perf_counter() - t_start}
     for old in (out / "data").glob("robot*/*/*.log"):
         old.unlink()  # a fresh run starts from empty stores
+    for old in (out / "data").glob("robot*/detector/constellations/*.txt"):
+        old.unlink()  # and no constellation of an earlier run is read back as this one's
     swarm = LocalSwarm(
         base, data_dir=out / "data", log_dir=out / "logs", dataset=source, labels_file=labels_file
     )
@@ -307,6 +378,26 @@ def main(
         t0 = time.perf_counter()
         exit_codes = swarm.stop()
         timings["stop_s"] = time.perf_counter() - t0
+    detector_info: dict[str, Any] | None = None
+    if pixels is not None:
+        from swarmrec.datasets.constellations import write_constellations
+        from swarmrec.swarm.pixels import detected_sequence
+
+        seq, not_made = detected_sequence(pixels, out / "data", blocks)
+        shutil.rmtree(out / "detections", ignore_errors=True)
+        write_constellations(seq, out / "detections")
+        detector_info = {
+            "mode": "rgbd",
+            "folder": str(pixels.folder),
+            "model": str(pixels.model),
+            "conf_threshold": pixels.conf_threshold,
+            "camera": asdict(pixels.camera),
+            "frames_without_constellation": len(not_made),
+            "render": pixels.render,
+        }
+        if pixels.render is not None:
+            timings["render_s"] = pixels.render["total_s"]
+    wire_seq = as_on_the_wire(seq)
     timings["total_s"] = time.perf_counter() - t_start
     from swarmrec.swarm.report import write_report
 
@@ -323,4 +414,5 @@ def main(
         closures=closures,
         exit_codes=exit_codes,
         timings=timings,
+        detector=detector_info,
     )

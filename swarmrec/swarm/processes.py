@@ -48,6 +48,23 @@ _SHARED = (
 )
 
 
+# Settings of the detectors only (their mode, model, camera); the replay mode ignores them.
+_DETECTOR = (
+    "detector_mode",
+    "detector_model",
+    "conf_threshold",
+    "iou_threshold",
+    "detector_threads",
+    "camera_fx",
+    "camera_fy",
+    "camera_cx",
+    "camera_cy",
+    "depth_scale",
+    "rgbd_max_dt",
+    "classifier_model",
+)
+
+
 class SwarmStartError(SwarmrecError):
     """A service process exited or never became ready."""
 
@@ -162,9 +179,11 @@ class LocalSwarm:
         settings = self.base.with_(robot=robot)
         flags = settings_to_flags(settings, (*_SHARED, "robot"))
         flags += ["--metrics-port", "0"]
-        if kind in ("index-shard", "verifier", "descriptor"):
+        if kind in ("index-shard", "verifier", "descriptor", "detector"):
+            # The detector keeps the constellations it made from RGB-D frames there.
             flags += ["--data-dir", str(self.data_dir / f"robot{robot}" / kind)]
         if kind == "detector":
+            flags += settings_to_flags(settings, _DETECTOR)
             flags += ["--dataset", self.dataset]
             if self.labels_file is not None:
                 flags += ["--labels-file", str(self.labels_file)]

@@ -111,6 +111,29 @@ def _bytes(metrics: Scrape, n_queries: int, n_slots: int) -> dict[str, Any]:
     }
 
 
+def _detector_figures(metrics: Scrape) -> dict[str, Any]:
+    """What the rgbd detectors counted: frames by outcome, skips, dropped boxes, objects, stage times."""
+    by_outcome = metrics.by_label("swarmrec_detector_frames_total", "outcome")
+    outcomes = {k: int(v) for k, v in sorted(by_outcome.items())}
+    made = outcomes.get("detected", 0) + outcomes.get("no_objects", 0)
+    objects = metrics.total("swarmrec_detector_objects_total")
+    sums = metrics.by_label("swarmrec_detector_stage_seconds_sum", "stage")
+    counts = metrics.by_label("swarmrec_detector_stage_seconds_count", "stage")
+    return {
+        "frames": sum(outcomes.values()),
+        "frames_by_outcome": outcomes,
+        "skipped": {k: v for k, v in outcomes.items() if k not in ("detected", "no_objects")},
+        "boxes_dropped": {
+            k: int(v) for k, v in metrics.by_label("swarmrec_detector_boxes_dropped_total", "reason").items()
+        },
+        "objects": int(objects),
+        "objects_per_frame": objects / made if made else 0.0,
+        "stage_ms_mean": {k: 1e3 * sums[k] / counts[k] for k in sorted(sums) if counts.get(k)},
+        "note": "scraped from the detectors' swarmrec_detector_* metrics; objects_per_frame is over "
+        "the frames a constellation was made of (detected or no_objects)",
+    }
+
+
 def write_report(
     settings: SwarmSettings,
     *,
@@ -126,7 +149,13 @@ def write_report(
     exit_codes: dict[str, int],
     timings: dict[str, float],
     deployment: str = "local processes",
+    detector: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
+    """Write the report files under ``settings.out`` and return the summary.
+
+    ``detector`` (a run from pixels: the model, threshold, camera) is reported
+    with the detectors' scraped figures under ``summary["detector"]``.
+    """
     out = settings.out
     matrix, conflicts = pair_matrix(replay.reports, wire_seq, blocks, preset)
     queried = [r for r in replay.reports if r.queried]
@@ -183,6 +212,8 @@ def write_report(
         "exit_codes": exit_codes,
         "timings": timings,
     }
+    if detector is not None:
+        summary["detector"] = detector | _detector_figures(metrics)
     offline_run = None
     if settings.check_offline and settings.lockstep and not replay.missing:
         summary["offline_check"], offline_run = _compare_offline(

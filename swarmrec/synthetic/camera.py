@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from swarmrec.core.geometry import quaternion_to_matrix
 from swarmrec.synthetic.config import OfficeConfig
 
 __all__ = [
@@ -61,25 +62,9 @@ TUM_FR3_CAMERA = PinholeCamera(fx=535.4, fy=539.2, cx=320.1, cy=247.6, width=640
 
 
 def quaternions_to_matrices(q: FloatArray) -> FloatArray:
-    """Rotation matrices (``n x 3 x 3``) of quaternions ``(qx, qy, qz, qw)`` (``n x 4``).
-
-    The quaternions are normalised first, so a pose read back from a text file
-    with rounded digits still gives a proper rotation.
-    """
-    q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    r = np.empty((q.shape[0], 3, 3))
-    r[:, 0, 0] = 1 - 2 * (y * y + z * z)
-    r[:, 0, 1] = 2 * (x * y - z * w)
-    r[:, 0, 2] = 2 * (x * z + y * w)
-    r[:, 1, 0] = 2 * (x * y + z * w)
-    r[:, 1, 1] = 1 - 2 * (x * x + z * z)
-    r[:, 1, 2] = 2 * (y * z - x * w)
-    r[:, 2, 0] = 2 * (x * z - y * w)
-    r[:, 2, 1] = 2 * (y * z + x * w)
-    r[:, 2, 2] = 1 - 2 * (x * x + y * y)
-    return r
+    """Rotation matrices (``n x 3 x 3``) of quaternions ``(qx, qy, qz, qw)`` (``n x 4``; one
+    quaternion gives ``1 x 3 x 3``); :func:`swarmrec.core.geometry.quaternion_to_matrix`, batched."""
+    return quaternion_to_matrix(np.asarray(q, dtype=np.float64).reshape(-1, 4))
 
 
 def matrices_to_quaternions(r: FloatArray) -> FloatArray:

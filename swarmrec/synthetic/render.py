@@ -49,7 +49,7 @@ from tqdm import tqdm
 
 from swarmrec.core.types import Constellation, ConstellationSequence
 from swarmrec.datasets.constellations import format_constellation, write_constellations
-from swarmrec.datasets.tum import write_trajectory
+from swarmrec.datasets.tum import TUM_DEPTH_SCALE, write_trajectory
 from swarmrec.errors import ConfigError
 from swarmrec.synthetic.camera import TUM_FR3_CAMERA, PinholeCamera, quaternions_to_matrices
 from swarmrec.synthetic.config import OfficeConfig
@@ -60,7 +60,6 @@ from swarmrec.synthetic.render_shapes import build_scene
 from swarmrec.synthetic.world import OfficeWorld
 
 __all__ = [
-    "DEPTH_SCALE",
     "RenderCommand",
     "RenderSettings",
     "RenderSummary",
@@ -77,8 +76,6 @@ BoolArray = npt.NDArray[np.bool_]
 ImageArray = npt.NDArray[np.uint8]
 DepthArray = npt.NDArray[np.uint16]
 
-#: Depth units per metre in the depth images (TUM's convention).
-DEPTH_SCALE = 5000.0
 # Triangles are clipped this far in front of the camera (metres).
 _NEAR_CLIP_M = 0.01
 # Separates the renderer's random stream from generate_office's, which uses the same seed.
@@ -111,9 +108,9 @@ class RenderSettings:
             if isinstance(value, bool) or not isinstance(value, int) or not 16 <= value <= 8192:
                 raise ConfigError(f"{name} must be an integer in [16, 8192] pixels, got {value!r}")
         near, far = self.depth_range_m
-        if not 0.0 < near < far <= 65535 / DEPTH_SCALE:
+        if not 0.0 < near < far <= 65535 / TUM_DEPTH_SCALE:
             raise ConfigError(
-                f"depth_range_m must be (near, far) with 0 < near < far <= {65535 / DEPTH_SCALE:.3f} m "
+                f"depth_range_m must be (near, far) with 0 < near < far <= {65535 / TUM_DEPTH_SCALE:.3f} m "
                 f"(the largest uint16 depth), got {self.depth_range_m}"
             )
         for name, high in (("rgb_noise", 64.0), ("depth_noise", 10.0), ("lighting_variation", 0.5)):
@@ -217,7 +214,7 @@ class SceneRenderer:
         )  # fmt: skip
         depth = np.zeros((h, w), np.uint16)
         finish(
-            zbuf, rgb, depth, np.asarray(s.depth_range_m, np.float64), DEPTH_SCALE,
+            zbuf, rgb, depth, np.asarray(s.depth_range_m, np.float64), TUM_DEPTH_SCALE,
             np.uint64(noise_seed % 2**64), s.rgb_noise, s.depth_noise,
         )  # fmt: skip
         count, box = box_statistics(ids, scene.n_objects)
@@ -388,7 +385,7 @@ def write_rgbd_sequence(
             "fy": camera.fy,
             "cx": camera.cx,
             "cy": camera.cy,
-            "depth_scale": DEPTH_SCALE,
+            "depth_scale": TUM_DEPTH_SCALE,
         },
         "box_format": "x1 y1 x2 y2 in pixels; pixel u covers [u, u+1), so x2 and y2 are exclusive",
         "label_names": list(names),

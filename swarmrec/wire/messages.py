@@ -24,12 +24,15 @@ from swarmrec.wire.gen.swarmrec.v1.errors_pb2 import ErrorCode, ErrorReply
 from swarmrec.wire.gen.swarmrec.v1.events_pb2 import LoopClosure, QueryReport, VerifiedPair
 from swarmrec.wire.gen.swarmrec.v1.fusion_pb2 import (
     ClassifierOutput,
+    ClassifyReply,
+    ClassifyRequest,
     FusionPosterior,
     FusionRoundStart,
     FusionRoundStarted,
     FusionStep,
     FusionUpdate,
     PosteriorRequest,
+    WeightLaw,
 )
 from swarmrec.wire.gen.swarmrec.v1.health_pb2 import MemberInfo, ServiceKind
 from swarmrec.wire.gen.swarmrec.v1.query_pb2 import CandidatesReply, PartialQuery
@@ -48,6 +51,8 @@ __all__ = [
     "MESSAGE_TYPES",
     "CandidatesReply",
     "ClassifierOutput",
+    "ClassifyReply",
+    "ClassifyRequest",
     "Constellation",
     "ErrorCode",
     "ErrorReply",
@@ -75,6 +80,7 @@ __all__ = [
     "VerifyMatch",
     "VerifyReply",
     "VerifyRequest",
+    "WeightLaw",
     "message_class",
 ]
 
@@ -83,6 +89,8 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
     for cls in (
         CandidatesReply,
         ClassifierOutput,
+        ClassifyReply,
+        ClassifyRequest,
         Constellation,
         ErrorReply,
         FusionPosterior,
@@ -108,6 +116,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         VerifyMatch,
         VerifyReply,
         VerifyRequest,
+        WeightLaw,
     )
 }
 """Every v1 message class by its full schema name (``swarmrec.v1.PartialQuery``)."""

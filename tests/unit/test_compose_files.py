@@ -15,6 +15,7 @@ from swarmrec.swarm.compose import (
     read_swarm_file,
     render_yaml,
     service_name,
+    write_compose,
 )
 
 
@@ -93,3 +94,48 @@ def test_reading_a_missing_or_foreign_swarm_file_says_what_to_do(tmp_path: Path)
     (tmp_path / "swarm.json").write_text('{"robots": 4}')
     with pytest.raises(ConfigError, match="not a swarm file"):
         read_swarm_file(tmp_path)
+
+
+def test_a_landmarks_swarm_has_a_classifier_detector_and_a_fusion_service_per_robot(tmp_path: Path) -> None:
+    s = ComposeSettings(
+        robots=3, workload="landmarks", out=tmp_path, router_port=17447, prometheus_port=19090
+    )
+    doc = compose_document(s, n_labels=0, bounds=[])
+    names = list(doc["services"])
+    assert sorted(names[1:-1]) == sorted(f"r{r}-{k}" for r in range(3) for k in ("detector", "fusion"))
+    detector = doc["services"]["r1-detector"]
+    assert detector["environment"]["SWARMREC_DETECTOR_MODE"] == "classifier"
+    assert "volumes" not in detector and "SWARMREC_DATASET" not in detector["environment"]
+    assert "SWARMREC_LABEL_BOUNDS" not in doc["services"]["r1-fusion"]["environment"]
+    assert sorted(doc["volumes"]) == ["prometheus-data"]  # nothing a landmarks robot keeps
+    (job,) = prometheus_document(s)["scrape_configs"]
+    assert {g["labels"]["service"] for g in job["static_configs"]} == {"router", "detector", "fusion"}
+    info = write_compose(s)
+    assert info.workload == "landmarks" and info.services == ("fusion", "detector") and info.dataset == ""
+    assert read_swarm_file(tmp_path) == info
+    assert not (tmp_path / "dataset").exists()
+
+
+def test_a_landmarks_swarm_needs_two_robots_and_workloads_are_named() -> None:
+    with pytest.raises(ConfigError, match="at least 2 robots"):
+        ComposeSettings(robots=1, workload="landmarks")
+    with pytest.raises(ConfigError, match="workload"):
+        ComposeSettings(workload="everything")
+
+
+def test_each_workload_refuses_the_other_ones_swarm(tmp_path: Path) -> None:
+    from swarmrec.swarm.attached import main_attached
+    from swarmrec.swarm.landmarks import LandmarkSettings, run_simulation
+
+    write_compose(ComposeSettings(robots=2, workload="landmarks", out=tmp_path / "lm"))
+    with pytest.raises(ConfigError, match="swarmrec landmarks --attach"):
+        main_attached(tmp_path / "lm", out=tmp_path / "report")
+    write_compose(ComposeSettings(robots=2, frames=50, out=tmp_path / "pl"))
+    with pytest.raises(ConfigError, match="--workload landmarks"):
+        run_simulation(
+            LandmarkSettings(out=tmp_path / "r", robots=2, configurations=1), attach=tmp_path / "pl"
+        )
+    with pytest.raises(ConfigError, match="--robots 2"):
+        run_simulation(
+            LandmarkSettings(out=tmp_path / "r", robots=3, configurations=1), attach=tmp_path / "lm"
+        )

@@ -362,3 +362,51 @@ def test_the_fusion_settings_come_from_the_environment_like_any_other() -> None:
 def test_bad_fusion_settings_are_refused(changes: dict[str, object], match: str) -> None:
     with pytest.raises(ConfigError, match=match):
         ServiceSettings(**changes)  # type: ignore[arg-type]
+
+
+# --- a weight law for one round -------------------------------------------------------
+
+
+def test_a_round_can_use_its_own_weight_law_and_the_next_falls_back_to_the_robots() -> None:
+    from swarmrec.fusion import PaperWeightLaw
+
+    r = robot(0, 3)  # its own law: paper, lambda 1
+    own = [0.6, 0.1, 0.1, 0.1, 0.1]
+    heard = [0.1, 0.6, 0.1, 0.1, 0.1]
+    r.start_round(1, own, 0.0, [1], law=PaperWeightLaw(lam=0.0))
+    r.receive(FloodMessage(1, 1, 1, 0, 0.0, np.array(heard)))
+    # lambda 0 and equal yaws: weight 1, plain naive Bayes: own * heard, normalised.
+    naive = np.array(own) * np.array(heard)
+    np.testing.assert_allclose(r.record(1).state.posterior, naive / naive.sum(), atol=1e-12)  # type: ignore[union-attr]
+    r.start_round(2, own, 0.0, [1])
+    r.receive(FloodMessage(2, 1, 1, 0, 0.0, np.array(heard)))
+    # lambda 1, one hop: weight (1 + 1)^-1 = 0.5, the mixture of Eq. 12.
+    mixed = 0.5 * naive / naive.sum() + 0.5 * np.array(own)
+    np.testing.assert_allclose(r.record(2).state.posterior, mixed, atol=1e-12)  # type: ignore[union-attr]
+
+
+@pytest.mark.parametrize(
+    ("name", "lam", "match"),
+    [("magic", None, "unknown weight law"), ("paper", -1.0, "lambda"), ("paper", math.nan, "lambda")],
+)
+def test_a_round_law_that_does_not_exist_is_a_config_error(name: str, lam: float | None, match: str) -> None:
+    from swarmrec.services.fusion import round_law
+    from swarmrec.wire import messages as pb
+
+    spec = pb.WeightLaw(name=name)
+    if lam is not None:
+        setattr(spec, "lambda", lam)
+    with pytest.raises(ConfigError, match=match):
+        round_law(spec)
+
+
+def test_a_round_law_names_the_law_and_its_lambda() -> None:
+    from swarmrec.fusion import PaperWeightLaw
+    from swarmrec.services.fusion import round_law
+    from swarmrec.wire import messages as pb
+
+    assert round_law(pb.WeightLaw(name="paper")) == PaperWeightLaw(lam=2.0)
+    spec = pb.WeightLaw(name="paper")
+    setattr(spec, "lambda", 100.0)
+    assert round_law(spec) == PaperWeightLaw(lam=100.0)
+    assert round_law(pb.WeightLaw(name="agreement")).name == "agreement"

@@ -260,6 +260,18 @@ def test_settings_to_flags_round_trips_through_the_parser(tmp_path: Path) -> Non
         dataset="",
         labels_file=None,
         frames_per_robot=17,
+        detector_mode="rgbd",
+        detector_model="models/mine.onnx",
+        conf_threshold=0.375,
+        iou_threshold=0.5,
+        detector_threads=2,
+        camera_fx=517.3,
+        camera_fy=516.5,
+        camera_cx=318.6,
+        camera_cy=255.3,
+        depth_scale=1000.0,
+        rgbd_max_dt=0.03,
+        classifier_model="models/landmarks.onnx",
         log_level="DEBUG",
     )
     names = list(ServiceSettings.__dataclass_fields__)

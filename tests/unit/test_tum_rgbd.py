@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from swarmrec.datasets.tum_rgbd import associate, load_rgbd, read_file_list, read_tum_rgbd
+from swarmrec.datasets.tum_rgbd import RgbdImageError, associate, load_rgbd, read_file_list, read_tum_rgbd
 from swarmrec.errors import ConfigError, DatasetError, MalformedLineError
 
 H, W = 6, 8
@@ -155,8 +155,9 @@ def test_a_corrupt_image_is_an_error_or_a_counted_skip(tmp_path: Path) -> None:
 def test_a_missing_image_is_an_error_naming_it(tmp_path: Path) -> None:
     seq = read_tum_rgbd(_write_sequence(tmp_path, [1.0], [1.0]))
     seq.frames[0].depth_path.unlink()
-    with pytest.raises(DatasetError, match="depth image is missing"):
+    with pytest.raises(RgbdImageError, match="depth image is missing") as info:
         list(seq.images())
+    assert info.value.problem == "missing"
 
 
 def test_an_empty_image_file_is_an_error(tmp_path: Path) -> None:
@@ -169,15 +170,17 @@ def test_an_empty_image_file_is_an_error(tmp_path: Path) -> None:
 def test_depth_of_another_size_than_the_rgb_image_is_an_error(tmp_path: Path) -> None:
     seq = read_tum_rgbd(_write_sequence(tmp_path, [1.0], [1.0]))
     cv2.imwrite(str(seq.frames[0].depth_path), np.zeros((H + 1, W), np.uint16))
-    with pytest.raises(DatasetError, match=r"depth is 8x7 but its RGB image 1\.000000\.png is 8x6"):
+    with pytest.raises(RgbdImageError, match=r"depth is 8x7 but its RGB image 1\.000000\.png is 8x6") as info:
         load_rgbd(seq.frames[0].rgb_path, seq.frames[0].depth_path)
+    assert info.value.problem == "size_mismatch"
 
 
 def test_an_8_bit_depth_image_is_an_error(tmp_path: Path) -> None:
     seq = read_tum_rgbd(_write_sequence(tmp_path, [1.0], [1.0]))
     cv2.imwrite(str(seq.frames[0].depth_path), np.zeros((H, W), np.uint8))
-    with pytest.raises(DatasetError, match="16-bit single-channel"):
+    with pytest.raises(RgbdImageError, match="16-bit single-channel") as info:
         list(seq.images())
+    assert info.value.problem == "corrupt"
 
 
 def test_file_lists_skip_comments_and_blank_lines(tmp_path: Path) -> None:

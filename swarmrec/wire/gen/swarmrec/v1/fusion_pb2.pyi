@@ -23,16 +23,25 @@ class ClassifierOutput(_message.Message):
     def __init__(self, origin_robot_id: _Optional[int] = ..., round_id: _Optional[int] = ..., probabilities: _Optional[_Iterable[float]] = ..., yaw_rad: _Optional[float] = ..., hop_count: _Optional[int] = ..., sender_robot_id: _Optional[int] = ...) -> None: ...
 
 class FusionRoundStart(_message.Message):
-    __slots__ = ("round_id", "probabilities", "yaw_rad", "neighbour_robot_ids")
+    __slots__ = ("round_id", "probabilities", "yaw_rad", "neighbour_robot_ids", "weight_law")
     ROUND_ID_FIELD_NUMBER: _ClassVar[int]
     PROBABILITIES_FIELD_NUMBER: _ClassVar[int]
     YAW_RAD_FIELD_NUMBER: _ClassVar[int]
     NEIGHBOUR_ROBOT_IDS_FIELD_NUMBER: _ClassVar[int]
+    WEIGHT_LAW_FIELD_NUMBER: _ClassVar[int]
     round_id: int
     probabilities: _containers.RepeatedScalarFieldContainer[float]
     yaw_rad: float
     neighbour_robot_ids: _containers.RepeatedScalarFieldContainer[int]
-    def __init__(self, round_id: _Optional[int] = ..., probabilities: _Optional[_Iterable[float]] = ..., yaw_rad: _Optional[float] = ..., neighbour_robot_ids: _Optional[_Iterable[int]] = ...) -> None: ...
+    weight_law: WeightLaw
+    def __init__(self, round_id: _Optional[int] = ..., probabilities: _Optional[_Iterable[float]] = ..., yaw_rad: _Optional[float] = ..., neighbour_robot_ids: _Optional[_Iterable[int]] = ..., weight_law: _Optional[_Union[WeightLaw, _Mapping]] = ...) -> None: ...
+
+class WeightLaw(_message.Message):
+    __slots__ = ("name",)
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    LAMBDA_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    def __init__(self, name: _Optional[str] = ..., **kwargs) -> None: ...
 
 class FusionRoundStarted(_message.Message):
     __slots__ = ("robot_id", "round_id", "sent", "early_messages")
@@ -109,3 +118,31 @@ class FusionUpdate(_message.Message):
     incorporated: int
     heard_all: bool
     def __init__(self, robot_id: _Optional[int] = ..., round_id: _Optional[int] = ..., step: _Optional[_Union[FusionStep, _Mapping]] = ..., posterior: _Optional[_Iterable[float]] = ..., decision: _Optional[int] = ..., incorporated: _Optional[int] = ..., heard_all: _Optional[bool] = ...) -> None: ...
+
+class ClassifyRequest(_message.Message):
+    __slots__ = ("round_id", "image", "yaw_rad", "neighbour_robot_ids", "weight_law")
+    ROUND_ID_FIELD_NUMBER: _ClassVar[int]
+    IMAGE_FIELD_NUMBER: _ClassVar[int]
+    YAW_RAD_FIELD_NUMBER: _ClassVar[int]
+    NEIGHBOUR_ROBOT_IDS_FIELD_NUMBER: _ClassVar[int]
+    WEIGHT_LAW_FIELD_NUMBER: _ClassVar[int]
+    round_id: int
+    image: bytes
+    yaw_rad: float
+    neighbour_robot_ids: _containers.RepeatedScalarFieldContainer[int]
+    weight_law: WeightLaw
+    def __init__(self, round_id: _Optional[int] = ..., image: _Optional[bytes] = ..., yaw_rad: _Optional[float] = ..., neighbour_robot_ids: _Optional[_Iterable[int]] = ..., weight_law: _Optional[_Union[WeightLaw, _Mapping]] = ...) -> None: ...
+
+class ClassifyReply(_message.Message):
+    __slots__ = ("robot_id", "round_id", "probabilities", "decision", "fusion")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    ROUND_ID_FIELD_NUMBER: _ClassVar[int]
+    PROBABILITIES_FIELD_NUMBER: _ClassVar[int]
+    DECISION_FIELD_NUMBER: _ClassVar[int]
+    FUSION_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    round_id: int
+    probabilities: _containers.RepeatedScalarFieldContainer[float]
+    decision: int
+    fusion: FusionRoundStarted
+    def __init__(self, robot_id: _Optional[int] = ..., round_id: _Optional[int] = ..., probabilities: _Optional[_Iterable[float]] = ..., decision: _Optional[int] = ..., fusion: _Optional[_Union[FusionRoundStarted, _Mapping]] = ...) -> None: ...
