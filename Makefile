@@ -16,7 +16,7 @@
 #
 # Every target sets up its own virtual environment first (.venv, pinned by
 # requirements.lock), so a fresh clone needs only python3 and make. Training
-# has its own (.venv-train, pinned by models/landmarks/requirements-train.txt):
+# has its own (.venv-train, pinned by models/requirements-train.txt):
 # PyPI's torch is the multi-GB CUDA build and never enters .venv or an image.
 
 PYTHON ?= python3
@@ -29,7 +29,7 @@ COMPOSE_OUT ?= runs/compose
 LANDMARKS_OUT ?= runs/landmarks
 TRAIN_VENV  := .venv-train
 TRAIN_STAMP := $(TRAIN_VENV)/.installed-stamp
-TRAIN_REQS  := models/landmarks/requirements-train.txt
+TRAIN_REQS  := models/requirements-train.txt
 
 .PHONY: help venv train-env train-landmarks train-detector landmarks run evaluate test unit lint typecheck proto check-proto bench images swarm-up swarm-run swarm-down clean
 
@@ -44,8 +44,8 @@ $(STAMP): pyproject.toml requirements.lock
 
 venv: $(STAMP)
 
-# --no-deps for swarmrec itself: training needs only its renderers (numpy, opencv),
-# which the pinned requirements already hold.
+# --no-deps for swarmrec itself: training needs only its renderers (numpy, opencv,
+# numba, tqdm), which the pinned requirements already hold.
 $(TRAIN_STAMP): $(TRAIN_REQS) pyproject.toml
 	@test -x $(TRAIN_VENV)/bin/python || $(PYTHON) -m venv $(TRAIN_VENV)
 	$(TRAIN_VENV)/bin/python -m pip install --quiet --upgrade pip
@@ -91,6 +91,8 @@ check-proto: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python bench/bench_offline.py --out bench/results/offline.json
 	$(BIN)/python bench/bench_swarm.py --out bench/results/swarm.json
+	$(BIN)/python bench/bench_detector.py --out bench/results/detector.json
+	$(BIN)/python bench/bench_landmarks.py --out bench/results/landmarks.json
 	$(BIN)/python bench/bench_compose.py --rebuild-base --out bench/results/compose.json
 
 images: $(STAMP)

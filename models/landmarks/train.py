@@ -15,7 +15,7 @@ The model ships as ONNX (input ``image``: float32 ``[N, 3, 64, 64]`` RGB scaled 
 needed here, in the separate training environment::
 
     python3 -m venv .venv-train
-    .venv-train/bin/pip install -r models/landmarks/requirements-train.txt
+    .venv-train/bin/pip install -r models/requirements-train.txt
     .venv-train/bin/pip install --no-deps -e .
     .venv-train/bin/python models/landmarks/train.py                 # writes models/landmarks/
     .venv-train/bin/python models/landmarks/train.py --per-class 4 --epochs 1 --max-steps 3 --out /tmp/smoke
