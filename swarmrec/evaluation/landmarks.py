@@ -33,7 +33,7 @@ from matplotlib.patches import Polygon
 
 from swarmrec.fusion.street import Street, SwarmConfiguration, default_street
 from swarmrec.fusion.wnbc import N_LANDMARKS
-from swarmrec.swarm.landmarks import RobotRound, SimulationResult
+from swarmrec.swarm.landmarks import RobotRound, SimulationResult, reference_flood
 
 __all__ = [
     "PAPER_FIG3",
@@ -329,32 +329,18 @@ def write_landmark_report(result: SimulationResult, figure_law: str | None = Non
 
 def _hop_distances(result: SimulationResult) -> tuple[int, int]:
     """How many incorporated messages came with a hop count equal to the graph distance
-    (a first copy may arrive by a longer path: zenoh does not deliver in BFS order)."""
-    from collections import deque
-
-    by_config = {c.index: c for c in result.configurations}
-    dist_cache: dict[int, list[list[int]]] = {}
+    (a first copy may arrive by a longer path: zenoh does not deliver in BFS order). The
+    distance is the hop count of the core's synchronous flooding, breadth-first by
+    construction."""
+    distance: dict[tuple[int, int, int], int] = {}
+    for c in result.configurations:
+        for robot, heard in enumerate(reference_flood(c).heard):
+            distance.update({(c.index, robot, h.origin): h.hops for h in heard})
     exact = total = 0
     for r in result.rounds:
-        c = by_config[r.configuration]
-        if c.index not in dist_cache:
-            n = c.n_robots
-            table = []
-            for src in range(n):
-                d = [-1] * n
-                d[src] = 0
-                q = deque([src])
-                while q:
-                    u = q.popleft()
-                    for v in np.flatnonzero(c.adjacency[u]).tolist():
-                        if d[v] < 0:
-                            d[v] = d[u] + 1
-                            q.append(v)
-                table.append(d)
-            dist_cache[c.index] = table
         for origin, hops, _yaw, _w in r.history:
             total += 1
-            exact += hops == dist_cache[c.index][r.robot][origin]
+            exact += hops == distance[(r.configuration, r.robot, origin)]
     return exact, total
 
 

@@ -20,7 +20,14 @@ from swarmrec.core.presets import get_preset
 from swarmrec.core.split import split_frames
 from swarmrec.errors import ConfigError
 from swarmrec.swarm.compose import read_swarm_file
-from swarmrec.swarm.job import SwarmSettings, as_on_the_wire, prepare_dataset, replay_free, replay_lockstep
+from swarmrec.swarm.job import (
+    SwarmSettings,
+    as_on_the_wire,
+    collect_loop_closures,
+    prepare_dataset,
+    replay_free,
+    replay_lockstep,
+)
 from swarmrec.swarm.scrape import scrape_prometheus
 
 __all__ = ["main_attached"]
@@ -97,12 +104,7 @@ def main_attached(
         t0 = time.perf_counter()
         metrics = scrape_prometheus(info.prometheus_url, fresh_after=time.time())
         timings["scrape_s"] = time.perf_counter() - t0
-        closures = []
-        for r in range(info.robots):
-            try:
-                closures += client.loop_closures(r)
-            except Exception as e:
-                replay.errors.append(f"loop closures of robot {r}: {e}")
+        closures = collect_loop_closures(client, info.robots, replay)
     timings["total_s"] = time.perf_counter() - t_start
     return write_report(
         settings,

@@ -379,13 +379,14 @@ def read_swarm_file(folder: Path) -> SwarmFile:
     try:
         data = json.loads(path.read_text())
         info = SwarmFile(**data)
-        info.services  # noqa: B018  # an unknown workload fails here, as a bad file
-        return info
     except FileNotFoundError:
         hint = f"swarmrec compose up --out {folder}"
         raise ConfigError(f"{path} not found: write it first with `{hint}`") from None
-    except (json.JSONDecodeError, TypeError, KeyError) as e:
+    except (json.JSONDecodeError, TypeError) as e:
         raise ConfigError(f"{path} is not a swarm file written by this version of swarmrec: {e}") from None
+    if info.workload not in WORKLOADS:
+        raise ConfigError(f"{path}: unknown workload {info.workload!r}; workloads: {', '.join(WORKLOADS)}")
+    return info
 
 
 def compose_command() -> list[str]:

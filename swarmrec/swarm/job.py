@@ -47,6 +47,7 @@ __all__ = [
     "Replay",
     "SwarmSettings",
     "as_on_the_wire",
+    "collect_loop_closures",
     "main",
     "prepare_dataset",
     "replay_free",
@@ -293,6 +294,18 @@ def replay_free(client: Any, blocks: list[range], settings: SwarmSettings) -> Re
     return Replay(reports, missing, errors, [], time.perf_counter() - t0)
 
 
+def collect_loop_closures(client: Any, robots: int, replay: Replay) -> list[pb.LoopClosure]:
+    """Every robot's loop closures after a replay; a robot that does not answer adds an
+    error to ``replay`` rather than losing the others'."""
+    closures: list[pb.LoopClosure] = []
+    for r in range(robots):
+        try:
+            closures += client.loop_closures(r)
+        except Exception as e:
+            replay.errors.append(f"loop closures of robot {r}: {e}")
+    return closures
+
+
 def main(
     settings: SwarmSettings,
     *,
@@ -362,18 +375,8 @@ def main(
                 else replay_free(client, blocks, settings)
             )
             timings["replay_s"] = replay.wall_s
-            targets = {
-                (sp.kind, sp.robot): str(sp.info.get("metrics_url", ""))
-                for sp in swarm.procs
-                if sp.proc.poll() is None and sp.info.get("metrics_url")
-            }
-            metrics = scrape(targets)
-            closures: list[pb.LoopClosure] = []
-            for r in range(settings.robots):
-                try:
-                    closures += client.loop_closures(r)
-                except Exception as e:
-                    replay.errors.append(f"loop closures of robot {r}: {e}")
+            metrics = scrape(swarm.metrics_targets())
+            closures = collect_loop_closures(client, settings.robots, replay)
     finally:
         t0 = time.perf_counter()
         exit_codes = swarm.stop()

@@ -45,14 +45,22 @@ import numpy.typing as npt
 
 from swarmrec.errors import ConfigError
 from swarmrec.fusion.facades import RenderSettings, View, render_view
-from swarmrec.fusion.flooding import simulate_flooding
+from swarmrec.fusion.flooding import FloodResult, simulate_flooding
 from swarmrec.fusion.street import StreetSettings, SwarmConfiguration, default_street, generate_configurations
-from swarmrec.fusion.wnbc import N_LANDMARKS, WEIGHT_LAWS, FusionState, WeightLaw, make_weight_law
+from swarmrec.fusion.wnbc import (
+    N_LANDMARKS,
+    WEIGHT_LAWS,
+    AgreementWeightLaw,
+    FusionState,
+    PaperWeightLaw,
+    WeightLaw,
+    make_weight_law,
+)
 from swarmrec.services import keys
 from swarmrec.services.config import ServiceSettings
 from swarmrec.services.rpc import CallError, RemoteError
 from swarmrec.swarm.processes import LocalSwarm
-from swarmrec.swarm.scrape import Scrape, scrape
+from swarmrec.swarm.scrape import Scrape, scrape, scrape_prometheus
 from swarmrec.wire import messages as pb
 
 __all__ = [
@@ -66,6 +74,7 @@ __all__ = [
     "expected_deliveries",
     "main",
     "parse_law",
+    "reference_flood",
     "render_views",
     "run_simulation",
 ]
@@ -91,10 +100,12 @@ class LawChoice:
 
     @property
     def label(self) -> str:
-        """How a figure's legend names it."""
-        if self.name == "paper":
-            return f"paper, λ = {2.0 if self.lam is None else self.lam:g}"
-        return f"adaptive (agreement, prior λ = {1.0 if self.lam is None else self.lam:g})"
+        """How a figure's legend names it (with the lambda the law really uses)."""
+        law = self.law()
+        if isinstance(law, AgreementWeightLaw):
+            return f"adaptive (agreement, prior λ = {law.prior.lam:g})"
+        assert isinstance(law, PaperWeightLaw)  # the two laws make_weight_law knows
+        return f"paper, λ = {law.lam:g}"
 
     def law(self) -> WeightLaw:
         return make_weight_law(self.name, lam=self.lam)
@@ -246,14 +257,19 @@ def render_views(
     return out
 
 
+def reference_flood(config: SwarmConfiguration) -> FloodResult:
+    """Algorithm 1 on the configuration's graph in the core's synchronous steps (the
+    vectors do not matter here): what every round must deliver, and at which hop
+    counts a breadth-first delivery would arrive."""
+    n = config.n_robots
+    return simulate_flooding(config.adjacency, np.full((n, 2), 0.5), np.zeros(n))
+
+
 def expected_deliveries(config: SwarmConfiguration) -> list[int]:
     """How many copies Algorithm 1 delivers to each robot in one round (own-origin copies
     included): every neighbour broadcasts its own message and one forward per other origin."""
-    n = config.n_robots
-    dummy = np.full((n, 2), 0.5)
-    flood = simulate_flooding(config.adjacency, dummy, np.zeros(n))
-    counts = [0] * n
-    for _step, _sender, receiver, _origin in flood.deliveries:
+    counts = [0] * config.n_robots
+    for _step, _sender, receiver, _origin in reference_flood(config).deliveries:
         counts[receiver] += 1
     return counts
 
@@ -431,7 +447,6 @@ def _attached(
     encoded: Sequence[list[bytes]],
     timings: dict[str, float],
     on_round: Callable[[int, int], None] | None,
-    scrape_prometheus: Callable[..., Scrape],
 ) -> tuple[_Runner, list[RobotRound], Scrape]:
     """The rounds through a running (compose) swarm; its Prometheus' counters of this run."""
     before = scrape_prometheus(prometheus_url, fresh_after=time.time())
@@ -481,7 +496,6 @@ def run_simulation(
     run. ``on_round(done, total)`` reports progress; ``swarm_hook`` runs once a local
     swarm is up (tests use it to disturb the swarm)."""
     from swarmrec.swarm.compose import read_swarm_file
-    from swarmrec.swarm.scrape import scrape_prometheus
 
     t0 = time.perf_counter()
     s = settings
@@ -515,7 +529,6 @@ def run_simulation(
                 encoded,
                 timings,
                 on_round,
-                scrape_prometheus,
             )
         finally:
             if runner is not None:
@@ -539,13 +552,7 @@ def run_simulation(
             if swarm_hook is not None:
                 swarm_hook(swarm)
             runner, rounds = _run_rounds(s, swarm.endpoint, configs, encoded, timings, on_round)
-            metrics = scrape(
-                {
-                    (sp.kind, sp.robot): str(sp.info.get("metrics_url", ""))
-                    for sp in swarm.procs
-                    if sp.proc.poll() is None and sp.info.get("metrics_url")
-                }
-            )
+            metrics = scrape(swarm.metrics_targets())
         finally:
             if runner is not None:
                 runner.close()

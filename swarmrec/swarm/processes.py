@@ -224,6 +224,15 @@ class LocalSwarm:
                 if pending:
                     time.sleep(0.05)
 
+    def metrics_targets(self) -> dict[tuple[str, int], str]:
+        """``/metrics`` URL of every service still running, by (kind, robot): what
+        :func:`swarmrec.swarm.scrape.scrape` reads."""
+        return {
+            (sp.kind, sp.robot): str(sp.info["metrics_url"])
+            for sp in self.procs
+            if sp.proc.poll() is None and sp.info.get("metrics_url")
+        }
+
     def find(self, kind: str, robot: int) -> ServiceProcess:
         for sp in self.procs:
             if sp.kind == kind and sp.robot == robot and sp.proc.poll() is None:
