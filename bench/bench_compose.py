@@ -10,7 +10,7 @@ Figures, each next to a baseline measured in the same run on the same machine:
   environment on the host, which is the work the service image's build repeats.
 * cold start to healthy (every container's health check passes) for 4 and 10
   robots, from ``compose up`` with fresh volumes. Baseline: the same swarm as
-  local processes (``LocalSwarm.start``, every process's ready line).
+  local processes (``LocalDeployment.start``, every process's ready line).
 * memory: each container's memory after a lock-step replay of the synthetic
   world, by service kind (cgroup usage less the page cache, as ``docker
   stats`` shows it). Baseline: the resident set of the same service kinds run
@@ -35,11 +35,18 @@ from typing import Any
 import docker
 
 import swarmrec
-from swarmrec.services.config import ServiceSettings
-from swarmrec.swarm.attached import main_attached
-from swarmrec.swarm.compose import ComposeSettings, down, up, write_compose
-from swarmrec.swarm.job import SwarmSettings, main
-from swarmrec.swarm.processes import LocalSwarm, free_port
+from swarmrec.deployments.base import Deployment
+from swarmrec.deployments.compose import (
+    ComposeDeployment,
+    ComposeSettings,
+    SwarmFile,
+    down,
+    up,
+    write_compose,
+)
+from swarmrec.deployments.local import LocalDeployment, free_port
+from swarmrec.experiments.places import PlacesSettings, main
+from swarmrec.experiments.places.pipeline import prepare
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -102,28 +109,27 @@ def _rss_mb(pid: int) -> float:
     return float("nan")
 
 
+def _compose(robots: int, project: str, swarm: str, out: Path) -> tuple[SwarmFile, PlacesSettings]:
+    """A places swarm of ``robots`` on the synthetic world, composed (not up) in ``out``."""
+    run = PlacesSettings(robots=robots, swarm=swarm, out=out, progress=False, plots=False)
+    spec = prepare(run, dataset_dir=out / "dataset").spec
+    settings = ComposeSettings(project=project, out=out, router_port=free_port(), prometheus_port=free_port())
+    return write_compose(spec, settings, experiment=run.record()), run
+
+
 def bench_cold_start(robots: int, tmp: Path) -> dict[str, Any]:
     project = f"swarmrec-bench-{robots}"
-    settings = ComposeSettings(
-        robots=robots,
-        project=project,
-        swarm=f"bench{robots}",
-        out=tmp / f"compose{robots}",
-        router_port=free_port(),
-        prometheus_port=free_port(),
-    )
-    info = write_compose(settings)
+    info, run = _compose(robots, project, f"bench{robots}", tmp / f"compose{robots}")
     try:
         up_s = up(info, timeout_s=600)
     finally:
         down(info)
-    base = ServiceSettings(swarm=f"local{robots}", n_robots=robots, n_labels=80, lockstep=True)
-    swarm = LocalSwarm(
-        base, data_dir=tmp / f"data{robots}", log_dir=tmp / f"logs{robots}", dataset=info.dataset
-    )
+    local_run = run.with_(swarm=f"local{robots}", out=tmp / f"local{robots}")
+    spec = prepare(local_run, dataset_dir=tmp / f"local{robots}" / "dataset").spec
+    swarm = LocalDeployment(data_dir=tmp / f"data{robots}", log_dir=tmp / f"logs{robots}")
     t0 = time.perf_counter()
     try:
-        swarm.start(timeout_s=300)
+        swarm.start(spec, timeout_s=300)
         local_s = time.perf_counter() - t0
     finally:
         swarm.stop()
@@ -137,27 +143,24 @@ def bench_cold_start(robots: int, tmp: Path) -> dict[str, Any]:
 
 def bench_replay_and_memory(tmp: Path, robots: int = 4) -> dict[str, Any]:
     project = "swarmrec-bench-mem"
-    settings = ComposeSettings(
-        robots=robots,
-        project=project,
-        swarm="benchmem",
-        out=tmp / "compose-mem",
-        router_port=free_port(),
-        prometheus_port=free_port(),
-    )
-    info = write_compose(settings)
+    info, run = _compose(robots, project, "benchmem", tmp / "compose-mem")
     client = docker.from_env()
     try:
         up(info, timeout_s=600)
-        summary = main_attached(settings.out, out=tmp / "attached", progress=False, plots=False)
+        deployment = ComposeDeployment(tmp / "compose-mem")
+        summary = main(run.with_(out=tmp / "attached"), deployment).to_dict()
         containers = _container_memory_mb(client, project)
     finally:
         down(info)
     rss: dict[str, list[float]] = defaultdict(list)
-    held: list[LocalSwarm] = []
-    local_settings = SwarmSettings(
+    held: list[LocalDeployment] = []
+    local_settings = PlacesSettings(
         robots=robots, out=tmp / "local", swarm="benchlocal", progress=False, plots=False
     )
+
+    def hold(d: Deployment) -> None:
+        assert isinstance(d, LocalDeployment)
+        held.append(d)
 
     def on_step(t: int) -> None:
         # After the last step: every process's resident set, before the job stops them.
@@ -165,7 +168,7 @@ def bench_replay_and_memory(tmp: Path, robots: int = 4) -> dict[str, Any]:
             for sp in held[0].procs:
                 rss[sp.kind].append(_rss_mb(sp.proc.pid))
 
-    local = main(local_settings, swarm_hook=held.append, on_step=on_step)
+    local = main(local_settings, swarm_hook=hold, on_step=on_step).to_dict()
     processes = {k: {"mean": sum(v) / len(v), "max": max(v), "n": len(v)} for k, v in sorted(rss.items())}
     return {
         "robots": robots,

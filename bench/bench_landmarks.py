@@ -30,9 +30,10 @@ from typing import Any
 
 import numpy as np
 
+from swarmrec.experiments.landmarks import DEFAULT_LAWS, VIEW_PRESETS, LandmarkSettings, main
+from swarmrec.experiments.landmarks.simulation import render_views
 from swarmrec.fusion import FusionState, generate_configurations, simulate_flooding
 from swarmrec.fusion.classifier import LandmarkClassifier
-from swarmrec.swarm.landmarks import DEFAULT_LAWS, VIEW_PRESETS, LandmarkSettings, main, render_views
 
 REPO = Path(__file__).resolve().parents[1]
 FIGURES = REPO / "docs" / "figures"
@@ -66,7 +67,7 @@ def core_rates(settings: LandmarkSettings) -> tuple[dict[str, list[float]], floa
 def run_preset(views: str, configurations: int, work: Path) -> dict[str, Any]:
     settings = LandmarkSettings(out=work / views, configurations=configurations, views=views, progress=False)
     baseline, core_s = core_rates(settings)
-    summary = main(settings)
+    summary = main(settings).to_dict()
     rounds = configurations * len(DEFAULT_LAWS)
     swarm_s = summary["timings_s"]["rounds_s"]
     FIGURES.mkdir(parents=True, exist_ok=True)

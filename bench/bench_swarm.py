@@ -35,9 +35,11 @@ import zenoh
 from swarmrec.core.presets import get_preset
 from swarmrec.datasets.constellations import read_constellations
 from swarmrec.datasets.labels import COCO_NAMES
+from swarmrec.datasets.source import DatasetSource
+from swarmrec.deployments.local import free_port
 from swarmrec.evaluation.scoring import score_decentralized
-from swarmrec.swarm.job import SwarmSettings, as_on_the_wire, main
-from swarmrec.swarm.processes import free_port
+from swarmrec.experiments.places import PlacesSettings, main
+from swarmrec.experiments.places.pipeline import as_on_the_wire
 
 REPO = Path(__file__).resolve().parents[1]
 TUM_ZIP = REPO.parent / "shared" / "data" / "tum_fr3_long_office_household_constellations.zip"
@@ -92,9 +94,9 @@ def offline_wall(seq_path: Path) -> float:
     return time.perf_counter() - t0
 
 
-def _run(settings: SwarmSettings) -> dict[str, Any]:
+def _run(settings: PlacesSettings) -> dict[str, Any]:
     t0 = time.perf_counter()
-    s = main(settings)
+    s = main(settings).to_dict()
     wall = time.perf_counter() - t0
     return {
         "wall_s": wall,
@@ -131,14 +133,14 @@ def main_bench() -> None:
         print("baseline: offline decentralized evaluation ...", flush=True)
         result["offline_decentralized_wall_s"] = offline_wall(TUM_ZIP)
         print("swarm, lock-step, whole sequence ...", flush=True)
-        lock = _run(SwarmSettings(dataset=str(TUM_ZIP), robots=10, out=Path(tmp) / "lockstep", plots=False))
+        tum = DatasetSource(str(TUM_ZIP))
+        lock = _run(PlacesSettings(source=tum, robots=10, out=Path(tmp) / "lockstep", plots=False))
         result["lockstep"] = lock
         print(f"swarm, paced at {args.rate:g} frames/s per robot ...", flush=True)
         paced = _run(
-            SwarmSettings(
-                dataset=str(TUM_ZIP),
+            PlacesSettings(
+                source=DatasetSource(str(TUM_ZIP), frames=args.paced_frames),
                 robots=10,
-                frames=args.paced_frames,
                 pace=f"{args.rate:g}",
                 out=Path(tmp) / "paced",
                 plots=False,

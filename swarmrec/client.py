@@ -8,7 +8,7 @@
         result = swarm.query(constellation)          # ranked matches, nothing stored
         closures = swarm.loop_closures(robot=3)
 
-Every call raises :class:`~swarmrec.services.rpc.CallError` (``NoReply``,
+Every call raises :class:`~swarmrec.errors.CallError` (``NoReply``,
 ``ReplyTimeout``, ``RemoteError``) when the swarm does not answer as asked;
 a query that reached only part of the swarm says which robots failed.
 """
@@ -20,28 +20,27 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import TracebackType
+from typing import TypeVar
 
 import numpy as np
 import zenoh
 
+# protobuf ships no type stubs (see swarmrec/runtime/rpc.py for the two codes).
+from google.protobuf.message import Message  # type: ignore[import-untyped, unused-ignore]
+
 from swarmrec.core.presets import get_preset
 from swarmrec.core.types import Constellation
-from swarmrec.errors import SwarmrecError
-from swarmrec.services import keys
+from swarmrec.errors import NoReply, SwarmrecError
+from swarmrec.runtime import keys
+from swarmrec.runtime.rpc import Caller
 from swarmrec.services.protocol import QueryPlan, two_step_query
-from swarmrec.services.rpc import Caller, NoReply
+from swarmrec.services.registry import kind_of_wire
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import constellation_to_proto
 
 __all__ = ["Member", "QueryResult", "SwarmClient"]
 
-_KIND_NAMES = {
-    pb.ServiceKind.SERVICE_KIND_DETECTOR: "detector",
-    pb.ServiceKind.SERVICE_KIND_DESCRIPTOR: "descriptor",
-    pb.ServiceKind.SERVICE_KIND_INDEX_SHARD: "index-shard",
-    pb.ServiceKind.SERVICE_KIND_VERIFIER: "verifier",
-    pb.ServiceKind.SERVICE_KIND_FUSION: "fusion",
-}
+M = TypeVar("M", bound=Message)
 
 
 @dataclass(frozen=True)
@@ -154,7 +153,7 @@ class SwarmClient:
             shard = info.kind == pb.ServiceKind.SERVICE_KIND_INDEX_SHARD
             out.append(
                 Member(
-                    kind=_KIND_NAMES.get(info.kind, "unknown"),
+                    kind=kind_of_wire(info.kind),
                     robot=info.robot_id,
                     label_range=(info.label_lo, info.label_hi) if shard else None,
                     n_labels=info.n_labels,
@@ -204,6 +203,12 @@ class SwarmClient:
             failed_verifiers=list(report.failed_verifier_robot_ids),
             duration_ms=(time.perf_counter() - t0) * 1e3,
         )
+
+    def call(
+        self, key: str, request: Message, reply_cls: type[M], *, target_robot: int | None, endpoint: str = ""
+    ) -> M:
+        """One request to one service (``keys.endpoint(...)``) and its reply; raises CallError."""
+        return self._caller().call(key, request, reply_cls, target_robot=target_robot, endpoint=endpoint)
 
     def loop_closures(self, robot: int, min_score: float = 0.0) -> list[pb.LoopClosure]:
         """The loop closures robot ``robot`` has found, oldest first."""

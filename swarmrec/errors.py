@@ -4,40 +4,105 @@ Every error the project raises on purpose derives from :class:`SwarmrecError`,
 so a caller can catch the whole family in one place::
 
     SwarmrecError
-    ├── ConfigError            a setting is missing, out of range or inconsistent
-    ├── DatasetError           input data cannot be read (names the file and line)
-    │   ├── MalformedLineError a line of a text file does not parse
-    │   ├── UnknownLabelError  a label is not in the label list
+    ├── ConfigError                a setting is missing, out of range or inconsistent
+    ├── DatasetError               input data cannot be read (names the file and line)
+    │   ├── MalformedLineError     a line of a text file does not parse
+    │   ├── UnknownLabelError      a label is not in the label list
     │   └── datasets.tum_rgbd.RgbdImageError  a frame's RGB or depth image is missing, corrupt or mismatched
-    ├── WireError              a message on the bus does not decode or validate
+    ├── WireError                  a message on the bus does not decode or validate   [INVALID_ARGUMENT]
+    │   ├── MalformedMessageError  the bytes do not parse as the expected message     [MALFORMED]
+    │   ├── MessageTooLargeError   the payload exceeds the receiver's size limit      [TOO_LARGE]
+    │   └── LabelOutOfRangeError   a label index past the receiver's label list       [UNKNOWN_LABEL]
+    ├── RequestError               a service refuses a request; the reply carries .code
+    │   ├── InvalidArgument        [INVALID_ARGUMENT]
+    │   ├── NotFound               [NOT_FOUND]
+    │   ├── Unavailable            [UNAVAILABLE]
+    │   ├── FailedPrecondition     [FAILED_PRECONDITION]
+    │   └── Internal               [INTERNAL]
+    ├── CallError                  a request to a peer did not get the expected answer
+    │   ├── NoReply                nobody answered (gone, crashed, not discovered yet)
+    │   ├── ReplyTimeout           the peer did not answer in time
+    │   └── RemoteError            the peer answered with an error reply (.code, .message)
     ├── detection.DetectionError   an image, a model or its output cannot be used
     │   ├── ModelError             the ONNX model cannot be loaded or has unusable inputs/outputs
     │   └── OutputLayoutError      a model output is neither YOLO layout (or both)
     ├── fusion.LikelihoodError     a classifier output is not a usable probability vector
+    ├── fusion.robot.RoundError    a fusion round that cannot start (answered INVALID_ARGUMENT)
     ├── fusion.classifier.ClassifierError   views the landmark classifier cannot take
     │   └── ClassifierModelError            its ONNX file is missing, does not load or is not a 19-way softmax
-    ├── services.fusion.RoundError a fusion round that cannot start (answered INVALID_ARGUMENT)
     ├── models.ModelNotFound       a shipped model is in none of the places models are looked up
-    └── swarm.compose.ComposeError the compose tool failed or containers did not become healthy
+    └── deployments.DeploymentError        a deployment could not start, reach or stop its swarm
+        ├── SwarmStartError                a service process exited or never became ready
+        └── ComposeError                   the compose tool failed or containers did not become healthy
 
-The families below the first four live beside the code that raises them
-(``swarmrec.detection.errors``, ``swarmrec.fusion``, ``swarmrec.services.fusion``,
-``swarmrec.models``, ``swarmrec.swarm.compose``).
+The families below the bus errors live beside the code that raises them
+(``swarmrec.detection.errors``, ``swarmrec.fusion``, ``swarmrec.models``,
+``swarmrec.deployments``); a test checks that every subclass of
+:class:`SwarmrecError` in the package is named in this tree.
+
+Errors a service answers with carry their wire code (:class:`ErrorCode`, the
+same numbers as ``swarmrec.v1.ErrorCode``; a test checks them against the
+schema): the runner replies with ``type(error).code`` and never reads the
+message text to decide.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import IntEnum
 from pathlib import Path
+from typing import ClassVar
 
 __all__ = [
+    "CallError",
     "ConfigError",
     "DatasetError",
+    "ErrorCode",
+    "FailedPrecondition",
+    "Internal",
+    "InvalidArgument",
+    "LabelOutOfRangeError",
     "MalformedLineError",
+    "MalformedMessageError",
+    "MessageTooLargeError",
+    "NoReply",
+    "NotFound",
+    "RemoteError",
+    "ReplyTimeout",
+    "RequestError",
     "SwarmrecError",
+    "Unavailable",
     "UnknownLabelError",
     "WireError",
 ]
+
+
+class ErrorCode(IntEnum):
+    """Why a request failed: ``swarmrec.v1.ErrorCode`` without its prefix (connect-rpc's codes)."""
+
+    UNSPECIFIED = 0
+    INVALID_ARGUMENT = 1
+    MALFORMED = 2
+    UNKNOWN_LABEL = 3
+    TOO_LARGE = 4
+    NOT_FOUND = 5
+    UNAVAILABLE = 6
+    TIMEOUT = 7
+    INTERNAL = 8
+    FAILED_PRECONDITION = 9
+
+    @property
+    def wire_name(self) -> str:
+        """The schema's name of the value, ``ERROR_CODE_...`` (the metrics' ``code`` label)."""
+        return f"ERROR_CODE_{self.name}"
+
+    @classmethod
+    def of(cls, value: int) -> ErrorCode:
+        """The code of a wire value; a value this version does not know reads as UNSPECIFIED."""
+        try:
+            return cls(value)
+        except ValueError:
+            return cls.UNSPECIFIED
 
 
 class SwarmrecError(Exception):
@@ -76,5 +141,115 @@ class UnknownLabelError(DatasetError):
     """A label that is not in the label list."""
 
 
+# --- the bus ------------------------------------------------------------------
+
+
 class WireError(SwarmrecError, ValueError):
     """A message on the bus does not decode or does not validate."""
+
+    code: ClassVar[ErrorCode] = ErrorCode.INVALID_ARGUMENT
+
+
+class MalformedMessageError(WireError):
+    """The bytes do not parse as the expected message."""
+
+    code = ErrorCode.MALFORMED
+
+
+class MessageTooLargeError(WireError):
+    """A payload larger than the receiver accepts (checked before parsing)."""
+
+    code = ErrorCode.TOO_LARGE
+
+    def __init__(self, size: int, max_size: int) -> None:
+        super().__init__(f"message of {size} bytes exceeds the limit of {max_size}")
+        self.size = size
+        self.max_size = max_size
+
+
+class LabelOutOfRangeError(WireError):
+    """A label index (or a label range) past the end of the receiver's label list."""
+
+    code = ErrorCode.UNKNOWN_LABEL
+
+
+class RequestError(SwarmrecError):
+    """Raised by a service's handler to answer with an error reply of ``code``.
+
+    The subclasses fix the code; ``RequestError(message, code=...)`` passes on a
+    code received from a peer (a forwarded refusal keeps its code).
+    """
+
+    code: ErrorCode = ErrorCode.INTERNAL
+
+    def __init__(self, message: str, *, code: ErrorCode | None = None) -> None:
+        super().__init__(message)
+        self.message = message
+        if code is not None:
+            self.code = code
+
+
+class InvalidArgument(RequestError):
+    """The request decoded but a field is out of range or inconsistent."""
+
+    code = ErrorCode.INVALID_ARGUMENT
+
+
+class NotFound(RequestError):
+    """A requested frame, round or robot is not known to the service."""
+
+    code = ErrorCode.NOT_FOUND
+
+
+class Unavailable(RequestError):
+    """The service cannot serve now (a peer it depends on is gone, a replay runs)."""
+
+    code = ErrorCode.UNAVAILABLE
+
+
+class FailedPrecondition(RequestError):
+    """The request is well formed but the service is not in the mode or state to serve it."""
+
+    code = ErrorCode.FAILED_PRECONDITION
+
+
+class Internal(RequestError):
+    """A failure inside the service (a model misbehaving), not the caller's fault."""
+
+    code = ErrorCode.INTERNAL
+
+
+class CallError(SwarmrecError):
+    """A request to a peer did not get the expected answer.
+
+    ``reason`` is the ``reason`` label of ``swarmrec_peer_failures_total``.
+    """
+
+    reason: ClassVar[str] = "error"
+
+    def __init__(self, key: str, detail: str) -> None:
+        super().__init__(f"{key}: {detail}")
+        self.key = key
+
+
+class NoReply(CallError):
+    """Nobody answered: the peer is gone, crashed or not discovered yet."""
+
+    reason = "no_reply"
+
+
+class ReplyTimeout(CallError):
+    """The peer did not answer in time."""
+
+    reason = "timeout"
+
+
+class RemoteError(CallError):
+    """The peer answered with an ErrorReply (or an answer that does not decode)."""
+
+    reason = "error"
+
+    def __init__(self, key: str, code: int, message: str) -> None:
+        self.code = ErrorCode.of(code)
+        super().__init__(key, f"{self.code.wire_name}: {message}")
+        self.message = message

@@ -8,13 +8,11 @@ improvements and say what they change; the paper preset never moves.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Literal
 
+from swarmrec.core.ranges import RangeStrategy
 from swarmrec.errors import ConfigError
 
 __all__ = ["PRESETS", "Preset", "get_preset"]
-
-RangeStrategy = Literal["even", "balanced"]
 
 
 @dataclass(frozen=True)

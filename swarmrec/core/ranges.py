@@ -8,14 +8,45 @@ is ``[b[k], b[k+1])``.
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 import numpy.typing as npt
 
 from swarmrec.errors import ConfigError
 
-__all__ = ["balanced_ranges", "even_ranges", "holder_of_labels", "validate_bounds"]
+__all__ = [
+    "RangeStrategy",
+    "balanced_ranges",
+    "even_ranges",
+    "holder_of_labels",
+    "label_bounds",
+    "validate_bounds",
+]
 
 Bounds = npt.NDArray[np.int64]
+RangeStrategy = Literal["even", "balanced"]
+
+
+def label_bounds(
+    strategy: RangeStrategy, n_labels: int, n_holders: int, label_load: npt.ArrayLike | None = None
+) -> Bounds:
+    """The label range boundaries of ``strategy``: the one place the policy lives.
+
+    ``even`` is the paper's split (:func:`even_ranges`); ``balanced`` needs
+    ``label_load`` (how often each label is expected, e.g. label frequencies) and
+    minimises the busiest holder's load (:func:`balanced_ranges`).
+    """
+    if strategy == "even":
+        return even_ranges(n_labels, n_holders)
+    if strategy != "balanced":
+        raise ConfigError(f"label range strategy must be even or balanced, got {strategy!r}")
+    if label_load is None:
+        raise ConfigError("balanced label ranges need a label load (label frequencies)")
+    load = np.asarray(label_load, dtype=np.float64)
+    if load.shape != (n_labels,):
+        raise ConfigError(f"a label load has one value per label ({n_labels}), got shape {load.shape}")
+    return validate_bounds(balanced_ranges(load, n_holders), n_labels)
 
 
 def even_ranges(n_labels: int, n_holders: int) -> Bounds:

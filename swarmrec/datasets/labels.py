@@ -5,9 +5,9 @@ from __future__ import annotations
 from importlib import resources
 from pathlib import Path
 
-from swarmrec.errors import DatasetError
+from swarmrec.errors import ConfigError, DatasetError
 
-__all__ = ["COCO_NAMES", "LabelMap", "builtin_coco_names", "read_label_names"]
+__all__ = ["COCO_NAMES", "LabelMap", "builtin_coco_names", "label_names", "read_label_names"]
 
 
 def read_label_names(path: str | Path) -> tuple[str, ...]:
@@ -49,6 +49,16 @@ def builtin_coco_names() -> tuple[str, ...]:
 
 
 COCO_NAMES: tuple[str, ...] = builtin_coco_names()
+
+
+def label_names(path: str | Path | None = None, n_labels: int | None = None) -> tuple[str, ...]:
+    """The label list in ``path``, the 80 COCO names when it is None; checked to have
+    ``n_labels`` labels when given (a swarm's members must agree on their label list)."""
+    names = read_label_names(path) if path else COCO_NAMES
+    if n_labels is not None and len(names) != n_labels:
+        where = path or "the COCO list"
+        raise ConfigError(f"the label list ({where}) has {len(names)} labels, the swarm {n_labels}")
+    return names
 
 
 class LabelMap:

@@ -42,6 +42,7 @@ __all__ = [
     "RgbdImageError",
     "TumRgbdSequence",
     "associate",
+    "frame_id_of",
     "load_rgbd",
     "read_file_list",
     "read_tum_rgbd",
@@ -269,3 +270,8 @@ def load_rgbd(rgb_path: str | Path, depth_path: str | Path) -> tuple[ImageArray,
             problem="size_mismatch",
         )
     return rgb.astype(np.uint8, copy=False), depth.astype(np.uint16, copy=False)
+
+
+def frame_id_of(frame: RgbdFrame) -> str:
+    """A frame's id: its RGB timestamp with TUM's six decimals (the constellation files' names)."""
+    return f"{frame.timestamp:.6f}"

@@ -10,12 +10,14 @@ turns the boxes and the depth image into the constellation's points;
 from swarmrec.detection.decode import Candidates, Layout, decode_output, detect_layout
 from swarmrec.detection.errors import DetectionError, ModelError, OutputLayoutError
 from swarmrec.detection.letterbox import PAD_VALUE, Letterbox, letterbox
+from swarmrec.detection.loader import DEFAULT_CONF_THRESHOLD, conf_threshold_for, load_detector, model_path
 from swarmrec.detection.nms import non_max_suppression
 from swarmrec.detection.pipeline import FrameObjects, RgbdPipeline
 from swarmrec.detection.points import CameraIntrinsics, ObjectPoints, object_points, transform_points
 from swarmrec.detection.yolo import Detection, DetectorSettings, OnnxDetector
 
 __all__ = [
+    "DEFAULT_CONF_THRESHOLD",
     "PAD_VALUE",
     "CameraIntrinsics",
     "Candidates",
@@ -30,9 +32,12 @@ __all__ = [
     "OnnxDetector",
     "OutputLayoutError",
     "RgbdPipeline",
+    "conf_threshold_for",
     "decode_output",
     "detect_layout",
     "letterbox",
+    "load_detector",
+    "model_path",
     "non_max_suppression",
     "object_points",
     "transform_points",

@@ -23,10 +23,9 @@ from tqdm import tqdm
 
 from swarmrec.core.association import build_table
 from swarmrec.core.presets import get_preset
-from swarmrec.core.types import ConstellationSequence, Trajectory
-from swarmrec.datasets.constellations import label_counts, read_constellations
-from swarmrec.datasets.labels import COCO_NAMES, read_label_names
-from swarmrec.datasets.tum import read_trajectory
+from swarmrec.core.types import ConstellationSequence
+from swarmrec.datasets.constellations import label_counts
+from swarmrec.datasets.source import DatasetSource, load_dataset
 from swarmrec.errors import ConfigError
 from swarmrec.evaluation.bandwidth import holder_load, paper_byte_model
 from swarmrec.evaluation.groundtruth import Rules, ground_truth
@@ -39,7 +38,7 @@ from swarmrec.evaluation.scoring import (
     split_frames,
 )
 
-__all__ = ["EvaluationSettings", "load_dataset", "main"]
+__all__ = ["EvaluationSettings", "main"]
 
 Mode = Literal["centralized", "decentralized", "both"]
 
@@ -76,32 +75,9 @@ class EvaluationSettings:
             raise ConfigError(f"gt_rules must be none or tum-fr3-office, got {self.gt_rules!r}")
         get_preset(self.preset)  # fails early with the list of known presets
 
-
-def load_dataset(settings: EvaluationSettings) -> tuple[ConstellationSequence, Trajectory | None]:
-    """The sequence to evaluate and, when known, its ground-truth trajectory.
-
-    ``dataset="synthetic"`` generates the built-in office world (with its
-    poses). A path is a folder or .zip of constellation files; a
-    ``groundtruth.txt`` beside the constellations is used when no
-    ``--groundtruth`` is given.
-    """
-    if settings.dataset == "synthetic":
-        from swarmrec.synthetic import OfficeConfig, generate_office
-
-        config = OfficeConfig(seed=settings.seed)
-        if settings.frames is not None:
-            config = OfficeConfig(seed=settings.seed, n_frames=settings.frames)
-        ds = generate_office(config)
-        return ds.sequence, ds.trajectory
-    path = Path(settings.dataset)
-    names = read_label_names(settings.labels) if settings.labels else COCO_NAMES
-    seq = read_constellations(path, names)
-    if settings.frames is not None:
-        seq = seq.subset(range(min(settings.frames, len(seq))))
-    gt_path = settings.groundtruth
-    if gt_path is None and path.is_dir() and (path / "groundtruth.txt").is_file():
-        gt_path = path / "groundtruth.txt"
-    return seq, read_trajectory(gt_path) if gt_path else None
+    @property
+    def source(self) -> DatasetSource:
+        return DatasetSource(self.dataset, self.seed, self.frames, self.labels, self.groundtruth)
 
 
 @contextmanager
@@ -143,7 +119,8 @@ def main(settings: EvaluationSettings) -> dict[str, Any]:
     """Run the evaluation, write its files under ``settings.out``, return the summary."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    seq, trajectory = load_dataset(settings)
+    data = load_dataset(settings.source)
+    seq, trajectory = data.sequence, data.trajectory
     timings["load_s"] = time.perf_counter() - t0
     if len(seq) > MAX_DENSE_FRAMES:
         raise ConfigError(

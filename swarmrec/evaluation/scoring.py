@@ -30,17 +30,15 @@ import numpy.typing as npt
 from swarmrec.core.association import FrameTable, build_table, score_pairs
 from swarmrec.core.index import PARTIAL_EPSILON
 from swarmrec.core.presets import Preset
-from swarmrec.core.ranges import balanced_ranges, even_ranges, validate_bounds
+from swarmrec.core.ranges import label_bounds, validate_bounds
 from swarmrec.core.selection import select_candidates_many, select_robots
 from swarmrec.core.split import split_frames
 from swarmrec.core.types import ConstellationSequence
-from swarmrec.errors import ConfigError
 
 __all__ = [
     "DecentralizedRun",
     "ScoreMatrix",
     "decentralized_marks",
-    "label_bounds",
     "label_frequency_prior",
     "score_centralized",
     "score_decentralized",
@@ -154,15 +152,6 @@ def label_frequency_prior(table: FrameTable) -> FloatArray:
     return prior
 
 
-def label_bounds(preset: Preset, n_labels: int, n_holders: int, label_load: FloatArray | None) -> IntArray:
-    """Label range boundaries for ``preset`` (``label_load`` for 'balanced')."""
-    if preset.ranges == "even":
-        return even_ranges(n_labels, n_holders)
-    if label_load is None:
-        raise ConfigError("balanced label ranges need a label load (label frequencies)")
-    return validate_bounds(balanced_ranges(label_load, n_holders), n_labels)
-
-
 @dataclass(frozen=True, eq=False)
 class DecentralizedRun:
     """A decentralized evaluation: its scores and what was sent."""
@@ -199,7 +188,7 @@ def score_decentralized(
     blocks = split_frames(n, n_robots)
     per = math.ceil(n / n_robots)
     if bounds is None:
-        bounds = label_bounds(preset, n_labels, n_robots, label_load)
+        bounds = label_bounds(preset.ranges, n_labels, n_robots, label_load)
     bounds = validate_bounds(bounds, n_labels)
     n_ranges = bounds.shape[0] - 1
     # Shared descriptors, float64 as in the scripts (their sums are exact integers).

@@ -1,47 +1,15 @@
-"""The swarm's Zenoh services and the runner they share.
+"""The swarm's services, one per pipeline stage, each a thin adapter around the core.
 
 Data flow, one robot::
 
     detector --Constellation--> descriptor --PartialQuery--> index-shard (each robot's, by label range)
                                            --VerifyRequest--> verifier (the chosen robots')
                                            --LoopClosure event-->
-    classifier output --start_round--> fusion --ClassifierOutput--> fusion of each neighbour (flooding)
+    classifier view --classify--> detector --start_round--> fusion --ClassifierOutput--> neighbours' fusion
 
-``python -m swarmrec serve <kind>`` runs one service (see :data:`SERVICES`).
+Every kind is an entry of :mod:`swarmrec.services.registry` (its class, settings
+components, metrics, scope); ``swarmrec serve <kind>`` runs one on the shared
+runner (:mod:`swarmrec.runtime`). The operator-facing contract of each kind
+(endpoints, settings, metrics) is generated from the registry into the
+repository's top-level ``services/`` folder.
 """
-
-from __future__ import annotations
-
-from collections.abc import Callable
-
-from swarmrec.services.runner import Service, ServiceContext
-
-__all__ = ["SERVICES", "service_factory"]
-
-SERVICES = ("router", "detector", "descriptor", "index-shard", "verifier", "fusion")
-
-
-def service_factory(kind: str) -> Callable[[ServiceContext], Service]:
-    """The class that implements ``kind`` (imported on demand: a shard need not load numba);
-    for the detector, a factory that picks the class of its ``detector_mode``."""
-    if kind == "detector":
-        from swarmrec.services.detector import make_detector
-
-        return make_detector
-    if kind == "descriptor":
-        from swarmrec.services.descriptor import Descriptor
-
-        return Descriptor
-    if kind == "index-shard":
-        from swarmrec.services.index_shard import IndexShard
-
-        return IndexShard
-    if kind == "verifier":
-        from swarmrec.services.verifier import Verifier
-
-        return Verifier
-    if kind == "fusion":
-        from swarmrec.services.fusion import FusionService
-
-        return FusionService
-    raise ValueError(f"unknown service {kind!r}; services: {', '.join(SERVICES)}")

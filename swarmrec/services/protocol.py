@@ -26,9 +26,9 @@ from swarmrec.core.descriptor import semantic_descriptor
 from swarmrec.core.presets import Preset
 from swarmrec.core.selection import select_robots
 from swarmrec.core.types import Constellation
-from swarmrec.errors import WireError
-from swarmrec.services import keys
-from swarmrec.services.rpc import Caller, CallError, Pending, RemoteError
+from swarmrec.errors import CallError, RemoteError, WireError
+from swarmrec.runtime import keys
+from swarmrec.runtime.rpc import Caller, Pending
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import candidates_from_proto, match_scores, partial_descriptor_to_proto
 

@@ -4,8 +4,8 @@ against them geometrically (data association, Eq. 2-7).
 Endpoints:
 
 * ``store``: a :class:`Constellation` of this robot (sent by its descriptor
-  service) -> :class:`StoreReply`; appended to ``<data_dir>/verifier.log``
-  before the answer, replayed on start.
+  service) -> :class:`StoreReply`; appended to its record log
+  (``<data_dir>/verifier.log``) before the answer, replayed on start.
 * ``verify``: a :class:`VerifyRequest` (the query constellation and the
   candidate frames) -> :class:`VerifyReply`, every candidate with a score > 0,
   best first.
@@ -15,85 +15,78 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Sequence
 
 import numpy as np
 
 from swarmrec.core.presets import get_preset
 from swarmrec.core.types import Constellation
 from swarmrec.core.verification import verify
-from swarmrec.errors import WireError
-from swarmrec.services.common import MAX_FRAME_INDEX, invalid, wire_error
-from swarmrec.services.runner import Endpoint, RequestContext, ServiceContext
-from swarmrec.services.storage import RecordLog
+from swarmrec.errors import InvalidArgument
+from swarmrec.runtime import Endpoint, RequestContext, ServiceBase, ServiceContext
+from swarmrec.services.limits import MAX_FRAME_INDEX
+from swarmrec.services.metrics import VerifierMetrics
+from swarmrec.services.settings import PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import constellation_from_proto, encode, verify_match_to_proto
 
 __all__ = ["Verifier"]
 
 
-class Verifier:
+class Verifier(ServiceBase):
     def __init__(self, ctx: ServiceContext) -> None:
-        s = ctx.settings
         self.ctx = ctx
-        self.preset = get_preset(s.preset)
+        self.bus = ctx.bus
+        self.places = ctx.settings(PlaceSettings)
+        self.metrics = ctx.metric_set(VerifierMetrics)
+        self.preset = get_preset(self.places.preset)
         self.frames: dict[int, Constellation] = {}
         self.lock = threading.Lock()
-        path = s.data_dir / "verifier.log" if s.data_dir else None
-        self.store_log = RecordLog(path, fsync=s.fsync, log=ctx.log)
+        self.store_log = ctx.open_log("verifier")
         for record in self.store_log.records():
             msg = pb.Constellation.FromString(record)
-            self.frames[msg.frame_index] = constellation_from_proto(msg, s.n_labels)
-        ctx.metrics.stored_frames.set(len(self.frames))
+            self.frames[msg.frame_index] = constellation_from_proto(msg, self.places.n_labels)
+        self.metrics.stored_frames.set(len(self.frames))
         # Load the association kernels now (numba compiles or reads its cache on
         # first use), so the first query does not pay hundreds of milliseconds.
         probe = Constellation(np.zeros(3, np.int64), np.eye(3))
-        verify(probe, (0, 0), s.robot, [(0, probe)], 1, self.preset)
+        verify(probe, (0, 0), self.bus.robot, [(0, probe)], 1, self.preset)
         ctx.log.info("frames loaded", extra={"fields": {"stored": len(self.frames)}})
-
-    def endpoints(self) -> Sequence[Endpoint]:
-        return [
-            Endpoint("store", pb.Constellation, self.store),
-            Endpoint("verify", pb.VerifyRequest, self.verify),
-        ]
 
     def member_info(self) -> pb.MemberInfo:
         with self.lock:
-            return pb.MemberInfo(stored_items=len(self.frames))
+            return pb.MemberInfo(stored_items=len(self.frames), n_labels=self.places.n_labels)
 
     def _constellation(self, msg: pb.Constellation) -> Constellation:
-        n_robots = self.ctx.settings.n_robots
+        n_robots = self.bus.n_robots
         if msg.robot_id >= n_robots:
-            raise invalid(f"robot {msg.robot_id} is not in this swarm of {n_robots} robots")
+            raise InvalidArgument(f"robot {msg.robot_id} is not in this swarm of {n_robots} robots")
         if msg.frame_index >= MAX_FRAME_INDEX:
-            raise invalid(f"frame index must be below {MAX_FRAME_INDEX}, got {msg.frame_index}")
-        try:
-            return constellation_from_proto(msg, self.ctx.settings.n_labels)
-        except WireError as e:
-            raise wire_error(e) from None
+            raise InvalidArgument(f"frame index must be below {MAX_FRAME_INDEX}, got {msg.frame_index}")
+        return constellation_from_proto(msg, self.places.n_labels)
 
     def store(self, msg: pb.Constellation, _ctx: RequestContext) -> pb.StoreReply:
-        own = self.ctx.settings.robot
+        own = self.bus.robot
         if msg.robot_id != own:
-            raise invalid(f"verifier {own} stores only its own robot's frames, got robot {msg.robot_id}")
+            raise InvalidArgument(
+                f"verifier {own} stores only its own robot's frames, got robot {msg.robot_id}"
+            )
         c = self._constellation(msg)
         with self.lock:
             self.store_log.append(encode(msg))
             self.frames[msg.frame_index] = c
             n = len(self.frames)
-        self.ctx.metrics.stored_frames.set(n)
+        self.metrics.stored_frames.set(n)
         return pb.StoreReply(stored_frames=n)
 
     def verify(self, req: pb.VerifyRequest, _ctx: RequestContext) -> pb.VerifyReply:
-        s = self.ctx.settings
         if not req.HasField("query"):
-            raise invalid("verify request without a query constellation")
+            raise InvalidArgument("verify request without a query constellation")
         query = self._constellation(req.query)
         preset = self.preset
         if req.HasField("distance_threshold_m"):
             d = req.distance_threshold_m
             if not (math.isfinite(d) and d > 0):
-                raise invalid(f"distance_threshold_m must be a positive number, got {d}")
+                raise InvalidArgument(f"distance_threshold_m must be a positive number, got {d}")
             preset = preset.with_(d=float(d))
         with self.lock:
             if req.candidate_frame_indices:
@@ -107,12 +100,17 @@ class Verifier:
             else:
                 frames = [(f, c) for f, c in self.frames.items() if len(c) >= preset.min_common]
         results = verify(
-            query, (req.query.robot_id, req.query.frame_index), s.robot, frames, s.n_labels, preset
+            query,
+            (req.query.robot_id, req.query.frame_index),
+            self.bus.robot,
+            frames,
+            self.places.n_labels,
+            preset,
         )
         results = [m for m in results if m.score > 0]
         if req.max_matches:
             results = results[: req.max_matches]
-        reply = pb.VerifyReply(query_id=req.query_id, robot_id=s.robot)
+        reply = pb.VerifyReply(query_id=req.query_id, robot_id=self.bus.robot)
         for m in results:
             pairs = m.pairs if req.include_pairs else None
             reply.matches.append(
@@ -120,5 +118,9 @@ class Verifier:
             )
         return reply
 
-    def close(self) -> None:
-        self.store_log.close()
+    ENDPOINTS = (
+        Endpoint("store", pb.Constellation, pb.StoreReply, store, "keep one of this robot's frames"),
+        Endpoint(
+            "verify", pb.VerifyRequest, pb.VerifyReply, verify, "score candidate frames against a query"
+        ),
+    )

@@ -33,7 +33,7 @@ from google.protobuf.message import (  # type: ignore[import-untyped, unused-ign
 )
 
 from swarmrec.core.types import Constellation
-from swarmrec.errors import WireError
+from swarmrec.errors import LabelOutOfRangeError, MalformedMessageError, MessageTooLargeError, WireError
 from swarmrec.wire.gen.swarmrec.v1 import (
     constellation_pb2,
     descriptor_pb2,
@@ -108,7 +108,7 @@ def _check_range(lo: int, hi: int, n_labels: int) -> None:
     if lo >= hi:
         raise WireError(f"label range [{lo}, {hi}) is empty")
     if hi > n_labels:
-        raise WireError(f"label range [{lo}, {hi}) ends past the label list of {n_labels} labels")
+        raise LabelOutOfRangeError(f"label range [{lo}, {hi}) ends past the label list of {n_labels} labels")
 
 
 def _dense_counts(counts: npt.ArrayLike) -> IntArray:
@@ -215,7 +215,7 @@ def constellation_from_proto(msg: constellation_pb2.Constellation, n_labels: int
     unknown = np.flatnonzero(labels >= n_labels)
     if unknown.size:
         k = int(unknown[0])
-        raise WireError(
+        raise LabelOutOfRangeError(
             f"object {k} has label {int(labels[k])}, outside the label list of {n_labels} labels"
         )
     mm = np.fromiter(msg.positions_mm, dtype=np.float64, count=3 * n)
@@ -430,12 +430,12 @@ def matched_pairs_from_proto(match: verify_pb2.VerifyMatch, n_query: int) -> Int
 # --- errors -----------------------------------------------------------------
 
 
-def error_reply(code: errors_pb2.ErrorCode, message: str) -> errors_pb2.ErrorReply:
-    """An ErrorReply with ``code`` (``ErrorCode.ERROR_CODE_...``) and ``message``
-    cut to :data:`MAX_ERROR_MESSAGE_CHARS`."""
+def error_reply(code: int, message: str) -> errors_pb2.ErrorReply:
+    """An ErrorReply with ``code`` (a :class:`swarmrec.errors.ErrorCode`, the schema's
+    numbers) and ``message`` cut to :data:`MAX_ERROR_MESSAGE_CHARS`."""
     if len(message) > MAX_ERROR_MESSAGE_CHARS:
         message = message[: MAX_ERROR_MESSAGE_CHARS - 1] + "…"
-    return errors_pb2.ErrorReply(code=code, message=message)
+    return errors_pb2.ErrorReply(code=code, message=message)  # type: ignore[arg-type]  # an enum value
 
 
 # --- bytes ------------------------------------------------------------------
@@ -454,10 +454,6 @@ def schema_name(msg_or_cls: Any) -> str:
     return name
 
 
-def _too_large(size: int, max_size: int) -> WireError:
-    return WireError(f"message of {size} bytes exceeds the limit of {max_size}")
-
-
 def encode(msg: Message, *, max_size: int | None = None) -> bytes:
     """The serialized bytes of ``msg``; WireError if they would exceed ``max_size``.
 
@@ -466,7 +462,7 @@ def encode(msg: Message, *, max_size: int | None = None) -> bytes:
     if max_size is not None:
         size: int = msg.ByteSize()
         if size > max_size:
-            raise _too_large(size, max_size)
+            raise MessageTooLargeError(size, max_size)
     data: bytes = msg.SerializeToString()
     return data
 
@@ -479,9 +475,9 @@ def decode(data: bytes, cls: type[M], *, max_size: int | None = None) -> M:
     functions check what the fields mean.
     """
     if max_size is not None and len(data) > max_size:
-        raise _too_large(len(data), max_size)
+        raise MessageTooLargeError(len(data), max_size)
     try:
         msg: M = cls.FromString(data)
     except DecodeError as e:
-        raise WireError(f"{len(data)} bytes do not decode as {schema_name(cls)}: {e}") from e
+        raise MalformedMessageError(f"{len(data)} bytes do not decode as {schema_name(cls)}: {e}") from e
     return msg

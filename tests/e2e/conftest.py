@@ -15,8 +15,18 @@ from pathlib import Path
 import docker
 import pytest
 
-from swarmrec.swarm.compose import ComposeSettings, SwarmFile, down, up, write_compose
-from swarmrec.swarm.processes import free_port
+from swarmrec.datasets.source import DatasetSource
+from swarmrec.deployments.compose import (
+    ComposeDeployment,
+    ComposeSettings,
+    SwarmFile,
+    down,
+    up,
+    write_compose,
+)
+from swarmrec.deployments.local import free_port
+from swarmrec.experiments.places import PlacesSettings, PlacesSummary, main
+from swarmrec.experiments.places.pipeline import prepare
 from tests.conftest import REPO
 
 
@@ -46,20 +56,27 @@ def project_leftovers(client: docker.DockerClient, project: str) -> dict[str, li
 
 
 def start_swarm(tmp: Path, project: str, robots: int, frames: int) -> SwarmFile:
-    settings = ComposeSettings(
+    """A places swarm of ``robots`` composed for the first ``frames`` of the synthetic world, up."""
+    run = PlacesSettings(
+        source=DatasetSource(frames=frames),
         robots=robots,
-        frames=frames,
-        project=project,
         swarm=project.replace("-", "_"),
-        out=tmp,
-        router_port=free_port(),
-        prometheus_port=free_port(),
         request_timeout_s=2.0,
+        out=tmp,
     )
-    info = write_compose(settings)
+    spec = prepare(run, dataset_dir=tmp / "dataset").spec
+    settings = ComposeSettings(project=project, out=tmp, router_port=free_port(), prometheus_port=free_port())
+    info = write_compose(spec, settings, experiment=run.record())
     try:
         up(info, timeout_s=300.0)
     except Exception:
         down(info)
         raise
     return info
+
+
+def run_attached(folder: Path, out: Path, **hooks: object) -> PlacesSummary:
+    """``swarmrec run --attach folder`` as the CLI does it (no plots, no progress bars)."""
+    deployment = ComposeDeployment(folder)
+    settings = PlacesSettings.from_record(deployment.info.experiment, out=out, plots=False, progress=False)
+    return main(settings, deployment, **hooks)  # type: ignore[arg-type]

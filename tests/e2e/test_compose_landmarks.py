@@ -17,9 +17,9 @@ from pathlib import Path
 import docker
 import pytest
 
-from swarmrec.swarm.compose import ComposeSettings, down, up, write_compose
-from swarmrec.swarm.landmarks import LandmarkSettings, parse_law, run_simulation
-from swarmrec.swarm.processes import free_port
+from swarmrec.deployments.compose import ComposeDeployment, ComposeSettings, down, up, write_compose
+from swarmrec.deployments.local import free_port
+from swarmrec.experiments.landmarks.simulation import LandmarkSettings, parse_law, run_simulation, swarm_spec
 from tests.e2e.conftest import project_leftovers
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
@@ -31,17 +31,12 @@ def test_the_street_simulation_runs_through_containers_as_through_processes(
     engine: docker.DockerClient, tmp_path: Path
 ) -> None:
     project = f"swarmrec-e2e-landmarks-{os.getpid()}"
-    info = write_compose(
-        ComposeSettings(
-            robots=ROBOTS,
-            workload="landmarks",
-            project=project,
-            swarm=project.replace("-", "_"),
-            out=tmp_path / "compose",
-            router_port=free_port(),
-            prometheus_port=free_port(),
-        )
+    swarm = project.replace("-", "_")
+    spec = swarm_spec(LandmarkSettings(out=tmp_path / "unused", robots=ROBOTS, swarm=swarm))
+    settings = ComposeSettings(
+        project=project, out=tmp_path / "compose", router_port=free_port(), prometheus_port=free_port()
     )
+    info = write_compose(spec, settings)
     try:
         up(info, timeout_s=300.0)
         for configurations, laws in ((5, ("paper:2", "agreement")), (2, ("paper:0",))):
@@ -50,9 +45,10 @@ def test_the_street_simulation_runs_through_containers_as_through_processes(
                 configurations=configurations,
                 robots=ROBOTS,
                 laws=tuple(parse_law(law) for law in laws),
+                swarm=swarm,
                 progress=False,
             )
-            result = run_simulation(settings, attach=tmp_path / "compose")
+            result = run_simulation(settings, ComposeDeployment(tmp_path / "compose"))
             assert result.errors == [] and result.failures == {}
             assert len(result.rounds) == configurations * len(laws) * ROBOTS
             for r in result.rounds:

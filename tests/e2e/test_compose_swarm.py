@@ -24,10 +24,10 @@ from typing import Any
 import docker
 import pytest
 
-from swarmrec.swarm.attached import main_attached
-from swarmrec.swarm.compose import SwarmFile, down
-from swarmrec.swarm.job import SwarmSettings, main
-from tests.e2e.conftest import project_leftovers, start_swarm
+from swarmrec.datasets.source import DatasetSource
+from swarmrec.deployments.compose import SwarmFile, down
+from swarmrec.experiments.places import PlacesSettings, main
+from tests.e2e.conftest import project_leftovers, run_attached, start_swarm
 
 ROBOTS, FRAMES = 4, 800
 KINDS = ("detector", "descriptor", "index-shard", "verifier")
@@ -38,7 +38,7 @@ def swarm(engine: docker.DockerClient, tmp_path_factory: pytest.TempPathFactory)
     tmp = tmp_path_factory.mktemp("compose-swarm")
     info = start_swarm(tmp / "compose", f"swarmrec-e2e-swarm-{os.getpid()}", ROBOTS, FRAMES)
     try:
-        summary = main_attached(tmp / "compose", out=tmp / "attached", progress=False, plots=False)
+        summary = run_attached(tmp / "compose", tmp / "attached")
         yield {"info": info, "summary": summary, "tmp": tmp}
     finally:
         down(info)
@@ -62,26 +62,26 @@ def test_compose_swarm_finds_the_loop_closures_of_the_local_process_swarm(
     swarm: dict[str, Any], tmp_path: Path
 ) -> None:
     summary = swarm["summary"]
-    assert summary["queries"]["missing_slots"] == 0
-    assert summary["queries"]["errors"] == []
-    assert summary["offline_check"]["identical"] is True
+    assert summary.queries.missing_slots == 0
+    assert summary.queries.errors == []
+    assert summary.offline_check.identical is True
     local = main(
-        SwarmSettings(
+        PlacesSettings(
+            source=DatasetSource(frames=FRAMES),
             robots=ROBOTS,
-            frames=FRAMES,
             out=tmp_path / "local",
             swarm="e2e_local",
             progress=False,
             plots=False,
         )
     )
-    assert local["offline_check"]["identical"] is True
+    assert local.offline_check is not None and local.offline_check.identical is True
     in_containers = _closures(swarm["tmp"] / "attached")
     assert len(in_containers) > 50  # the synthetic world revisits places: a swarm that finds none is broken
     assert in_containers == _closures(tmp_path / "local")
-    assert summary["loop_closures"]["count"] == local["loop_closures"]["count"] == len(in_containers)
+    assert summary.loop_closures.count == local.loop_closures.count == len(in_containers)
     # Same frames, same protocol: the same bytes crossed between robots.
-    assert summary["bytes"]["per_query"] == pytest.approx(local["bytes"]["per_query"])
+    assert summary.bytes.per_query == pytest.approx(local.bytes.per_query)
 
 
 @pytest.mark.slow
@@ -106,7 +106,7 @@ def test_prometheus_scrapes_every_service_and_sees_bytes_and_shard_load(swarm: d
     assert set(per_shard) == {str(r) for r in range(ROBOTS)}
     assert all(v > 0 for v in per_shard.values()), per_shard
     # The report read the same counters through Prometheus.
-    assert swarm["summary"]["shard_load"]["partial_queries"] == [
+    assert swarm["summary"].shard_load.partial_queries == [
         int(per_shard[str(r)]) for r in range(ROBOTS)
     ]
 

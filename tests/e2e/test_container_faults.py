@@ -18,9 +18,8 @@ import pytest
 
 from swarmrec.client import SwarmClient
 from swarmrec.datasets.constellations import read_constellations
-from swarmrec.swarm.attached import main_attached
-from swarmrec.swarm.compose import down, service_name
-from tests.e2e.conftest import project_leftovers, start_swarm
+from swarmrec.deployments.compose import down, service_name
+from tests.e2e.conftest import project_leftovers, run_attached, start_swarm
 from tests.integration.support import wait_until
 
 ROBOTS, FRAMES, STOP_AFTER, DEAD = 4, 400, 30, 3
@@ -65,17 +64,15 @@ def test_a_stopped_robot_is_reported_missing_its_volumes_keep_its_data_and_the_r
                 container(kind, DEAD).stop(timeout=15)
 
         with client:
-            summary = main_attached(
-                tmp_path / "compose", out=tmp_path / "report", progress=False, plots=False, on_step=on_step
-            )
+            summary = run_attached(tmp_path / "compose", tmp_path / "report", on_step=on_step)
 
             # 1. The run completed without robot 3 after the stop, and says so.
-            q = summary["queries"]
-            assert q["missing_by_robot"] == {str(DEAD): STEPS - STOP_AFTER - 1}
-            assert q["frames_replayed"] == ROBOTS * STEPS - (STEPS - STOP_AFTER - 1)
-            assert q["failed_shard_requests"] > 0
-            assert any(f"loop closures of robot {DEAD}" in e for e in q["errors"])
-            assert sorted(summary["scrape_failed"]) == sorted(f"{k}-{DEAD}" for k in KINDS)
+            q = summary.queries
+            assert q.missing_by_robot == {str(DEAD): STEPS - STOP_AFTER - 1}
+            assert q.frames_replayed == ROBOTS * STEPS - (STEPS - STOP_AFTER - 1)
+            assert q.failed_shard_requests > 0
+            assert any(f"loop closures of robot {DEAD}" in e for e in q.errors)
+            assert sorted(summary.scrape_failed) == sorted(f"{k}-{DEAD}" for k in KINDS)
             # Robot 3's verifier held its own frames of steps 0..30 when it stopped.
             assert stored_at_stop["verifier"] == STOP_AFTER + 1
             assert stored_at_stop["index-shard"] > 0
@@ -102,7 +99,7 @@ def test_a_stopped_robot_is_reported_missing_its_volumes_keep_its_data_and_the_r
                     c.reload()
                     assert c.attrs["State"]["StartedAt"] == started[c.name], f"{c.name} was restarted"
                     assert c.attrs["RestartCount"] == 0
-            seq = read_constellations(Path(info.dataset))
+            seq = read_constellations(Path(info.compose_file).parent / "dataset")
             result = client.query(seq.constellations[FRAMES // 2])
             assert result.complete, result
             assert result.matches, "a frame of the replayed data must be found again"

@@ -1,46 +1,69 @@
 """Fixtures for tests with a real zenoh router and real service processes.
 
-Every test gets its own swarm name (so keys never collide) and its own
-router on a free loopback port; processes are stopped SIGTERM -> wait ->
-SIGKILL when the test ends, and their logs are kept in the test's tmp dir.
+Every swarm gets its own name (so keys never collide) and its own router on a
+free loopback port; processes are stopped SIGTERM -> wait -> SIGKILL when the
+test ends, and their logs are kept in the test's tmp dir. :func:`running_swarm`
+is the one way the integration tests start a local swarm (module-scoped
+fixtures use it directly; :func:`local_swarm` is the per-test router).
 """
 
 from __future__ import annotations
 
 import re
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
 
 from swarmrec.client import SwarmClient
-from swarmrec.services.config import ServiceSettings
-from swarmrec.swarm.processes import LocalSwarm
+from swarmrec.deployments.base import SwarmSpec
+from swarmrec.deployments.local import LocalDeployment
+from swarmrec.runtime.settings import BusSettings, Component
+from swarmrec.services.registry import WORKLOADS
 
 
 def swarm_name(request: pytest.FixtureRequest) -> str:
     return re.sub(r"[^A-Za-z0-9_-]", "-", request.node.name)[:60]
 
 
-@pytest.fixture
-def local_swarm(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[LocalSwarm]:
-    """A running router; robots are started by the test (``start_robot``).
-
-    Parametrise the base settings with ``@pytest.mark.parametrize`` on
-    ``swarm_settings`` or use the default: 2 robots, 80 labels, lock-step off.
-    """
-    base: ServiceSettings = getattr(request, "param", None) or ServiceSettings(
-        swarm=swarm_name(request), n_robots=2, request_timeout_s=2.0
-    )
-    swarm = LocalSwarm(base, data_dir=tmp_path / "data", log_dir=tmp_path / "logs", dataset="")
-    swarm.start_router()
+@contextmanager
+def running_swarm(
+    tmp: Path,
+    swarm: str,
+    *components: Component,
+    robots: int = 2,
+    kinds: Sequence[str] = WORKLOADS["places"],
+    request_timeout_s: float = 2.0,
+    start: bool = True,
+    timeout_s: float = 90.0,
+    **bus: object,
+) -> Iterator[LocalDeployment]:
+    """A local swarm of ``robots`` robots running ``kinds`` with ``components``; with
+    ``start`` False only its router runs (the test starts what it needs)."""
+    settings = BusSettings(swarm=swarm, n_robots=robots, request_timeout_s=request_timeout_s, **bus)  # type: ignore[arg-type]
+    spec = SwarmSpec(settings, tuple(kinds), components)
+    deployment = LocalDeployment(data_dir=tmp / "data", log_dir=tmp / "logs")
     try:
-        yield swarm
+        if start:
+            deployment.start(spec, timeout_s=timeout_s)
+            deployment.wait_ready(timeout_s)
+        else:
+            deployment.start_router(spec)
+        yield deployment
     finally:
-        swarm.stop()
+        deployment.stop()
 
 
 @pytest.fixture
-def client(local_swarm: LocalSwarm) -> Iterator[SwarmClient]:
-    with SwarmClient([local_swarm.endpoint], local_swarm.base.swarm, timeout_s=2.0) as c:
+def local_swarm(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[LocalDeployment]:
+    """A running router of a 2-robot place-recognition swarm (80 labels, lock-step off);
+    robots are started by the test (``start_robot``)."""
+    with running_swarm(tmp_path, swarm_name(request), start=False) as swarm:
+        yield swarm
+
+
+@pytest.fixture
+def client(local_swarm: LocalDeployment) -> Iterator[SwarmClient]:
+    with SwarmClient([local_swarm.endpoint], local_swarm.spec_swarm, timeout_s=2.0) as c:
         yield c

@@ -7,7 +7,6 @@ against a deadline, and requests wait on zenoh's own reply stream.
 from __future__ import annotations
 
 import time
-import urllib.request
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,11 +16,11 @@ import zenoh
 
 # protobuf ships no type stubs (see swarmrec/services/rpc.py for the two codes).
 from google.protobuf.message import Message  # type: ignore[import-untyped, unused-ignore]
-from prometheus_client.parser import text_string_to_metric_families
 
-from swarmrec.services import keys
-from swarmrec.services.rpc import NoReply
-from swarmrec.swarm.processes import LocalSwarm, ServiceProcess
+from swarmrec.deployments.local import LocalDeployment, ServiceProcess
+from swarmrec.deployments.metrics import read_metrics
+from swarmrec.errors import NoReply
+from swarmrec.runtime import keys
 from swarmrec.synthetic import OfficeConfig, generate_office, write_dataset
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import schema_name
@@ -91,29 +90,18 @@ def reply_of(answer: Answer, cls: type[T]) -> T:
     return msg
 
 
-def metrics_of(url: str) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
-    """Every sample of one Prometheus endpoint: ``{(name, sorted labels): value}``."""
-    with urllib.request.urlopen(url, timeout=5.0) as resp:
-        text = resp.read().decode("utf-8")
-    out: dict[tuple[str, tuple[tuple[str, str], ...]], float] = {}
-    for family in text_string_to_metric_families(text):
-        for s in family.samples:
-            out[(s.name, tuple(sorted(s.labels.items())))] = float(s.value)
-    return out
-
-
 def metric(url: str, name: str, **labels: str) -> float:
     """Sum of ``name`` over the series whose labels include ``labels`` (0 when none)."""
     return sum(
         v
-        for (n, lab), v in metrics_of(url).items()
+        for (n, lab), v in read_metrics(url).items()
         if n == name and all(dict(lab).get(k) == val for k, val in labels.items())
     )
 
 
 def metrics_url(sp: ServiceProcess) -> str:
-    url = sp.info.get("metrics_url")
-    assert isinstance(url, str) and url, f"{sp.name} printed no metrics_url: {sp.info}"
+    url = sp.metrics_url
+    assert url, f"{sp.name} printed no metrics_url: {sp.info}"
     return url
 
 
@@ -142,8 +130,8 @@ def answering(session: zenoh.Session, key: str, msg: Message, timeout_s: float =
     return wait_until(attempt, timeout_s, f"answered at {key}", every_s=0.1)
 
 
-def endpoint_key(swarm: LocalSwarm, kind: str, robot: int, name: str) -> str:
-    return keys.endpoint(swarm.base.swarm, kind, robot, name)
+def endpoint_key(swarm: LocalDeployment, kind: str, robot: int, name: str) -> str:
+    return keys.endpoint(swarm.spec_swarm, kind, robot, name)
 
 
 def write_office(folder: Path, n_frames: int = 200) -> Path:

@@ -33,22 +33,25 @@ from typing import Any
 import pytest
 import zenoh
 
-# protobuf ships no type stubs (see swarmrec/services/rpc.py for the two codes).
+# protobuf ships no type stubs (see swarmrec/runtime/rpc.py for the two codes).
 from google.protobuf.message import DecodeError, Message  # type: ignore[import-untyped, unused-ignore]
 
 from swarmrec.client import SwarmClient
 from swarmrec.core.split import split_frames
 from swarmrec.datasets.constellations import read_constellations
-from swarmrec.services.common import MAX_FRAME_GAP, MAX_FRAME_INDEX, MAX_N_RET
-from swarmrec.services.config import ServiceSettings
-from swarmrec.swarm.processes import LocalSwarm, SwarmStartError
+from swarmrec.deployments.base import SwarmStartError
+from swarmrec.deployments.local import LocalDeployment
+from swarmrec.deployments.metrics import read_metrics
+from swarmrec.services.limits import MAX_FRAME_GAP, MAX_FRAME_INDEX, MAX_N_RET
+from swarmrec.services.registry import WORKLOADS, spec
+from swarmrec.services.settings import DetectorSettings, PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import constellation_to_proto, partial_descriptor_to_proto, schema_name
+from tests.integration.conftest import running_swarm, swarm_name
 from tests.integration.support import (
     Answer,
     endpoint_key,
     metric,
-    metrics_of,
     metrics_url,
     protobuf,
     raw_request,
@@ -67,7 +70,7 @@ PROBE_STEP = 2  # each robot's frame used to probe its verifier
 class Swarm:
     """The module's running swarm and what the cases need to know about it."""
 
-    local: LocalSwarm
+    local: LocalDeployment
     client: SwarmClient
     frames: dict[int, pb.Constellation]  # robot -> wire form of its PROBE_STEP frame
 
@@ -86,27 +89,22 @@ class Swarm:
 def swarm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Swarm]:
     tmp = tmp_path_factory.mktemp("bad-input")
     dataset = write_office(tmp / "dataset", n_frames=200)
-    base = ServiceSettings(
-        swarm="bad-input", n_robots=N_ROBOTS, lockstep=True, request_timeout_s=2.0, max_message_bytes=LIMIT
-    )
-    local = LocalSwarm(base, data_dir=tmp / "data", log_dir=tmp / "logs", dataset=str(dataset))
-    try:
-        local.start(timeout_s=90)
-        with SwarmClient([local.endpoint], base.swarm, timeout_s=5.0) as client:
-            client.wait_for({(k, r) for k in local.services for r in range(N_ROBOTS)})
-            for t in range(SEEDED_STEPS):
-                replies = client.step(t, timeout_s=10)
-                assert sorted(r.robot_id for r in replies if isinstance(r, pb.StepReply)) == [0, 1], replies
-            seq = read_constellations(dataset)
-            blocks = split_frames(len(seq), N_ROBOTS)
-            frames = {
-                r: constellation_to_proto(seq.constellations[blocks[r][PROBE_STEP]], r, PROBE_STEP)
-                for r in range(N_ROBOTS)
-            }
-            assert all(len(f.labels) >= 3 for f in frames.values())  # they verify against themselves
-            yield Swarm(local, client, frames)
-    finally:
-        local.stop()
+    parts = (PlaceSettings(lockstep=True), DetectorSettings(dataset=str(dataset)))
+    with (
+        running_swarm(tmp, "bad-input", *parts, robots=N_ROBOTS, max_message_bytes=LIMIT) as local,
+        SwarmClient([local.endpoint], local.spec_swarm, timeout_s=5.0) as client,
+    ):
+        for t in range(SEEDED_STEPS):
+            replies = client.step(t, timeout_s=10)
+            assert sorted(r.robot_id for r in replies if isinstance(r, pb.StepReply)) == [0, 1], replies
+        seq = read_constellations(dataset)
+        blocks = split_frames(len(seq), N_ROBOTS)
+        frames = {
+            r: constellation_to_proto(seq.constellations[blocks[r][PROBE_STEP]], r, PROBE_STEP)
+            for r in range(N_ROBOTS)
+        }
+        assert all(len(f.labels) >= 3 for f in frames.values())  # they verify against themselves
+        yield Swarm(local, client, frames)
 
 
 # --- what must not change -------------------------------------------------------
@@ -171,7 +169,7 @@ def rejected(url: str) -> dict[tuple[str, str], float]:
     """``swarmrec_rejected_requests_total`` of one service by (endpoint, code)."""
     return {
         (dict(labels)["endpoint"], dict(labels)["code"]): v
-        for (name, labels), v in metrics_of(url).items()
+        for (name, labels), v in read_metrics(url).items()
         if name == "swarmrec_rejected_requests_total"
     }
 
@@ -254,7 +252,12 @@ REQUEST_OF = {
     ("descriptor", "loop_closures"): pb.LoopClosuresRequest,
     ("detector", "step"): pb.StepRequest,
     ("detector", "replay"): pb.ReplayRequest,
+    ("detector", "classify"): pb.ClassifyRequest,
 }
+# Every endpoint of every service a places robot runs, as the registry declares them.
+assert {
+    (kind, ep.name): ep.request for kind in WORKLOADS["places"] for ep in spec(kind).load().ENDPOINTS
+} == REQUEST_OF
 # A well-formed message of another endpoint, sent with its schema in the encoding.
 WRONG_SCHEMA: dict[type[Message], Message] = {
     pb.PartialQuery: pb.VerifyRequest(query=constellation(1)),
@@ -263,6 +266,7 @@ WRONG_SCHEMA: dict[type[Message], Message] = {
     pb.LoopClosuresRequest: pb.StepRequest(step=1),
     pb.StepRequest: pb.ReplayRequest(rate_hz=1.0),
     pb.ReplayRequest: pb.StepRequest(step=0),
+    pb.ClassifyRequest: pb.StepRequest(step=0),
 }
 
 CASES: dict[str, Case] = {}
@@ -284,10 +288,11 @@ for (_kind, _ep), _cls in REQUEST_OF.items():
         "ERROR_CODE_TOO_LARGE",
     )  # fmt: skip
 
-INVALID, UNKNOWN, TOO_LARGE = (
+INVALID, UNKNOWN, TOO_LARGE, PRECONDITION = (
     "ERROR_CODE_INVALID_ARGUMENT",
     "ERROR_CODE_UNKNOWN_LABEL",
     "ERROR_CODE_TOO_LARGE",
+    "ERROR_CODE_FAILED_PRECONDITION",
 )
 F20 = MAX_FRAME_INDEX  # 2**20: the first frame index refused
 # Well-formed messages that do not validate, by (service, robot, endpoint):
@@ -345,6 +350,10 @@ SPECIFIC: dict[tuple[str, int, str], list[tuple[str, Callable[[], Message], str]
     ],
     ("descriptor", 1, "loop_closures"): [
         ("NaN min score", lambda: pb.LoopClosuresRequest(min_score=math.nan), INVALID),
+    ],
+    ("detector", 1, "classify"): [
+        ("a view to a detector that replays constellations",
+         lambda: pb.ClassifyRequest(round_id=1, image=b"\x89PNG"), PRECONDITION),
     ],
     ("detector", 1, "replay"): [
         ("NaN rate", lambda: pb.ReplayRequest(rate_hz=math.nan), INVALID),
@@ -414,17 +423,17 @@ def test_after_all_the_bad_input_the_swarm_still_runs_a_lock_step_step(swarm: Sw
 
 @pytest.mark.parametrize("bad", ["nan", "inf", "-inf"])
 def test_a_detector_refuses_a_dataset_with_a_non_finite_coordinate_and_exits_with_a_clear_error(
-    local_swarm: LocalSwarm, tmp_path: Path, bad: str
+    tmp_path: Path, request: pytest.FixtureRequest, bad: str
 ) -> None:
     folder = tmp_path / "dataset"
     folder.mkdir()
     (folder / "1.000.txt").write_text("cup 0.1 0.2 1.5\nchair 1 2 3\nbook 0 0 1\n")
     (folder / "2.000.txt").write_text(f"cup 0.1 0.2 1.5\nchair 1 {bad} 3\n")
-    local_swarm.dataset = str(folder)
-
-    (detector,) = local_swarm.start_robot(0, kinds=["detector"])
-    with pytest.raises(SwarmStartError, match="exited with code 2 before it was ready"):
-        local_swarm._wait([detector], 60)
+    name = swarm_name(request)
+    with running_swarm(tmp_path, name, DetectorSettings(dataset=str(folder)), start=False) as local:
+        (detector,) = local.start_robot(0, kinds=["detector"])
+        with pytest.raises(SwarmStartError, match="exited with code 2 before it was ready"):
+            local.wait_started([detector], 60)
 
     assert detector.proc.wait(timeout=10) == 2
     log = detector.log_path.read_text()

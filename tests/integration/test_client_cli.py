@@ -22,9 +22,10 @@ from swarmrec.core.descriptor import semantic_descriptor
 from swarmrec.core.presets import get_preset
 from swarmrec.core.split import split_frames
 from swarmrec.datasets.constellations import read_constellations
-from swarmrec.services.config import ServiceSettings
-from swarmrec.swarm.processes import LocalSwarm
+from swarmrec.deployments.local import LocalDeployment
+from swarmrec.services.settings import DetectorSettings, PlaceSettings
 from swarmrec.wire import messages as pb
+from tests.integration.conftest import running_swarm
 from tests.integration.support import write_office
 
 N_ROBOTS, STEPS = 2, 5
@@ -33,7 +34,7 @@ KINDS = ("detector", "descriptor", "index-shard", "verifier")
 
 @dataclass
 class Running:
-    swarm: LocalSwarm
+    swarm: LocalDeployment
     dataset: Path
     reports: list[pb.QueryReport]
 
@@ -42,21 +43,16 @@ class Running:
 def running(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
     tmp = tmp_path_factory.mktemp("cli")
     dataset = write_office(tmp / "dataset", n_frames=200)
-    base = ServiceSettings(swarm="cli-swarm", n_robots=N_ROBOTS, lockstep=True)
-    swarm = LocalSwarm(base, data_dir=tmp / "data", log_dir=tmp / "logs", dataset=str(dataset))
-    try:
-        swarm.start(timeout_s=90)
+    parts = (PlaceSettings(lockstep=True), DetectorSettings(dataset=str(dataset)))
+    with running_swarm(tmp, "cli-swarm", *parts, robots=N_ROBOTS) as swarm:
         reports: list[pb.QueryReport] = []
-        with SwarmClient([swarm.endpoint], base.swarm) as client:
-            client.wait_for({(k, r) for k in KINDS for r in range(N_ROBOTS)})
+        with SwarmClient([swarm.endpoint], swarm.spec_swarm) as client:
             for t in range(STEPS):
                 replies = client.step(t, timeout_s=10)
                 assert all(isinstance(r, pb.StepReply) for r in replies), replies
                 assert sorted(r.robot_id for r in replies if isinstance(r, pb.StepReply)) == [0, 1]
                 reports += [r.report for r in replies if isinstance(r, pb.StepReply)]
         yield Running(swarm, dataset, reports)
-    finally:
-        swarm.stop()
 
 
 def cli(running: Running, *args: str, swarm: str | None = None) -> subprocess.CompletedProcess[str]:
@@ -65,7 +61,7 @@ def cli(running: Running, *args: str, swarm: str | None = None) -> subprocess.Co
         [
             sys.executable, "-m", "swarmrec", *args,
             "--connect", running.swarm.endpoint,
-            "--swarm", swarm or running.swarm.base.swarm,
+            "--swarm", swarm or running.swarm.spec_swarm,
         ],
         capture_output=True,
         text=True,
@@ -80,12 +76,12 @@ def test_members_lists_every_service_and_the_shard_ranges_cover_the_label_list(r
     assert done.returncode == 0, done.stderr
     members = json.loads(done.stdout)
     assert sorted((m["kind"], m["robot"]) for m in members) == sorted(
-        (k, r) for k in KINDS for r in range(N_ROBOTS)
+        [("router", 0)] + [(k, r) for k in KINDS for r in range(N_ROBOTS)]
     )
     ranges = sorted(tuple(m["label_range"]) for m in members if m["kind"] == "index-shard")
     assert ranges == [(0, 40), (40, 80)]
     assert all(m["label_range"] is None for m in members if m["kind"] != "index-shard")
-    assert {m["n_labels"] for m in members} == {80}
+    assert {m["n_labels"] for m in members if m["kind"] != "router"} == {80}
     assert all(m["metrics_url"].startswith("http://127.0.0.1:") for m in members)
 
 
@@ -95,7 +91,7 @@ def test_members_prints_a_table_by_default(running: Running) -> None:
     assert done.returncode == 0, done.stderr
     lines = done.stdout.splitlines()
     assert lines[0].split() == ["service", "robot", "labels", "stored", "version", "metrics"]
-    assert len(lines) == 1 + 4 * N_ROBOTS
+    assert len(lines) == 1 + 4 * N_ROBOTS + 1  # and the router
     assert any(line.split()[:3] == ["index-shard", "1", "40-80"] for line in lines)
     # Each verifier holds its own robot's replayed frames, one a step.
     verifiers = [line.split() for line in lines if line.startswith("verifier")]
@@ -155,7 +151,7 @@ def test_loop_closures_of_a_robot_exits_zero_with_what_the_library_returns(runni
     assert done.returncode == none.returncode == table.returncode == 0, (
         done.stderr + none.stderr + table.stderr
     )
-    with SwarmClient([running.swarm.endpoint], running.swarm.base.swarm) as client:
+    with SwarmClient([running.swarm.endpoint], running.swarm.spec_swarm) as client:
         expected = client.loop_closures(0)
     assert json.loads(done.stdout) == [
         {

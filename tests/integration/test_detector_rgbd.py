@@ -19,15 +19,17 @@ import numpy as np
 import pytest
 
 from swarmrec.client import SwarmClient
+from swarmrec.datasets.source import DatasetSource
 from swarmrec.datasets.tum_rgbd import read_tum_rgbd
-from swarmrec.services.config import ServiceSettings
-from swarmrec.swarm.job import SwarmSettings, main
-from swarmrec.swarm.processes import LocalSwarm, SwarmStartError
+from swarmrec.deployments.base import SwarmStartError
+from swarmrec.deployments.local import LocalDeployment
+from swarmrec.experiments.places import PixelSettings, PlacesSettings, main
+from swarmrec.services.settings import DetectorSettings, PlaceSettings, RgbdSettings
 from swarmrec.synthetic import OfficeConfig, generate_office
 from swarmrec.synthetic.render import write_rgbd_sequence
 from swarmrec.wire import messages as pb
 from tests.detector_models import OFFICE_BOXES, constant_v8_model
-from tests.integration.conftest import swarm_name
+from tests.integration.conftest import running_swarm, swarm_name
 from tests.integration.support import endpoint_key, metric, metrics_url, reply_of, request
 
 N_ROBOTS = 2
@@ -56,31 +58,21 @@ def rendered(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture
-def rgbd_swarm(rendered: Path, tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[LocalSwarm]:
-    base = ServiceSettings(
-        swarm=swarm_name(request),
-        n_robots=N_ROBOTS,
-        lockstep=True,
-        request_timeout_s=2.0,
-        detector_mode="rgbd",
-        detector_model=str(rendered / "office.onnx"),
+def rgbd_swarm(rendered: Path, tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[LocalDeployment]:
+    parts = (
+        PlaceSettings(lockstep=True),
+        DetectorSettings(detector_mode="rgbd", dataset=str(rendered / "rgbd")),
+        RgbdSettings(detector_model=str(rendered / "office.onnx")),
     )
-    swarm = LocalSwarm(
-        base, data_dir=tmp_path / "data", log_dir=tmp_path / "logs", dataset=str(rendered / "rgbd")
-    )
-    try:
-        swarm.start(timeout_s=90)
+    with running_swarm(tmp_path, swarm_name(request), *parts, robots=N_ROBOTS) as swarm:
         yield swarm
-    finally:
-        swarm.stop()
 
 
-def test_rgbd_detectors_feed_place_recognition_and_skip_bad_frames(rgbd_swarm: LocalSwarm) -> None:
+def test_rgbd_detectors_feed_place_recognition_and_skip_bad_frames(rgbd_swarm: LocalDeployment) -> None:
     per_robot = N_FRAMES // N_ROBOTS
     reports: dict[int, pb.QueryReport] = {}
     errors: dict[int, tuple[str, str]] = {}
-    with SwarmClient([rgbd_swarm.endpoint], rgbd_swarm.base.swarm, timeout_s=5.0) as client:
-        client.wait_for({(k, r) for k in rgbd_swarm.services for r in range(N_ROBOTS)})
+    with SwarmClient([rgbd_swarm.endpoint], rgbd_swarm.spec_swarm, timeout_s=5.0) as client:
         for t in range(per_robot):
             for r in range(N_ROBOTS):
                 key = endpoint_key(rgbd_swarm, "detector", r, "step")
@@ -130,9 +122,8 @@ def test_rgbd_detectors_feed_place_recognition_and_skip_bad_frames(rgbd_swarm: L
 def test_the_main_job_runs_from_an_rgbd_folder_and_reports_the_detector(
     rendered: Path, tmp_path: Path
 ) -> None:
-    settings = SwarmSettings(
-        rgbd=rendered / "rgbd",
-        model=str(rendered / "office.onnx"),
+    settings = PlacesSettings(
+        pixels=PixelSettings(rgbd=rendered / "rgbd", model=str(rendered / "office.onnx")),
         robots=N_ROBOTS,
         out=tmp_path / "run",
         swarm="pixels-job",
@@ -141,20 +132,20 @@ def test_the_main_job_runs_from_an_rgbd_folder_and_reports_the_detector(
     )
     summary = main(settings)
 
-    d = summary["detector"]
-    assert d["frames"] == N_FRAMES
-    assert d["skipped"] == {outcome: 1 for outcome in BROKEN.values()}
-    assert d["frames_without_constellation"] == len(BROKEN)
-    assert d["frames_by_outcome"]["detected"] + d["frames_by_outcome"].get("no_objects", 0) == 77
-    assert 3 < d["objects_per_frame"] <= len(OFFICE_BOXES)
-    assert set(d["stage_ms_mean"]) == {"decode", "detect", "points"}
-    assert d["model"] == str((rendered / "office.onnx").resolve())
-    assert d["camera"]["fx"] == pytest.approx(535.4)  # the render's own intrinsics, from boxes.json
-    q = summary["queries"]
-    assert q["frames_replayed"] == N_FRAMES - len(BROKEN)
-    assert q["missing_slots"] == len(BROKEN) and len(q["errors"]) == len(BROKEN)
-    assert summary["dataset"]["groundtruth"] and "auc" in summary
-    assert all(code == 0 for code in summary["exit_codes"].values()), summary["exit_codes"]
+    d = summary.detector
+    assert d is not None and d.frames == N_FRAMES
+    assert d.skipped == {outcome: 1 for outcome in BROKEN.values()}
+    assert d.frames_without_constellation == len(BROKEN)
+    assert d.frames_by_outcome["detected"] + d.frames_by_outcome.get("no_objects", 0) == 77
+    assert 3 < d.objects_per_frame <= len(OFFICE_BOXES)
+    assert set(d.stage_ms_mean) == {"decode", "detect", "points"}
+    assert d.model == str((rendered / "office.onnx").resolve())
+    assert d.camera["fx"] == pytest.approx(535.4)  # the render's own intrinsics, from boxes.json
+    q = summary.queries
+    assert q.frames_replayed == N_FRAMES - len(BROKEN)
+    assert q.missing_slots == len(BROKEN) and len(q.errors) == len(BROKEN)
+    assert summary.dataset.groundtruth and summary.auc is not None
+    assert all(code == 0 for code in summary.exit_codes.values()), summary.exit_codes
     # What the detectors made, as a constellation dataset (skipped frames are empty files).
     assert len(list((tmp_path / "run" / "detections").glob("*.txt"))) == N_FRAMES
 
@@ -164,10 +155,9 @@ def test_the_main_job_checks_the_swarm_against_the_offline_evaluation_on_detecte
 ) -> None:
     # The first 30 frames hold no broken one: no slot is missing, so the check runs, on the
     # constellations the detectors made (read back from their data folders).
-    settings = SwarmSettings(
-        rgbd=rendered / "rgbd",
-        model=str(rendered / "office.onnx"),
-        frames=30,
+    settings = PlacesSettings(
+        source=DatasetSource(frames=30),
+        pixels=PixelSettings(rgbd=rendered / "rgbd", model=str(rendered / "office.onnx")),
         robots=N_ROBOTS,
         out=tmp_path / "run",
         swarm="pixels-check",
@@ -175,31 +165,22 @@ def test_the_main_job_checks_the_swarm_against_the_offline_evaluation_on_detecte
         plots=False,
     )
     summary = main(settings)
-    assert summary["dataset"]["frames"] == 30 and summary["detector"]["skipped"] == {}
-    assert summary["queries"]["missing_slots"] == 0
-    assert summary["offline_check"]["identical"] is True
-    assert summary["offline_check"]["positive_pairs_swarm"] > 0  # the comparison is about something
+    assert summary.dataset.frames == 30 and summary.detector is not None and summary.detector.skipped == {}
+    assert summary.queries.missing_slots == 0
+    assert summary.offline_check is not None and summary.offline_check.identical is True
+    assert summary.offline_check.positive_pairs_swarm > 0  # the comparison is about something
 
 
 def test_a_detector_whose_model_does_not_load_does_not_start_and_says_why(
     rendered: Path, tmp_path: Path, request: pytest.FixtureRequest
 ) -> None:
     (tmp_path / "broken.onnx").write_bytes(b"this is not an ONNX model")
-    base = ServiceSettings(
-        swarm=swarm_name(request), detector_mode="rgbd", detector_model=str(tmp_path / "broken.onnx")
+    parts = (
+        DetectorSettings(detector_mode="rgbd", dataset=str(rendered / "rgbd")),
+        RgbdSettings(detector_model=str(tmp_path / "broken.onnx")),
     )
-    swarm = LocalSwarm(
-        base,
-        data_dir=tmp_path / "data",
-        log_dir=tmp_path / "logs",
-        dataset=str(rendered / "rgbd"),
-        services=("detector",),
-    )
-    try:
-        swarm.start_router()
+    with running_swarm(tmp_path, swarm_name(request), *parts, kinds=["detector"], start=False) as swarm:
         started = swarm.start_robot(0)
         with pytest.raises(SwarmStartError, match=r"broken\.onnx: onnxruntime cannot load it"):
-            swarm._wait(started, timeout_s=60)
+            swarm.wait_started(started, timeout_s=60)
         assert started[0].proc.wait(timeout=10) == 2
-    finally:
-        swarm.stop()

@@ -29,13 +29,12 @@ import pytest
 import zenoh
 
 from swarmrec.client import SwarmClient
+from swarmrec.deployments.local import LocalDeployment
 from swarmrec.fusion import FusionState, make_weight_law
-from swarmrec.services import keys
-from swarmrec.services.config import ServiceSettings
-from swarmrec.swarm.processes import LocalSwarm
+from swarmrec.runtime import keys
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import schema_name
-from tests.integration.conftest import swarm_name
+from tests.integration.conftest import running_swarm, swarm_name
 from tests.integration.support import (
     endpoint_key,
     metric,
@@ -61,19 +60,12 @@ CLASSIFIER = schema_name(pb.ClassifierOutput)
 @pytest.fixture
 def fusion_swarm(
     request: pytest.FixtureRequest, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> Iterator[LocalSwarm]:
+) -> Iterator[LocalDeployment]:
     """A router and one fusion service per robot; the weight law comes from the
     environment, as a robot's would."""
     monkeypatch.setenv("SWARMREC_FUSION_LAW", LAW)
-    base = ServiceSettings(swarm=swarm_name(request), n_robots=N, request_timeout_s=2.0)
-    swarm = LocalSwarm(
-        base, data_dir=tmp_path / "data", log_dir=tmp_path / "logs", dataset="", services=("fusion",)
-    )
-    try:
-        swarm.start(timeout_s=60.0)
+    with running_swarm(tmp_path, swarm_name(request), robots=N, kinds=["fusion"], timeout_s=60.0) as swarm:
         yield swarm
-    finally:
-        swarm.stop()
 
 
 def put(
@@ -81,7 +73,7 @@ def put(
 ) -> None:
     """A raw put on a robot's inbox, as a faulty or lying robot would send it."""
     session.put(
-        keys.fusion_inbox(swarm, robot),
+        keys.endpoint(swarm, "fusion", robot, "inbox"),
         payload,
         encoding=protobuf(schema),
         attachment=None if sender is None else str(sender).encode(),
@@ -105,11 +97,16 @@ def rejected(url: str, reason: str) -> float:
     return metric(url, "swarmrec_fusion_rejected_total", reason=reason)
 
 
+def refused(url: str, code: str) -> float:
+    """Inbox messages the runner refused before the robot saw them (bytes, schema, size)."""
+    return metric(url, "swarmrec_rejected_requests_total", endpoint="inbox", code=code)
+
+
 def test_five_robots_on_a_line_flood_to_neighbours_only_and_fuse_as_the_core_does(
-    fusion_swarm: LocalSwarm,
+    fusion_swarm: LocalDeployment,
 ) -> None:
     t0 = time.monotonic()
-    swarm = fusion_swarm.base.swarm
+    swarm = fusion_swarm.spec_swarm
     urls = [metrics_url(fusion_swarm.find("fusion", r)) for r in range(N)]
     events: queue.Queue[pb.FusionUpdate] = queue.Queue()
     with SwarmClient([fusion_swarm.endpoint], swarm, timeout_s=5.0) as client:
@@ -131,7 +128,9 @@ def test_five_robots_on_a_line_flood_to_neighbours_only_and_fuse_as_the_core_doe
             put(session, swarm, 0, output(3, 3, 0, good), CLASSIFIER)  # robot 3 is out of robot 0's range
             wait_until(
                 lambda: (
-                    all(rejected(urls[2], r) == 1 for r in ("malformed", "wrong_schema", "sender_mismatch"))
+                    refused(urls[2], "ERROR_CODE_MALFORMED") == 1
+                    and refused(urls[2], "ERROR_CODE_INVALID_ARGUMENT") == 1  # another message's schema
+                    and rejected(urls[2], "sender_mismatch") == 1
                     and metric(urls[0], "swarmrec_fusion_early_messages_total") == 2
                 ),
                 10.0,
@@ -229,9 +228,10 @@ def test_five_robots_on_a_line_flood_to_neighbours_only_and_fuse_as_the_core_doe
             ).rejected
             == 2
         )
-        assert rejected(urls[2], "malformed") == 1
+        assert refused(urls[2], "ERROR_CODE_MALFORMED") == 1
         for i in (1, 3, 4):
             assert metric(urls[i], "swarmrec_fusion_rejected_total") == 0
+            assert metric(urls[i], "swarmrec_rejected_requests_total") == 0
 
         # A round that was never started here is reported as NOT_FOUND, not as an empty posterior.
         missing = request(

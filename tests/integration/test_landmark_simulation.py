@@ -22,21 +22,22 @@ import numpy as np
 import pytest
 
 from swarmrec.client import SwarmClient
-from swarmrec.evaluation.landmarks import recognition_rates, write_landmark_report
-from swarmrec.fusion import generate_configuration
-from swarmrec.fusion.classifier import LandmarkClassifier
-from swarmrec.services import keys
-from swarmrec.services.config import ServiceSettings
-from swarmrec.swarm.landmarks import (
+from swarmrec.deployments.base import SwarmStartError
+from swarmrec.deployments.local import LocalDeployment
+from swarmrec.experiments.landmarks.report import recognition_rates, write_landmark_report
+from swarmrec.experiments.landmarks.simulation import (
     VIEW_PRESETS,
     LandmarkSettings,
     parse_law,
     render_views,
     run_simulation,
 )
-from swarmrec.swarm.processes import LocalSwarm, SwarmStartError
+from swarmrec.fusion import generate_configuration
+from swarmrec.fusion.classifier import LandmarkClassifier
+from swarmrec.runtime import keys
+from swarmrec.services.settings import ClassifierSettings, DetectorSettings
 from swarmrec.wire import messages as pb
-from tests.integration.conftest import swarm_name
+from tests.integration.conftest import running_swarm, swarm_name
 from tests.integration.support import metric, metrics_url, reply_of, request
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
@@ -98,7 +99,7 @@ def test_a_small_street_simulation_fuses_over_zenoh_exactly_as_the_core_does(
     ):
         assert (settings.out / name).stat().st_size > 0
     saved = json.loads((settings.out / "results.json").read_text())
-    assert saved == json.loads(json.dumps(summary))
+    assert saved == json.loads(json.dumps(summary.to_dict()))
     for law in LAWS:
         rate, count = recognition_rates(rounds, law, ROBOTS - 1)
         assert count.tolist() == [CONFIGURATIONS * ROBOTS] * ROBOTS
@@ -110,23 +111,12 @@ def test_a_small_street_simulation_fuses_over_zenoh_exactly_as_the_core_does(
 
 
 @pytest.fixture
-def classifier_swarm(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[LocalSwarm]:
+def classifier_swarm(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[LocalDeployment]:
     """Two robots, each a detector in classifier mode and a fusion service."""
-    base = ServiceSettings(
-        swarm=swarm_name(request), n_robots=2, request_timeout_s=5.0, detector_mode="classifier"
-    )
-    swarm = LocalSwarm(
-        base,
-        data_dir=tmp_path / "data",
-        log_dir=tmp_path / "logs",
-        dataset="",
-        services=("fusion", "detector"),
-    )
-    try:
-        swarm.start(timeout_s=90.0)
+    mode = DetectorSettings(detector_mode="classifier")
+    name = swarm_name(request)
+    with running_swarm(tmp_path, name, mode, kinds=["fusion", "detector"], request_timeout_s=5.0) as swarm:
         yield swarm
-    finally:
-        swarm.stop()
 
 
 def png(image: np.ndarray, ext: str = ".png") -> bytes:
@@ -136,9 +126,9 @@ def png(image: np.ndarray, ext: str = ".png") -> bytes:
 
 
 def test_bad_views_and_bad_rounds_get_clear_errors_and_the_robot_goes_on(
-    classifier_swarm: LocalSwarm,
+    classifier_swarm: LocalDeployment,
 ) -> None:
-    swarm = classifier_swarm.base.swarm
+    swarm = classifier_swarm.spec_swarm
     key = keys.endpoint(swarm, "detector", 0, "classify")
     url = metrics_url(classifier_swarm.find("detector", 0))
     view = render_views([generate_configuration(0, seed=0)], 0, VIEW_PRESETS["nominal"])[0][0]
@@ -184,14 +174,9 @@ def test_a_detector_with_a_model_that_is_not_onnx_stops_at_start_saying_why(
 ) -> None:
     bad = tmp_path / "model.onnx"
     bad.write_bytes(b"not a model")
-    base = ServiceSettings(
-        swarm=swarm_name(request), n_robots=1, detector_mode="classifier", classifier_model=str(bad)
-    )
-    swarm = LocalSwarm(
-        base, data_dir=tmp_path / "d", log_dir=tmp_path / "l", dataset="", services=("detector",)
-    )
-    try:
-        with pytest.raises(SwarmStartError, match="cannot load"):
-            swarm.start(timeout_s=60.0)
-    finally:
-        swarm.stop()
+    parts = (DetectorSettings(detector_mode="classifier"), ClassifierSettings(classifier_model=str(bad)))
+    with (
+        pytest.raises(SwarmStartError, match="cannot load"),
+        running_swarm(tmp_path, swarm_name(request), *parts, robots=1, kinds=["detector"], timeout_s=60.0),
+    ):
+        pass

@@ -1,6 +1,6 @@
 """Stateful services keep what they acknowledged across a restart.
 
-Robot 0's index shard and verifier run with a data dir (LocalSwarm gives each
+Robot 0's index shard and verifier run with a data dir (LocalDeployment gives each
 robot's services one). Frames of the synthetic office are stored through the
 services' own endpoints; a fixed set of read-only shard queries and
 verifications is recorded; the processes are stopped (SIGTERM, or SIGKILL
@@ -21,8 +21,8 @@ import pytest
 from swarmrec.client import SwarmClient
 from swarmrec.core.descriptor import semantic_descriptor
 from swarmrec.datasets.constellations import read_constellations
-from swarmrec.services.rpc import NoReply
-from swarmrec.swarm.processes import LocalSwarm, ServiceProcess
+from swarmrec.deployments.local import LocalDeployment, ServiceProcess
+from swarmrec.errors import NoReply
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import constellation_from_proto, constellation_to_proto, partial_descriptor_to_proto
 from tests.integration.support import (
@@ -66,7 +66,7 @@ def shard_query(frame: pb.Constellation, *, read_only: bool, n_ret: int = 16) ->
 class Robot0:
     """Robot 0's shard and verifier, reached through one client session."""
 
-    swarm: LocalSwarm
+    swarm: LocalDeployment
     client: SwarmClient
 
     def key(self, kind: str, endpoint: str) -> str:
@@ -74,7 +74,7 @@ class Robot0:
 
     def start(self) -> list[ServiceProcess]:
         procs = self.swarm.start_robot(0, kinds=KINDS)
-        self.swarm._wait(procs, 60)
+        self.swarm.wait_started(procs, 60)
         return procs
 
     def store_frame(self, frame: pb.Constellation) -> None:
@@ -130,7 +130,7 @@ class Robot0:
 
 
 @pytest.fixture
-def robot0(local_swarm: LocalSwarm, client: SwarmClient) -> Robot0:
+def robot0(local_swarm: LocalDeployment, client: SwarmClient) -> Robot0:
     r = Robot0(local_swarm, client)
     r.start()
     return r

@@ -23,9 +23,11 @@ from swarmrec.client import SwarmClient
 from swarmrec.core.descriptor import semantic_descriptor
 from swarmrec.core.split import split_frames
 from swarmrec.datasets.constellations import read_constellations
-from swarmrec.services import keys
-from swarmrec.swarm.job import SwarmSettings, main
-from swarmrec.swarm.processes import LocalSwarm
+from swarmrec.datasets.source import DatasetSource
+from swarmrec.deployments.base import Deployment
+from swarmrec.deployments.local import LocalDeployment
+from swarmrec.experiments.places import PlacesSettings, main
+from swarmrec.runtime import keys
 from swarmrec.wire import messages as pb
 from tests.integration.support import wait_until
 
@@ -36,22 +38,23 @@ STEPS = FRAMES // ROBOTS
 @pytest.mark.slow
 def test_a_robot_killed_mid_run_is_reported_missing_and_the_others_keep_querying(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    settings = SwarmSettings(
+    settings = PlacesSettings(
+        source=DatasetSource(frames=FRAMES),
         robots=ROBOTS,
-        frames=FRAMES,
         out=out,
         swarm="robot-failure",
         request_timeout_s=2.0,
         progress=False,
         plots=False,
     )
-    held: list[LocalSwarm] = []
+    held: list[LocalDeployment] = []
     reports: list[pb.QueryReport] = []
     killed: list[int] = []
 
     with ExitStack() as stack:
 
-        def hook(swarm: LocalSwarm) -> None:
+        def hook(swarm: Deployment) -> None:
+            assert isinstance(swarm, LocalDeployment)
             held.append(swarm)
             client = stack.enter_context(SwarmClient([swarm.endpoint], settings.swarm))
             sub = client.session.declare_subscriber(
@@ -80,13 +83,13 @@ def test_a_robot_killed_mid_run_is_reported_missing_and_the_others_keep_querying
         summary = main(settings, swarm_hook=hook, on_step=on_step)
 
     assert len(killed) == 4  # detector, descriptor, index-shard and verifier of robot 2
-    q = summary["queries"]
+    q = summary.queries
     # The run completed and names the dead robot: it missed every step after the kill.
-    assert q["missing_by_robot"] == {str(DEAD): STEPS - KILL_AFTER - 1}
-    assert q["frames_replayed"] == ROBOTS * STEPS - (STEPS - KILL_AFTER - 1)
-    assert any(f"loop closures of robot {DEAD}" in e for e in q["errors"])
+    assert q.missing_by_robot == {str(DEAD): STEPS - KILL_AFTER - 1}
+    assert q.frames_replayed == ROBOTS * STEPS - (STEPS - KILL_AFTER - 1)
+    assert any(f"loop closures of robot {DEAD}" in e for e in q.errors)
     # Its processes died by SIGKILL; everyone else exited cleanly.
-    codes = summary["exit_codes"]
+    codes = summary.exit_codes
     assert {name for name, code in codes.items() if code != 0} == {
         f"{k}-{DEAD}" for k in ("detector", "descriptor", "index-shard", "verifier")
     }
@@ -94,16 +97,16 @@ def test_a_robot_killed_mid_run_is_reported_missing_and_the_others_keep_querying
         codes[f"{k}-{DEAD}"] == -signal.SIGKILL for k in ("detector", "descriptor", "index-shard", "verifier")
     )
     # Failed requests to the dead robot are counted in the report.
-    assert q["failed_shard_requests"] > 0
-    assert q["failed_verifier_requests"] > 0
+    assert q.failed_shard_requests > 0
+    assert q.failed_verifier_requests > 0
     assert (
-        sum(summary["peer_failures"].values()) >= q["failed_shard_requests"] + q["failed_verifier_requests"]
+        sum(summary.peer_failures.values()) >= q.failed_shard_requests + q.failed_verifier_requests
     )
 
     # Robots 0 and 1 kept querying to the end.
     seq = read_constellations(out / "dataset")
     blocks = split_frames(len(seq), ROBOTS)
-    bounds = summary["swarm"]["label_bounds"]
+    bounds = summary.swarm.label_bounds
     lo, hi = bounds[DEAD], bounds[DEAD + 1]
     by_robot = {r: sorted(rep.frame_index for rep in reports if rep.robot_id == r) for r in range(ROBOTS)}
     assert by_robot[0] == by_robot[1] == list(range(STEPS))
@@ -124,8 +127,8 @@ def test_a_robot_killed_mid_run_is_reported_missing_and_the_others_keep_querying
         assert DEAD not in [m.match_robot_id for m in rep.matches], rep
         needed_dead_shard += asks_dead
     assert needed_dead_shard > 10
-    assert q["failed_shard_requests"] == needed_dead_shard
-    assert q["failed_verifier_requests"] == sum(len(r.failed_verifier_robot_ids) for r in reports)
+    assert q.failed_shard_requests == needed_dead_shard
+    assert q.failed_verifier_requests == sum(len(r.failed_verifier_robot_ids) for r in reports)
     # The survivors still found matches after the kill.
     late = [r for r in reports if r.frame_index > KILL_AFTER and r.matches]
     assert len(late) > 10

@@ -13,9 +13,11 @@ import pytest
 from swarmrec.core.presets import get_preset
 from swarmrec.datasets.constellations import read_constellations
 from swarmrec.datasets.labels import COCO_NAMES
+from swarmrec.datasets.source import DatasetSource
 from swarmrec.evaluation.bandwidth import holder_load
 from swarmrec.evaluation.scoring import score_decentralized
-from swarmrec.swarm.job import SwarmSettings, as_on_the_wire, main
+from swarmrec.experiments.places import PlacesSettings, main
+from swarmrec.experiments.places.pipeline import as_on_the_wire
 
 
 def _positive_pairs(lo: np.ndarray, hi: np.ndarray, scores: np.ndarray) -> dict[tuple[int, int], float]:
@@ -30,7 +32,9 @@ def _swarm_pairs(out: Path) -> dict[tuple[int, int], float]:
 
 @pytest.mark.slow
 def test_synthetic_swarm_of_four_scores_every_pair_as_the_offline_evaluation(tmp_path: Path) -> None:
-    settings = SwarmSettings(robots=4, frames=600, out=tmp_path / "run", progress=False, plots=True)
+    settings = PlacesSettings(
+        source=DatasetSource(frames=600), robots=4, out=tmp_path / "run", progress=False, plots=True
+    )
     summary = main(settings)
 
     seq = as_on_the_wire(read_constellations(tmp_path / "run" / "dataset", COCO_NAMES))
@@ -39,25 +43,25 @@ def test_synthetic_swarm_of_four_scores_every_pair_as_the_offline_evaluation(tmp
     got = _swarm_pairs(tmp_path / "run")
     assert len(expected) > 100  # the comparison is about something
     assert got == expected
-    assert summary["offline_check"]["identical"] is True
+    assert summary.offline_check is not None and summary.offline_check.identical is True
     # Shard load scraped from Prometheus equals what the offline run counts.
-    assert summary["shard_load"]["partial_queries"] == holder_load(offline).partial_queries
-    assert summary["queries"]["missing_slots"] == 0 and not summary["queries"]["errors"]
-    assert 0 < summary["bytes"]["per_query"] < 1000
-    assert set(summary["bytes"]["per_query_by_message"]) == {
+    assert summary.shard_load.partial_queries == holder_load(offline).partial_queries
+    assert summary.queries.missing_slots == 0 and not summary.queries.errors
+    assert 0 < summary.bytes.per_query < 1000
+    assert set(summary.bytes.per_query_by_message) == {
         "PartialQuery", "CandidatesReply", "VerifyRequest", "VerifyReply"}
-    assert summary["auc"] > 0.3
-    assert all(code == 0 for code in summary["exit_codes"].values()), summary["exit_codes"]
+    assert summary.auc is not None and summary.auc > 0.3
+    assert all(code == 0 for code in summary.exit_codes.values()), summary.exit_codes
     for name in ("summary.json", "similarity.png", "precision_recall.png", "shard_load.png",
                  "bytes_per_query.png", "loop_closures.csv"):
         assert (tmp_path / "run" / name).stat().st_size > 0
-    assert json.loads((tmp_path / "run" / "summary.json").read_text())["auc"] == summary["auc"]
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["auc"] == summary.auc
 
 
 @pytest.mark.slow
 def test_tum_swarm_of_ten_scores_every_pair_as_the_offline_evaluation(tmp_path: Path, tum_zip: Path) -> None:
-    settings = SwarmSettings(dataset=str(tum_zip), robots=10, out=tmp_path / "run", progress=False,
-                             plots=False, check_offline=False)
+    settings = PlacesSettings(source=DatasetSource(str(tum_zip)), robots=10, out=tmp_path / "run",
+                              progress=False, plots=False, check_offline=False)
     summary = main(settings)
 
     seq = as_on_the_wire(read_constellations(tum_zip, COCO_NAMES))
@@ -66,4 +70,4 @@ def test_tum_swarm_of_ten_scores_every_pair_as_the_offline_evaluation(tmp_path: 
     assert len(expected) > 5000
     assert _swarm_pairs(tmp_path / "run") == expected
     # The published load imbalance of even label ranges on this data, now measured.
-    assert summary["shard_load"]["balance_ratio"] == pytest.approx(2.67, abs=0.005)
+    assert summary.shard_load.balance_ratio == pytest.approx(2.67, abs=0.005)

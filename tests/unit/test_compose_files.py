@@ -7,8 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from swarmrec.errors import ConfigError
-from swarmrec.swarm.compose import (
+from swarmrec.datasets.source import DatasetSource
+from swarmrec.deployments.base import SwarmSpec
+from swarmrec.deployments.compose import (
+    ComposeDeployment,
     ComposeSettings,
     compose_document,
     prometheus_document,
@@ -17,6 +19,24 @@ from swarmrec.swarm.compose import (
     service_name,
     write_compose,
 )
+from swarmrec.errors import ConfigError
+from swarmrec.experiments.landmarks.simulation import LandmarkSettings, swarm_spec
+from swarmrec.experiments.places.pipeline import prepare
+from swarmrec.experiments.places.settings import PlacesSettings
+from swarmrec.runtime.settings import BusSettings
+from swarmrec.services.registry import WORKLOADS
+from swarmrec.services.settings import DetectorSettings, PlaceSettings
+
+PLACES = ("index-shard", "verifier", "descriptor", "detector")
+
+
+def places_spec(robots: int, bounds: tuple[int, ...], dataset: Path) -> SwarmSpec:
+    return SwarmSpec(
+        BusSettings(swarm="compose", n_robots=robots),
+        WORKLOADS["places"],
+        (PlaceSettings(label_bounds=bounds, lockstep=True), DetectorSettings(dataset=str(dataset))),
+        workload="places",
+    )
 
 
 def test_render_yaml_writes_nested_maps_and_lists_in_block_style() -> None:
@@ -32,53 +52,59 @@ def test_render_yaml_quotes_every_string_so_none_is_retyped(text: str) -> None:
     assert render_yaml({"k": text}) == f"k: {json.dumps(text)}"
 
 
-def test_compose_has_a_router_four_services_per_robot_and_prometheus() -> None:
-    s = ComposeSettings(robots=3, router_port=17447, prometheus_port=19090)
-    doc = compose_document(s, n_labels=80, bounds=[0, 27, 54, 80])
+def test_compose_has_a_router_four_services_per_robot_and_prometheus(tmp_path: Path) -> None:
+    s = ComposeSettings(router_port=17447, prometheus_port=19090)
+    doc = compose_document(places_spec(3, (0, 27, 54, 80), tmp_path / "ds"), s)
     names = list(doc["services"])
     assert names[0] == "router" and names[-1] == "prometheus"
-    assert sorted(names[1:-1]) == sorted(
-        f"r{r}-{k}" for r in range(3) for k in ("detector", "descriptor", "index-shard", "verifier")
-    )
+    assert sorted(names[1:-1]) == sorted(f"r{r}-{k}" for r in range(3) for k in PLACES)
     published = {n: svc["ports"] for n, svc in doc["services"].items() if "ports" in svc}
     assert published == {"router": ["127.0.0.1:17447:7447"], "prometheus": ["127.0.0.1:19090:9090"]}
     shard = doc["services"]["r2-index-shard"]
-    assert shard["environment"]["SWARMREC_ROBOT"] == "2"
-    assert shard["environment"]["SWARMREC_LABEL_BOUNDS"] == "0,27,54,80"
-    assert shard["environment"]["SWARMREC_CONNECT"] == "tcp/router:7447"
+    env = shard["environment"]
+    assert (env["SWARMREC_ROBOT"], env["SWARMREC_LABEL_BOUNDS"], env["SWARMREC_CONNECT"]) == (
+        "2",
+        "0,27,54,80",
+        "tcp/router:7447",
+    )
+    assert (env["SWARMREC_DATA_DIR"], env["SWARMREC_METRICS_PORT"], env["SWARMREC_METRICS_HOST"]) == (
+        "/var/lib/swarmrec",
+        "9464",
+        "0.0.0.0",
+    )
+    # A shard's environment holds its own components' settings only: nothing of cameras.
+    assert "SWARMREC_CAMERA_FX" not in env and "SWARMREC_DATASET" not in env
     assert shard["depends_on"] == {"router": {"condition": "service_healthy"}}
     assert shard["volumes"] == ["r2-index-shard-data:/var/lib/swarmrec"]
-    assert doc["services"]["r2-detector"]["volumes"] == ["./dataset:/data/dataset:ro"]
+    detector = doc["services"]["r2-detector"]
+    assert detector["volumes"] == ["./dataset:/data/dataset:ro"]
+    assert detector["environment"]["SWARMREC_DATASET"] == "/data/dataset"
+    assert "SWARMREC_DATA_DIR" not in detector["environment"]  # not stateful: no volume
+    router = doc["services"]["router"]["environment"]
+    assert (router["SWARMREC_MODE"], router["SWARMREC_LISTEN"]) == ("router", "tcp/0.0.0.0:7447")
     assert sorted(doc["volumes"]) == sorted(
         [f"r{r}-{k}-data" for r in range(3) for k in ("index-shard", "verifier", "descriptor")]
         + ["prometheus-data"]
     )
 
 
-def test_prometheus_scrapes_every_service_with_its_service_and_robot_labels() -> None:
-    doc = prometheus_document(ComposeSettings(robots=2))
+def test_prometheus_scrapes_every_service_with_its_service_and_robot_labels(tmp_path: Path) -> None:
+    doc = prometheus_document(places_spec(2, (0, 40, 80), tmp_path), ComposeSettings())
     (job,) = doc["scrape_configs"]
     targets = {g["targets"][0]: (g["labels"]["service"], g["labels"]["robot"]) for g in job["static_configs"]}
     assert targets == {
         "router:9464": ("router", "0"),
-        **{
-            f"{service_name(k, r)}:9464": (k, str(r))
-            for r in range(2)
-            for k in ("index-shard", "verifier", "descriptor", "detector")
-        },
+        **{f"{service_name(k, r)}:9464": (k, str(r)) for r in range(2) for k in PLACES},
     }
 
 
 @pytest.mark.parametrize(
     ("changes", "message"),
     [
-        ({"robots": 0}, "robots must be 1 .. 16"),
-        ({"robots": 17}, "robots must be 1 .. 16"),
         ({"project": "My Swarm"}, "project must be letters"),
         ({"project": "Swarm"}, "lower case"),
         ({"router_port": 9090}, "must differ"),
         ({"prometheus_port": 0}, "prometheus_port must be 1 .. 65535"),
-        ({"swarm": "a/b"}, "swarm name"),
     ],
 )
 def test_compose_settings_refuse_bad_values_with_a_clear_message(
@@ -86,6 +112,13 @@ def test_compose_settings_refuse_bad_values_with_a_clear_message(
 ) -> None:
     with pytest.raises(ConfigError, match=message):
         ComposeSettings(**changes)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("robots", [17, 20])
+def test_a_swarm_too_large_for_compose_is_refused(tmp_path: Path, robots: int) -> None:
+    spec = places_spec(robots, (), tmp_path)
+    with pytest.raises(ConfigError, match=r"1 \.\. 16 robots"):
+        write_compose(spec, ComposeSettings(out=tmp_path / "c"))
 
 
 def test_reading_a_missing_or_foreign_swarm_file_says_what_to_do(tmp_path: Path) -> None:
@@ -96,11 +129,22 @@ def test_reading_a_missing_or_foreign_swarm_file_says_what_to_do(tmp_path: Path)
         read_swarm_file(tmp_path)
 
 
-def test_a_landmarks_swarm_has_a_classifier_detector_and_a_fusion_service_per_robot(tmp_path: Path) -> None:
-    s = ComposeSettings(
-        robots=3, workload="landmarks", out=tmp_path, router_port=17447, prometheus_port=19090
+def test_a_places_swarm_copies_its_dataset_and_records_the_run(tmp_path: Path) -> None:
+    run = PlacesSettings(source=DatasetSource(frames=50), robots=2, swarm="compose", out=tmp_path)
+    spec = prepare(run, dataset_dir=tmp_path / "prepared").spec
+    info = write_compose(spec, ComposeSettings(out=tmp_path / "c"), experiment=run.record())
+    assert sorted(p.name for p in (tmp_path / "c" / "dataset").iterdir()) == sorted(
+        p.name for p in (tmp_path / "prepared").iterdir()
     )
-    doc = compose_document(s, n_labels=0, bounds=[])
+    assert read_swarm_file(tmp_path / "c") == info
+    assert PlacesSettings.from_record(info.experiment, out=tmp_path / "r").source == run.source
+    assert info.shared_env["SWARMREC_LOCKSTEP"] == "true" and info.kinds == list(PLACES)
+
+
+def test_a_landmarks_swarm_has_a_classifier_detector_and_a_fusion_service_per_robot(tmp_path: Path) -> None:
+    s = ComposeSettings(out=tmp_path, router_port=17447, prometheus_port=19090)
+    spec = swarm_spec(LandmarkSettings(out=tmp_path / "r", robots=3, swarm="compose"))
+    doc = compose_document(spec, s)
     names = list(doc["services"])
     assert sorted(names[1:-1]) == sorted(f"r{r}-{k}" for r in range(3) for k in ("detector", "fusion"))
     detector = doc["services"]["r1-detector"]
@@ -108,34 +152,24 @@ def test_a_landmarks_swarm_has_a_classifier_detector_and_a_fusion_service_per_ro
     assert "volumes" not in detector and "SWARMREC_DATASET" not in detector["environment"]
     assert "SWARMREC_LABEL_BOUNDS" not in doc["services"]["r1-fusion"]["environment"]
     assert sorted(doc["volumes"]) == ["prometheus-data"]  # nothing a landmarks robot keeps
-    (job,) = prometheus_document(s)["scrape_configs"]
+    (job,) = prometheus_document(spec, s)["scrape_configs"]
     assert {g["labels"]["service"] for g in job["static_configs"]} == {"router", "detector", "fusion"}
-    info = write_compose(s)
-    assert info.workload == "landmarks" and info.services == ("fusion", "detector") and info.dataset == ""
+    info = write_compose(spec, s)
+    assert info.workload == "landmarks" and info.kinds == ["fusion", "detector"]
     assert read_swarm_file(tmp_path) == info
     assert not (tmp_path / "dataset").exists()
 
 
-def test_a_landmarks_swarm_needs_two_robots_and_workloads_are_named() -> None:
-    with pytest.raises(ConfigError, match="at least 2 robots"):
-        ComposeSettings(robots=1, workload="landmarks")
-    with pytest.raises(ConfigError, match="workload"):
-        ComposeSettings(workload="everything")
-
-
-def test_each_workload_refuses_the_other_ones_swarm(tmp_path: Path) -> None:
-    from swarmrec.swarm.attached import main_attached
-    from swarmrec.swarm.landmarks import LandmarkSettings, run_simulation
-
-    write_compose(ComposeSettings(robots=2, workload="landmarks", out=tmp_path / "lm"))
-    with pytest.raises(ConfigError, match="swarmrec landmarks --attach"):
-        main_attached(tmp_path / "lm", out=tmp_path / "report")
-    write_compose(ComposeSettings(robots=2, frames=50, out=tmp_path / "pl"))
-    with pytest.raises(ConfigError, match="--workload landmarks"):
-        run_simulation(
-            LandmarkSettings(out=tmp_path / "r", robots=2, configurations=1), attach=tmp_path / "pl"
-        )
-    with pytest.raises(ConfigError, match="--robots 2"):
-        run_simulation(
-            LandmarkSettings(out=tmp_path / "r", robots=3, configurations=1), attach=tmp_path / "lm"
-        )
+def test_a_running_swarm_that_is_not_the_runs_spec_is_refused_before_anything_is_sent(tmp_path: Path) -> None:
+    lm = swarm_spec(LandmarkSettings(out=tmp_path / "r", robots=2, swarm="compose"))
+    write_compose(lm, ComposeSettings(out=tmp_path / "lm"))
+    places = places_spec(2, (0, 40, 80), tmp_path / "ds")
+    deployment = ComposeDeployment(tmp_path / "lm")
+    with pytest.raises(ConfigError, match="landmarks workload, not places"):
+        deployment.start(places)
+    three = swarm_spec(LandmarkSettings(out=tmp_path / "r", robots=3, swarm="compose"))
+    with pytest.raises(ConfigError, match="it has 2 robots, not 3"):
+        deployment.start(three)
+    other_model = swarm_spec(LandmarkSettings(out=tmp_path / "r", robots=2, swarm="compose", model="x.onnx"))
+    with pytest.raises(ConfigError, match="SWARMREC_CLASSIFIER_MODEL"):
+        deployment.start(other_model)

@@ -15,21 +15,25 @@ import pytest
 
 from swarmrec.datasets.constellations import format_constellation
 from swarmrec.datasets.labels import COCO_NAMES
-from swarmrec.datasets.tum_rgbd import RgbdImageError, load_rgbd, read_tum_rgbd
-from swarmrec.detection import CameraIntrinsics, DetectionError, ModelError, OnnxDetector, RgbdPipeline
-from swarmrec.errors import ConfigError
-from swarmrec.models import MODELS_ENV
-from swarmrec.services.config import ServiceSettings
-from swarmrec.services.detector_rgbd import (
+from swarmrec.datasets.source import DatasetSource
+from swarmrec.datasets.tum_rgbd import RgbdImageError, frame_id_of, load_rgbd, read_tum_rgbd
+from swarmrec.detection import (
     DEFAULT_CONF_THRESHOLD,
-    conf_threshold_of,
-    frame_id_of,
+    CameraIntrinsics,
+    DetectionError,
+    ModelError,
+    OnnxDetector,
+    RgbdPipeline,
+    conf_threshold_for,
     load_detector,
-    model_path_of,
-    process_frame,
+    model_path,
 )
-from swarmrec.swarm.job import SwarmSettings
-from swarmrec.swarm.pixels import detected_sequence, prepare_pixels
+from swarmrec.errors import ConfigError
+from swarmrec.experiments.places.pixels import detected_sequence, prepare_pixels
+from swarmrec.experiments.places.settings import PixelSettings, PlacesSettings
+from swarmrec.models import MODELS_ENV
+from swarmrec.services.detector.rgbd import process_frame
+from swarmrec.services.settings import DetectorSettings, RgbdSettings
 from swarmrec.wire import messages as pb
 from tests.detector_models import constant_v8_model
 
@@ -224,11 +228,10 @@ def test_the_project_model_is_the_shipped_one_with_its_recommended_threshold(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setenv(MODELS_ENV, str(_shipped(tmp_path / "models", {"recommended_conf_threshold": 0.31})))
-    settings = ServiceSettings()
-    assert model_path_of(settings) == tmp_path / "models" / "detector" / "office_detector.onnx"
-    assert conf_threshold_of(settings) == 0.31
-    assert load_detector(settings).settings.conf_threshold == 0.31
-    assert conf_threshold_of(settings.with_(conf_threshold=0.05)) == 0.05  # a set threshold wins
+    assert model_path() == tmp_path / "models" / "detector" / "office_detector.onnx"
+    assert conf_threshold_for() == 0.31
+    assert load_detector(n_classes=80).settings.conf_threshold == 0.31
+    assert conf_threshold_for("", 0.05) == 0.05  # a set threshold wins
 
 
 @pytest.mark.parametrize("metrics", [None, {"test_map50": 0.8}, {"recommended_conf_threshold": "high"}, [1]])
@@ -236,33 +239,32 @@ def test_without_a_usable_recommendation_the_threshold_is_the_default(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, metrics: object
 ) -> None:
     monkeypatch.setenv(MODELS_ENV, str(_shipped(tmp_path / "models", metrics)))
-    assert conf_threshold_of(ServiceSettings()) == DEFAULT_CONF_THRESHOLD
+    assert conf_threshold_for() == DEFAULT_CONF_THRESHOLD
 
 
 def test_a_users_model_gets_the_default_threshold_not_the_shipped_recommendation(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, two_box_model: Path
 ) -> None:
     monkeypatch.setenv(MODELS_ENV, str(_shipped(tmp_path / "models", {"recommended_conf_threshold": 0.31})))
-    settings = ServiceSettings(detector_model=str(two_box_model))
-    assert model_path_of(settings) == two_box_model
-    assert conf_threshold_of(settings) == DEFAULT_CONF_THRESHOLD
+    assert model_path(str(two_box_model)) == two_box_model
+    assert conf_threshold_for(str(two_box_model)) == DEFAULT_CONF_THRESHOLD
 
 
 def test_a_missing_model_file_is_a_model_error_naming_it(tmp_path: Path) -> None:
     with pytest.raises(ModelError, match=r"nothing\.onnx: no such model file"):
-        load_detector(ServiceSettings(detector_model=str(tmp_path / "nothing.onnx")))
+        load_detector(str(tmp_path / "nothing.onnx"), n_classes=80)
 
 
 def test_a_model_with_another_number_of_classes_than_the_label_list_is_refused(two_box_model: Path) -> None:
-    settings = ServiceSettings(detector_model=str(two_box_model), n_labels=19)
     with pytest.raises(ModelError, match="19 classes"):
-        load_detector(settings)
+        load_detector(two_box_model, n_classes=19)
 
 
 def test_detector_settings_are_validated_together() -> None:
+    with pytest.raises(ConfigError, match="detector_mode"):
+        DetectorSettings(detector_mode="yolo")  # type: ignore[arg-type]
     with pytest.raises(ConfigError) as info:
-        ServiceSettings(
-            detector_mode="yolo",  # type: ignore[arg-type]
+        RgbdSettings(
             conf_threshold=1.5,
             iou_threshold=0.0,
             detector_threads=-1,
@@ -273,7 +275,6 @@ def test_detector_settings_are_validated_together() -> None:
         )
     text = str(info.value)
     for name in (
-        "detector_mode",
         "conf_threshold",
         "iou_threshold",
         "detector_threads",
@@ -286,25 +287,29 @@ def test_detector_settings_are_validated_together() -> None:
 
 
 def test_the_camera_of_the_settings_defaults_to_tum_freiburg3() -> None:
-    assert ServiceSettings().camera() == CameraIntrinsics()
-    s = ServiceSettings(camera_fx=500.0, camera_fy=501.0, camera_cx=300.0, camera_cy=200.0, depth_scale=1e3)
+    assert RgbdSettings().camera() == CameraIntrinsics()
+    s = RgbdSettings(camera_fx=500.0, camera_fy=501.0, camera_cx=300.0, camera_cy=200.0, depth_scale=1e3)
     assert s.camera() == CameraIntrinsics(500.0, 501.0, 300.0, 200.0, 1000.0)
 
 
 # --- the main job's side ----------------------------------------------------------------------
 
 
+def pixels_run(out: Path, frames: int | None = None, **pixels: object) -> PlacesSettings:
+    return PlacesSettings(source=DatasetSource(frames=frames), out=out, pixels=PixelSettings(**pixels))  # type: ignore[arg-type]
+
+
 def test_a_run_from_pixels_needs_one_source() -> None:
     with pytest.raises(ConfigError, match="pick one"):
-        SwarmSettings(from_pixels=True, rgbd=Path("x"))
+        PixelSettings(from_pixels=True, rgbd=Path("x"))
     with pytest.raises(ConfigError, match="--rgbd DIR"):
-        SwarmSettings(from_pixels=True, dataset="some/folder")
+        PlacesSettings(source=DatasetSource("some/folder"), pixels=PixelSettings(from_pixels=True))
     with pytest.raises(ConfigError, match="replaces --dataset"):
-        SwarmSettings(rgbd=Path("x"), dataset="some/folder")
+        PlacesSettings(source=DatasetSource("some/folder"), pixels=PixelSettings(rgbd=Path("x")))
     with pytest.raises(ConfigError, match="conf_threshold"):
-        SwarmSettings(rgbd=Path("x"), conf_threshold=-0.1)
-    assert SwarmSettings(rgbd=Path("x")).pixels and SwarmSettings(from_pixels=True).pixels
-    assert not SwarmSettings().pixels
+        PixelSettings(rgbd=Path("x"), conf_threshold=-0.1)
+    assert PixelSettings(rgbd=Path("x")).enabled and PixelSettings(from_pixels=True).enabled
+    assert not PixelSettings().enabled
 
 
 def test_a_recording_is_prepared_with_its_camera_ground_truth_and_first_frames(
@@ -315,7 +320,7 @@ def test_a_recording_is_prepared_with_its_camera_ground_truth_and_first_frames(
     (folder / "groundtruth.txt").write_text("".join(f"{t:.6f} 0 0 {t} 0 0 0 1\n" for t in stamps))
     camera = {"fx": 500.0, "fy": 501.0, "cx": 300.0, "cy": 200.0, "depth_scale": 1000.0}
     (folder / "boxes.json").write_text(json.dumps({"camera": camera}))
-    settings = SwarmSettings(rgbd=folder, model=str(two_box_model), frames=4, out=tmp_path / "run")
+    settings = pixels_run(tmp_path / "run", frames=4, rgbd=folder, model=str(two_box_model))
 
     src = prepare_pixels(settings)
 
@@ -329,23 +334,34 @@ def test_a_recording_is_prepared_with_its_camera_ground_truth_and_first_frames(
     assert [f.rgb_path for f in subset] == [f.rgb_path for f in src.frames]
     assert [frame_id_of(f) for f in subset] == list(src.frame_ids)
     # An explicit camera wins over the folder's.
-    explicit = SwarmSettings(rgbd=folder, model=str(two_box_model), camera=(1.0, 2.0, 3.0, 4.0), out=tmp_path)
+    explicit = pixels_run(tmp_path, rgbd=folder, model=str(two_box_model), camera=(1.0, 2.0, 3.0, 4.0))
     assert prepare_pixels(explicit).camera == CameraIntrinsics(1.0, 2.0, 3.0, 4.0, CAM.depth_scale)
 
 
-def test_a_model_that_does_not_load_stops_the_run_before_anything_starts(tmp_path: Path) -> None:
-    folder = _write_frames(tmp_path / "rec", [_depth()])
+def test_a_model_that_does_not_load_stops_the_run_before_anything_is_rendered(tmp_path: Path) -> None:
     (tmp_path / "broken.onnx").write_bytes(b"not a model")
+    broken = pixels_run(tmp_path / "run", frames=3, from_pixels=True, model=str(tmp_path / "broken.onnx"))
     with pytest.raises(ModelError, match="cannot load it"):
-        prepare_pixels(SwarmSettings(rgbd=folder, model=str(tmp_path / "broken.onnx"), out=tmp_path / "run"))
+        prepare_pixels(broken)
     assert not (tmp_path / "run" / "rgbd").exists()
+    # The same run with a model that loads renders there: the check above is about something.
+    good = pixels_run(
+        tmp_path / "run",
+        frames=3,
+        from_pixels=True,
+        model=str(constant_v8_model(tmp_path / "good.onnx", [(CUP, 0.9, 10, 10, 50, 50)])),
+    )
+    assert (
+        prepare_pixels(good).folder == tmp_path / "run" / "rgbd"
+        and len(read_tum_rgbd(tmp_path / "run" / "rgbd")) == 3
+    )
 
 
 def test_the_detected_sequence_is_read_back_in_frame_order_with_skipped_frames_empty(
     tmp_path: Path, two_box_model: Path
 ) -> None:
     folder = _write_frames(tmp_path / "rec", [_depth()] * 5)
-    src = prepare_pixels(SwarmSettings(rgbd=folder, model=str(two_box_model), out=tmp_path / "run"))
+    src = prepare_pixels(pixels_run(tmp_path / "run", rgbd=folder, model=str(two_box_model)))
     blocks = [range(0, 3), range(3, 5)]
     data = tmp_path / "data"
     from tests.conftest import make

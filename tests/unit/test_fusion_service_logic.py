@@ -1,4 +1,4 @@
-"""The fusion service's pure logic, without a bus: early-message buffering, the
+"""The fusion robot's pure logic (swarmrec.fusion.robot), without a bus: early-message buffering, the
 neighbour check, round rules, the wire conversion, the fusion settings, and a whole
 flood on an emulated bus that delivers in any order."""
 
@@ -13,8 +13,7 @@ import pytest
 
 from swarmrec.errors import ConfigError
 from swarmrec.fusion import FloodMessage, FusionState, make_weight_law, simulate_flooding
-from swarmrec.services.config import ServiceSettings, load_settings
-from swarmrec.services.fusion import (
+from swarmrec.fusion.robot import (
     KEPT_ROUNDS,
     Broadcast,
     EarlyBuffer,
@@ -22,9 +21,10 @@ from swarmrec.services.fusion import (
     Handled,
     Handling,
     RoundError,
-    classifier_output_to_flood,
-    flood_to_classifier_output,
 )
+from swarmrec.runtime.settings import load_config
+from swarmrec.services.settings import FusionSettings, LandmarkSettings
+from swarmrec.wire.fusion import classifier_output_to_flood, flood_to_classifier_output, weight_law_from_proto
 
 N_CLASSES = 5
 UNIFORM = [1 / N_CLASSES] * N_CLASSES
@@ -338,14 +338,15 @@ def test_in_lock_step_the_robots_hear_what_the_cores_simulator_hears() -> None:
 
 
 def test_the_fusion_settings_default_to_the_papers_street() -> None:
-    s = ServiceSettings()
-    assert (s.n_classes, s.fusion_law, s.fusion_lambda, s.fusion_r_max) == (19, "paper", None, 0)
+    s, c = FusionSettings(), LandmarkSettings()
+    assert (c.n_classes, s.fusion_law, s.fusion_lambda, s.fusion_r_max) == (19, "paper", None, 0)
 
 
 def test_the_fusion_settings_come_from_the_environment_like_any_other() -> None:
     env = {"SWARMREC_FUSION_LAW": "agreement", "SWARMREC_FUSION_LAMBDA": "1.5", "SWARMREC_N_CLASSES": "7"}
-    s = load_settings(env=env)
-    assert (s.fusion_law, s.fusion_lambda, s.n_classes) == ("agreement", 1.5, 7)
+    config = load_config((FusionSettings, LandmarkSettings), env=env)
+    s = config.get(FusionSettings)
+    assert (s.fusion_law, s.fusion_lambda, config.get(LandmarkSettings).n_classes) == ("agreement", 1.5, 7)
 
 
 @pytest.mark.parametrize(
@@ -360,8 +361,9 @@ def test_the_fusion_settings_come_from_the_environment_like_any_other() -> None:
     ],
 )
 def test_bad_fusion_settings_are_refused(changes: dict[str, object], match: str) -> None:
+    component = LandmarkSettings if "n_classes" in changes else FusionSettings
     with pytest.raises(ConfigError, match=match):
-        ServiceSettings(**changes)  # type: ignore[arg-type]
+        component(**changes)  # type: ignore[arg-type]
 
 
 # --- a weight law for one round -------------------------------------------------------
@@ -390,23 +392,34 @@ def test_a_round_can_use_its_own_weight_law_and_the_next_falls_back_to_the_robot
     [("magic", None, "unknown weight law"), ("paper", -1.0, "lambda"), ("paper", math.nan, "lambda")],
 )
 def test_a_round_law_that_does_not_exist_is_a_config_error(name: str, lam: float | None, match: str) -> None:
-    from swarmrec.services.fusion import round_law
     from swarmrec.wire import messages as pb
 
     spec = pb.WeightLaw(name=name)
     if lam is not None:
         setattr(spec, "lambda", lam)
     with pytest.raises(ConfigError, match=match):
-        round_law(spec)
+        weight_law_from_proto(spec)
 
 
 def test_a_round_law_names_the_law_and_its_lambda() -> None:
     from swarmrec.fusion import PaperWeightLaw
-    from swarmrec.services.fusion import round_law
     from swarmrec.wire import messages as pb
 
-    assert round_law(pb.WeightLaw(name="paper")) == PaperWeightLaw(lam=2.0)
+    assert weight_law_from_proto(pb.WeightLaw(name="paper")) == PaperWeightLaw(lam=2.0)
     spec = pb.WeightLaw(name="paper")
     setattr(spec, "lambda", 100.0)
-    assert round_law(spec) == PaperWeightLaw(lam=100.0)
-    assert round_law(pb.WeightLaw(name="agreement")).name == "agreement"
+    assert weight_law_from_proto(spec) == PaperWeightLaw(lam=100.0)
+    assert weight_law_from_proto(pb.WeightLaw(name="agreement")).name == "agreement"
+
+
+def test_a_message_the_bus_says_came_from_someone_else_is_rejected_and_counted_in_the_round() -> None:
+    from swarmrec.fusion.robot import Reason
+
+    r = robot(0, 3)
+    r.start_round(1, UNIFORM, 0.0, [1])
+    handled = r.reject(Reason.SENDER_MISMATCH, msg(1, 1, 1, 0))
+    assert (handled.outcome, handled.reason) == (Handling.REJECTED, "sender_mismatch")
+    record = r.record()
+    assert record is not None and record.rejected == 1 and record.steps == []
+    # The true robot 1's copy is still welcome.
+    assert r.receive(msg(1, 1, 1, 0)).outcome is Handling.ACCEPTED

@@ -60,6 +60,6 @@ def test_healthcheck_passes_on_a_ready_service_and_fails_otherwise(
 
 
 def test_healthcheck_fails_when_nothing_listens() -> None:
-    from swarmrec.swarm.processes import free_port
+    from swarmrec.deployments.local import free_port
 
     assert main(["--port", str(free_port()), "--timeout", "0.5"]) == 1

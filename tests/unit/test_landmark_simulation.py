@@ -11,10 +11,8 @@ import numpy as np
 import pytest
 
 from swarmrec.errors import ConfigError
-from swarmrec.evaluation.landmarks import confusion_matrix, plot_configuration, recognition_rates
-from swarmrec.fusion import FusionState, PaperWeightLaw, generate_configuration, make_weight_law
-from swarmrec.fusion.street import SwarmConfiguration
-from swarmrec.swarm.landmarks import (
+from swarmrec.experiments.landmarks.report import confusion_matrix, plot_configuration, recognition_rates
+from swarmrec.experiments.landmarks.simulation import (
     DEFAULT_LAWS,
     VIEW_PRESETS,
     LandmarkSettings,
@@ -25,6 +23,8 @@ from swarmrec.swarm.landmarks import (
     parse_law,
     render_views,
 )
+from swarmrec.fusion import FusionState, PaperWeightLaw, generate_configuration, make_weight_law
+from swarmrec.fusion.street import SwarmConfiguration
 
 
 def test_laws_parse_from_the_command_line_form() -> None:

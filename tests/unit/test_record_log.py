@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from swarmrec.services.storage import RecordLog
+from swarmrec.runtime.storage import RecordLog
 
 RECORDS = [b"first", b"", b"\x00\x01\x02" * 100, bytes(range(256))]
 

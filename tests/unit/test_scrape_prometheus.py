@@ -16,7 +16,7 @@ from urllib.parse import parse_qs, urlparse
 
 import pytest
 
-from swarmrec.swarm.scrape import _rfc3339, scrape_prometheus
+from swarmrec.deployments.metrics import _rfc3339, scrape_prometheus
 
 FEDERATE = """# TYPE swarmrec_message_bytes_sent_total untyped
 swarmrec_message_bytes_sent_total{instance="r0-descriptor:9464",job="swarmrec",message="PartialQuery",robot="0",scope="swarm",service="descriptor"} 120 1795265653538

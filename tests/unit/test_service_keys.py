@@ -9,8 +9,7 @@ import pytest
 import zenoh
 
 from swarmrec.errors import ConfigError
-from swarmrec.services.keys import (
-    KINDS,
+from swarmrec.runtime.keys import (
     alive,
     alive_all,
     endpoint,
@@ -18,6 +17,9 @@ from swarmrec.services.keys import (
     parse_alive,
     validate_swarm_name,
 )
+from swarmrec.services.registry import kinds
+
+KINDS = kinds()
 
 
 def test_endpoint_keys_are_swarm_kind_robot_name() -> None:

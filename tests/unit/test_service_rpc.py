@@ -9,9 +9,10 @@ import pytest
 import zenoh
 from prometheus_client import generate_latest
 
-from swarmrec.services.metrics import ServiceMetrics, scope_between
-from swarmrec.services.rpc import caller_robot, encoding_for, schema_of
-from swarmrec.swarm.scrape import Scrape, parse_metrics
+from swarmrec.deployments.metrics import Scrape, parse_metrics
+from swarmrec.runtime.metrics import ServiceMetrics, scope_between
+from swarmrec.runtime.rpc import caller_robot, encoding_for, schema_of
+from swarmrec.services.metrics import ShardMetrics
 from swarmrec.wire import messages as pb
 
 # --- schemas and callers --------------------------------------------------------------
@@ -131,8 +132,9 @@ def rendered_metrics() -> str:
     m.count_sent("CandidatesReply", "swarm", 21)
     m.count_sent("CandidatesReply", "robot", 5)
     m.count_received("PartialQuery", "swarm", 29)
-    m.shard_partial_queries.inc(2)
-    m.stored_descriptors.set(17)
+    shard = ShardMetrics.create(m.registry)
+    shard.partial_queries.inc(2)
+    shard.stored_descriptors.set(17)
     m.peer_failures.labels("verify", "timeout").inc()
     m.request_seconds.labels("query").observe(0.0015)
     text: str = generate_latest(m.registry).decode("utf-8")
@@ -158,6 +160,15 @@ def test_the_service_info_sample_names_the_process() -> None:
     series = parse_metrics(rendered_metrics())
     info = (("robot", "3"), ("service", "index-shard"), ("swarm", "s"))
     assert series[("swarmrec_service_info", info)] == 1.0
+
+
+def test_a_shard_exports_shard_metrics_and_nothing_of_fusion() -> None:
+    from swarmrec.services.registry import spec
+
+    names = {m.name for m in spec("index-shard").metrics.describe()}  # type: ignore[union-attr]
+    assert names == {"swarmrec_shard_partial_queries_total", "swarmrec_shard_stored_descriptors"}
+    every = {m.name for m in ServiceMetrics.describe()}
+    assert not any("fusion" in n or "detector" in n for n in every | names)
 
 
 def test_parse_metrics_keys_labels_sorted_by_name() -> None:

@@ -13,12 +13,14 @@ class ServiceKind(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     SERVICE_KIND_INDEX_SHARD: _ClassVar[ServiceKind]
     SERVICE_KIND_VERIFIER: _ClassVar[ServiceKind]
     SERVICE_KIND_FUSION: _ClassVar[ServiceKind]
+    SERVICE_KIND_ROUTER: _ClassVar[ServiceKind]
 SERVICE_KIND_UNSPECIFIED: ServiceKind
 SERVICE_KIND_DETECTOR: ServiceKind
 SERVICE_KIND_DESCRIPTOR: ServiceKind
 SERVICE_KIND_INDEX_SHARD: ServiceKind
 SERVICE_KIND_VERIFIER: ServiceKind
 SERVICE_KIND_FUSION: ServiceKind
+SERVICE_KIND_ROUTER: ServiceKind
 
 class MemberInfo(_message.Message):
     __slots__ = ("kind", "robot_id", "label_lo", "label_hi", "version", "n_labels", "metrics_url", "swarm", "stored_items")

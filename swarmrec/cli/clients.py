@@ -1,0 +1,151 @@
+"""``swarmrec query``, ``members`` and ``loop-closures``: ask a running swarm, from any host
+that reaches its router."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from swarmrec.cli.common import Subparsers
+from swarmrec.client import SwarmClient
+from swarmrec.core.presets import PRESETS
+from swarmrec.datasets.constellations import parse_constellation
+from swarmrec.datasets.labels import LabelMap, label_names
+from swarmrec.errors import ConfigError
+
+__all__ = ["add"]
+
+
+def add(sub: Subparsers) -> None:
+    def common(p: argparse.ArgumentParser) -> None:
+        p.add_argument(
+            "--connect",
+            default="tcp/127.0.0.1:7447",
+            help="router endpoint(s), comma-separated (default tcp/127.0.0.1:7447)",
+        )
+        p.add_argument("--swarm", default="local", help="swarm name (default local)")
+        p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for answers (default 5)")
+        p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+
+    p = sub.add_parser("query", help="ask a running swarm where a constellation was seen (nothing is stored)")
+    p.add_argument(
+        "constellation", type=Path, help="a constellation file (one 'label x y z' line per object)"
+    )
+    p.add_argument("--labels", type=Path, help="label list (default: COCO 80)")
+    p.add_argument("--preset", choices=sorted(PRESETS), default="paper", help="(default paper)")
+    p.add_argument("--top", type=int, default=10, help="matches to show (default 10)")
+    common(p)
+    p.set_defaults(handler=_query)
+    p = sub.add_parser("members", help="list a running swarm's live services and shard label ranges")
+    common(p)
+    p.set_defaults(handler=_members)
+    p = sub.add_parser("loop-closures", help="fetch the loop closures a robot has found")
+    p.add_argument("robot", type=int, help="robot id")
+    p.add_argument("--min-score", type=float, default=0.0, help="only closures at least this good")
+    common(p)
+    p.set_defaults(handler=_loop_closures)
+
+
+def _client(args: argparse.Namespace) -> SwarmClient:
+    return SwarmClient(
+        [e.strip() for e in args.connect.split(",") if e.strip()], args.swarm, timeout_s=args.timeout
+    )
+
+
+def _query(args: argparse.Namespace) -> int:
+    names = label_names(args.labels)
+    try:
+        text = args.constellation.read_text(encoding="utf-8")
+    except OSError as e:
+        raise ConfigError(f"cannot read {args.constellation}: {e.strerror}") from None
+    constellation = parse_constellation(text, LabelMap(names), str(args.constellation))
+    with _client(args) as swarm:
+        result = swarm.query(constellation, preset=args.preset)
+    matches = result.matches[: args.top]
+    if args.json:
+        print(
+            json.dumps(
+                {
+                    "matches": [
+                        {
+                            "robot": m.match_robot_id,
+                            "frame": m.match_frame_index,
+                            "score": m.score,
+                            "semantic_score": m.semantic_score,
+                            "n_matched": m.n_matched,
+                        }
+                        for m in matches
+                    ],
+                    "candidates": result.n_candidates,
+                    "verified_robots": result.verified_robots,
+                    "failed_shards": result.failed_shards,
+                    "failed_verifiers": result.failed_verifiers,
+                    "duration_ms": result.duration_ms,
+                }
+            )
+        )
+    else:
+        print(
+            f"{len(result.matches)} matches from {result.n_candidates} candidates "
+            f"(verified by robots {result.verified_robots}) in {result.duration_ms:.1f} ms"
+        )
+        print(f"{'rank':>4} {'robot':>5} {'frame':>6} {'score':>8} {'semantic':>8} {'objects':>7}")
+        for rank, m in enumerate(matches, 1):
+            print(
+                f"{rank:>4} {m.match_robot_id:>5} {m.match_frame_index:>6} {m.score:>8.4f} "
+                f"{m.semantic_score:>8.4f} {m.n_matched:>7}"
+            )
+    if not result.complete:
+        print(
+            f"warning: no answer from shards {result.failed_shards}, verifiers {result.failed_verifiers}",
+            file=sys.stderr,
+        )
+        return 3
+    return 0
+
+
+def _members(args: argparse.Namespace) -> int:
+    with _client(args) as swarm:
+        members = swarm.members()
+    if args.json:
+        print(json.dumps([m.__dict__ for m in members]))
+        return 0 if members else 3
+    if not members:
+        print(f"no live member in swarm {args.swarm!r}", file=sys.stderr)
+        return 3
+    print(f"{'service':<12} {'robot':>5} {'labels':>10} {'stored':>7} {'version':>8}  metrics")
+    for m in members:
+        rng = f"{m.label_range[0]}-{m.label_range[1]}" if m.label_range else ""
+        print(f"{m.kind:<12} {m.robot:>5} {rng:>10} {m.stored_items:>7} {m.version:>8}  {m.metrics_url}")
+    return 0
+
+
+def _loop_closures(args: argparse.Namespace) -> int:
+    with _client(args) as swarm:
+        closures = swarm.loop_closures(args.robot, args.min_score)
+    if args.json:
+        print(
+            json.dumps(
+                [
+                    {
+                        "query_frame": c.query_frame_index,
+                        "match_robot": c.match_robot_id,
+                        "match_frame": c.match_frame_index,
+                        "score": c.score,
+                        "n_matched": c.n_matched,
+                    }
+                    for c in closures
+                ]
+            )
+        )
+        return 0
+    print(f"robot {args.robot}: {len(closures)} loop closures")
+    print(f"{'frame':>6} {'robot':>5} {'frame':>6} {'score':>8} {'objects':>7}")
+    for c in closures:
+        print(
+            f"{c.query_frame_index:>6} {c.match_robot_id:>5} {c.match_frame_index:>6} {c.score:>8.4f} "
+            f"{c.n_matched:>7}"
+        )
+    return 0

@@ -1,0 +1,183 @@
+"""``swarmrec run``: the main job, place recognition through a swarm (local processes,
+or a running compose swarm with ``--attach``)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from swarmrec.cli.common import Subparsers, add_dataset_flags, dataset_source
+from swarmrec.deployments.compose import ComposeDeployment
+from swarmrec.experiments.places import PixelSettings, PlacesSettings, PlacesSummary, main
+from swarmrec.experiments.places.report import DetectorFigures
+
+__all__ = ["add", "print_summary", "run"]
+
+DEFAULT_OUT = Path("runs/swarm")
+
+
+def add(sub: Subparsers) -> None:
+    p = sub.add_parser(
+        "run",
+        help="the main job: a local swarm of N robots (real processes over a real zenoh router) "
+        "replays a dataset and reports",
+        description=(
+            "Start a zenoh router and every robot's detector, descriptor, index-shard and verifier as "
+            "separate processes on this machine, replay the dataset split into N sub-trajectories, "
+            "and write the report: loop closures, precision-recall against ground truth, bytes per "
+            "query and shard load scraped from the services' Prometheus metrics, query latency."
+        ),
+    )
+    add_dataset_flags(p)
+    p.add_argument("--robots", type=int, default=10, help="robots in the swarm (default 10)")
+    p.add_argument(
+        "--pace",
+        default="lockstep",
+        help="lockstep (default; identical to the offline evaluation), fast, or frames per second",
+    )
+    p.add_argument("--swarm", default="local", help="swarm name (the key expressions' swarm segment)")
+    p.add_argument(
+        "--timeout", type=float, default=5.0, help="seconds a service waits for a peer (default 5)"
+    )
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output folder")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    p.add_argument(
+        "--no-offline-check",
+        action="store_true",
+        help="skip comparing the pair scores with the offline evaluation",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    pixels = p.add_argument_group(
+        "from pixels",
+        "detectors find objects in RGB-D frames with an ONNX model instead of replaying constellations "
+        "(docs/detector.md)",
+    )
+    pixels.add_argument(
+        "--from-pixels",
+        action="store_true",
+        help="render the synthetic world (--seed, --frames) as RGB-D frames into OUT/rgbd and detect in them",
+    )
+    pixels.add_argument(
+        "--rgbd",
+        type=Path,
+        metavar="DIR",
+        help="a TUM-format RGB-D folder (rgb.txt, depth.txt, images; groundtruth.txt for precision-recall)",
+    )
+    pixels.add_argument(
+        "--model",
+        default="",
+        metavar="ONNX",
+        help="a YOLO-style ONNX export (v5 or v8 output, one class per label; default: the project's model)",
+    )
+    pixels.add_argument(
+        "--conf-threshold",
+        type=float,
+        help="keep boxes at least this confident (default: the project's model's recommended one, else 0.25)",
+    )
+    pixels.add_argument(
+        "--detector-threads", type=int, default=1, help="onnxruntime threads per detector (default 1)"
+    )
+    pixels.add_argument(
+        "--camera",
+        type=_camera,
+        metavar="FX,FY,CX,CY",
+        help="depth camera intrinsics in pixels (default: a render's own, else TUM freiburg3's)",
+    )
+    pixels.add_argument("--depth-scale", type=float, help="depth units per metre (default 5000, TUM's)")
+    p.add_argument(
+        "--attach",
+        type=Path,
+        metavar="DIR",
+        help="start nothing: replay through the running swarm that `swarmrec compose up --out DIR` "
+        "started (its dataset, robots and preset; --pace, --out, --no-plots still apply)",
+    )
+    p.set_defaults(handler=run)
+
+
+def _camera(text: str) -> tuple[float, float, float, float]:
+    try:
+        fx, fy, cx, cy = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected FX,FY,CX,CY such as 535.4,539.2,320.1,247.6, got {text!r}"
+        ) from None
+    return fx, fy, cx, cy
+
+
+def run(args: argparse.Namespace) -> int:
+    common = {
+        "pace": args.pace,
+        "plots": not args.no_plots,
+        "progress": not args.quiet,
+        "check_offline": not args.no_offline_check,
+    }
+    if args.attach is not None:
+        deployment = ComposeDeployment(args.attach)
+        out = args.out if args.out != DEFAULT_OUT else args.attach / "report"
+        settings = PlacesSettings.from_record(deployment.info.experiment, out=out, **common)
+        summary = main(settings, deployment)
+    else:
+        settings = PlacesSettings(
+            source=dataset_source(args),
+            robots=args.robots,
+            preset=args.preset,
+            swarm=args.swarm,
+            request_timeout_s=args.timeout,
+            out=args.out,
+            pixels=PixelSettings(
+                from_pixels=args.from_pixels,
+                rgbd=args.rgbd,
+                model=args.model,
+                conf_threshold=args.conf_threshold,
+                detector_threads=args.detector_threads,
+                camera=args.camera,
+                depth_scale=args.depth_scale,
+            ),
+            **common,
+        )
+        summary = main(settings)
+    print_summary(summary, settings.out)
+    return 0
+
+
+def print_summary(s: PlacesSummary, out: Path) -> None:
+    q, b, load, sw = s.queries, s.bytes, s.shard_load, s.swarm
+    where = f"{sw.processes} processes" if sw.processes else sw.deployment
+    frames = f"{s.dataset.frames} frames, {where}"
+    print(f"swarm of {sw.robots} robots on {s.dataset.name} ({frames}), pace {sw.pace}")
+    auc = f"AUC {s.auc:.4f}" if s.auc is not None else "AUC n/a (no ground truth)"
+    if s.detector is not None:
+        _print_detector(s.detector)
+    print(f"  {q.queried} queries, {s.loop_closures.count} loop closures, {auc}")
+    lat = q.latency_ms
+    if lat:
+        print(f"  query latency p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms")
+    print(f"  measured bytes between robots: {b.per_query:.1f} B per query ({b.per_frame:.1f} B per frame)")
+    print(f"  partial queries per shard {load.partial_queries}; busiest / mean = {load.balance_ratio:.2f}")
+    if s.offline_check is not None:
+        oc = s.offline_check
+        verdict = "identical" if oc.identical else f"DIFFERENT ({oc})"
+        print(f"  pair scores vs offline decentralized evaluation: {verdict}")
+    if q.missing_slots:
+        print(f"  missing answers: {q.missing_slots} (by robot {q.missing_by_robot})")
+    if s.scrape_failed:
+        print(f"  metrics not read from: {', '.join(s.scrape_failed)}")
+    t = s.timings
+    start = f"start {t['start_s']:.1f} s, " if "start_s" in t else ""
+    print(f"  time: {start}replay {t['replay_s']:.1f} s, total {t['total_s']:.1f} s")
+    print(f"  written to {out}/ (summary.json, pairs.csv, loop_closures.csv, *.png)")
+
+
+def _print_detector(d: DetectorFigures) -> None:
+    if d.render:
+        r = d.render
+        print(f"  rendered {r['frames']} RGB-D frames in {r['total_s']:.1f} s into {r['folder']}")
+    skipped = ", ".join(f"{k} {v}" for k, v in d.skipped.items()) or "none"
+    dropped = sum(d.boxes_dropped.values())
+    stages = ", ".join(f"{k} {v:.1f} ms" for k, v in d.stage_ms_mean.items())
+    print(
+        f"  detector {Path(d.model).name} (conf {d.conf_threshold:g}): {d.frames} frames, "
+        f"skipped: {skipped}; {d.objects_per_frame:.1f} objects per frame, {dropped} boxes dropped (no depth)"
+    )
+    if stages:
+        print(f"  detector time per frame: {stages}")

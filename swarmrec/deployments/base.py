@@ -1,0 +1,151 @@
+"""What every deployment does, and what it is asked to run.
+
+A :class:`SwarmSpec` says what a swarm is: its bus settings (name, robot count,
+timeouts), the service kinds each robot runs (a workload of the registry) and
+the settings components they share (place recognition, the detector's dataset,
+fusion ...). A :class:`Deployment` runs a spec somewhere (local processes, a
+compose project, a Kubernetes namespace) behind five calls::
+
+    deployment.start(spec)        # or check that the swarm already running is this spec
+    deployment.wait_ready()       # every service's liveliness token is up
+    deployment.endpoint           # the router endpoint a client connects to
+    deployment.metrics()          # the services' counters of this run
+    deployment.stop()             # exit codes of what it started
+
+Experiments (:mod:`swarmrec.experiments`) take a deployment and never know which
+kind it is.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+from swarmrec.deployments.metrics import Scrape
+from swarmrec.errors import ConfigError, SwarmrecError
+from swarmrec.runtime.settings import BusSettings, Component, Config, StorageSettings, to_env, to_flags
+from swarmrec.services import registry
+
+__all__ = ["Deployment", "DeploymentError", "SwarmSpec", "SwarmStartError", "config_env", "config_flags"]
+
+
+class DeploymentError(SwarmrecError):
+    """A deployment could not start, reach or stop its swarm."""
+
+
+class SwarmStartError(DeploymentError):
+    """A service process exited or never became ready."""
+
+
+@dataclass(frozen=True)
+class SwarmSpec:
+    """A swarm to deploy: a router, and on each of ``bus.n_robots`` robots the ``kinds``."""
+
+    bus: BusSettings
+    kinds: tuple[str, ...]
+    #: Settings shared by the robots' services; a kind takes the components it reads
+    #: (the registry says which) and the defaults of any not given.
+    components: tuple[Component, ...] = ()
+    #: The workload's name (``places``, ``landmarks``): compose files and reports show it.
+    workload: str = ""
+    #: Per-service overrides: ``{(kind, robot): (components...)}`` (a test's one odd robot).
+    overrides: dict[tuple[str, int], tuple[Component, ...]] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for kind in self.kinds:
+            if registry.spec(kind).scope != "robot":
+                raise ConfigError(f"{kind} runs once per swarm, not on each robot")
+        kinds = [type(c) for c in self.components]
+        if len(set(kinds)) != len(kinds):
+            raise ConfigError("a settings component appears twice in the swarm spec")
+
+    @property
+    def robots(self) -> int:
+        return self.bus.n_robots
+
+    @property
+    def swarm(self) -> str:
+        return self.bus.swarm
+
+    def expected(self) -> set[tuple[str, int]]:
+        """Every (kind, robot) the swarm runs besides the router."""
+        return {(k, r) for r in range(self.robots) for k in self.kinds}
+
+    def component(self, kind: type[Component]) -> Component | None:
+        return next((c for c in self.components if type(c) is kind), None)
+
+    def config_for(
+        self,
+        kind: str,
+        robot: int,
+        *,
+        connect: tuple[str, ...] = (),
+        listen: tuple[str, ...] = (),
+        data_dir: Path | None = None,
+        metrics_port: int | None = None,
+        metrics_host: str | None = None,
+    ) -> Config:
+        """The whole configuration of ``kind`` on ``robot`` (the router: robot 0)."""
+        entry = registry.spec(kind)
+        bus_changes: dict[str, object] = {"robot": robot}
+        for name, value in (("connect", connect), ("listen", listen)):
+            if value:
+                bus_changes[name] = value
+        if metrics_port is not None:
+            bus_changes["metrics_port"] = metrics_port
+        if metrics_host is not None:
+            bus_changes["metrics_host"] = metrics_host
+        if entry.zenoh_mode is not None:
+            bus_changes["mode"] = entry.zenoh_mode
+        parts: list[Component] = [self.bus.with_(**bus_changes)]
+        special = {type(c): c for c in self.overrides.get((kind, robot), ())}
+        for comp in entry.all_components[1:]:
+            given = special.get(comp) or self.component(comp) or comp()
+            if isinstance(given, StorageSettings) and data_dir is not None:
+                given = given.with_(data_dir=data_dir)
+            parts.append(given)
+        return Config(tuple(parts))
+
+
+def config_flags(config: Config) -> list[str]:
+    """Command-line flags that reproduce ``config`` for ``swarmrec serve`` (settings at
+    their defaults left out: the command line shows what this service has of its own)."""
+    return [flag for part in config.parts for flag in to_flags(part, only_changed=True)]
+
+
+def config_env(config: Config) -> dict[str, str]:
+    """``SWARMREC_*`` variables that reproduce ``config`` (a container's environment; settings
+    at their defaults left out)."""
+    out: dict[str, str] = {}
+    for part in config.parts:
+        out.update(to_env(part, only_changed=True))
+    return out
+
+
+class Deployment(Protocol):
+    """Where a swarm runs; see the module docstring."""
+
+    #: One line for reports: "local processes", "compose project swarmrec", ...
+    description: str
+
+    def start(self, spec: SwarmSpec, *, progress: bool = False) -> None:
+        """Start ``spec`` (or check that the swarm already running is ``spec``)."""
+        ...
+
+    @property
+    def endpoint(self) -> str:
+        """The router endpoint a client on this machine connects to."""
+        ...
+
+    def wait_ready(self, timeout_s: float = 60.0) -> None:
+        """Return when every service of the spec serves; DeploymentError when time is up."""
+        ...
+
+    def metrics(self) -> Scrape:
+        """The services' counters of this run (since ``start``)."""
+        ...
+
+    def stop(self) -> dict[str, int]:
+        """Stop what this deployment started; the exit code of each process it ran."""
+        ...

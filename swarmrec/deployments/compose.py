@@ -1,0 +1,490 @@
+"""The compose deployment: one container per service on this host, generated from a spec.
+
+:func:`write_compose` turns a :class:`~swarmrec.deployments.base.SwarmSpec`
+into files under ``settings.out``:
+
+* ``compose.yml``: the router, each robot's services of the spec and
+  Prometheus. Compose Specification, read alike by ``docker-compose`` 1.29 and
+  ``docker compose`` v2. Each service's environment is its whole configuration
+  (``SWARMREC_*``, generated from its settings components); a stateful kind (the
+  registry says which) keeps its data in a named volume; a detector's dataset
+  folder is mounted read-only at ``/data/dataset``. Only the router and
+  Prometheus are published, on loopback.
+* ``prometheus.yml``: a scrape target per service, labelled with its
+  ``service`` and ``robot``.
+* ``swarm.json``: what a client on the host needs to reach the swarm and to
+  re-run its experiment (:class:`SwarmFile`).
+
+:class:`ComposeDeployment` is the :class:`~swarmrec.deployments.base.Deployment`
+of such a swarm: it checks the running swarm is the experiment's spec, reads
+its counters from Prometheus (this run's only: a baseline is taken at start)
+and leaves the containers running (:func:`up` and :func:`down` start and
+remove them; deploy/engine.sh installs a compose tool when none is).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import swarmrec
+from swarmrec.client import SwarmClient
+from swarmrec.deployments.base import DeploymentError, SwarmSpec, config_env
+from swarmrec.deployments.metrics import Scrape, scrape_prometheus
+from swarmrec.errors import ConfigError
+from swarmrec.runtime.settings import BusSettings
+from swarmrec.services import registry
+from swarmrec.services.settings import DetectorSettings
+
+__all__ = [
+    "MAX_ROBOTS",
+    "ComposeDeployment",
+    "ComposeError",
+    "ComposeSettings",
+    "SwarmFile",
+    "compose_command",
+    "compose_document",
+    "down",
+    "prometheus_document",
+    "read_swarm_file",
+    "render_yaml",
+    "service_name",
+    "up",
+    "wait_healthy",
+    "write_compose",
+]
+
+#: Largest swarm the generator writes (ten robots are 42 containers; more fit, but are untested).
+MAX_ROBOTS = 16
+METRICS_PORT = 9464  # every container serves its metrics here (its own network namespace)
+ROUTER_PORT = 7447
+DATA_DIR = Path("/var/lib/swarmrec")
+DATASET_MOUNT = "/data/dataset"
+LABELS_MOUNT = "/data/labels.txt"
+
+
+class ComposeError(DeploymentError):
+    """The compose tool failed, or the swarm did not become healthy."""
+
+
+@dataclass(frozen=True)
+class ComposeSettings:
+    """Where and how a spec becomes containers; validated on construction."""
+
+    #: Compose project name: prefixes every container, network and volume.
+    project: str = "swarmrec"
+    out: Path = Path("runs/compose")
+    image: str = f"swarmrec:{swarmrec.__version__}"
+    prometheus_image: str = f"swarmrec-prometheus:{swarmrec.__version__}"
+    #: Host ports, published on 127.0.0.1 only.
+    router_port: int = ROUTER_PORT
+    prometheus_port: int = 9090
+    scrape_interval_s: int = 2
+
+    def __post_init__(self) -> None:
+        problems = []
+        if not self.project or not all(c.isalnum() or c in "-_" for c in self.project):
+            problems.append(f"project must be letters, digits, - and _, got {self.project!r}")
+        elif self.project != self.project.lower():
+            problems.append(f"project must be lower case (compose lowers it), got {self.project!r}")
+        for name in ("router_port", "prometheus_port"):
+            port = getattr(self, name)
+            if not 1 <= port <= 65535:
+                problems.append(f"{name} must be 1 .. 65535, got {port}")
+        if self.router_port == self.prometheus_port:
+            problems.append("router_port and prometheus_port must differ")
+        if self.scrape_interval_s < 1:
+            problems.append(f"scrape_interval_s must be >= 1, got {self.scrape_interval_s}")
+        if problems:
+            raise ConfigError("invalid compose settings: " + "; ".join(problems))
+
+
+@dataclass(frozen=True)
+class SwarmFile:
+    """``swarm.json``: how the host reaches a containerised swarm and what it runs."""
+
+    project: str
+    swarm: str
+    robots: int
+    workload: str
+    kinds: list[str]
+    router_endpoint: str
+    prometheus_url: str
+    compose_file: str
+    #: The experiment's own record (its dataset on the host, preset, ...), to re-run it.
+    experiment: dict[str, Any] = field(default_factory=dict)
+    #: The environment every robot's services share (what the spec says), to check a run against.
+    shared_env: dict[str, str] = field(default_factory=dict)
+
+
+def service_name(kind: str, robot: int) -> str:
+    """A robot's service in the compose file, and its host name on the swarm's network
+    (compose prefixes container names with the project)."""
+    return f"r{robot}-{kind}"
+
+
+def _container_spec(spec: SwarmSpec) -> SwarmSpec:
+    """``spec`` with host paths replaced by the mounts the containers see."""
+    detector = spec.component(DetectorSettings)
+    if not isinstance(detector, DetectorSettings) or not detector.dataset:
+        return spec
+    mounted = detector.with_(
+        dataset=DATASET_MOUNT, labels_file=Path(LABELS_MOUNT) if detector.labels_file is not None else None
+    )
+    parts = tuple(mounted if type(c) is DetectorSettings else c for c in spec.components)
+    return SwarmSpec(spec.bus, spec.kinds, parts, spec.workload, dict(spec.overrides))
+
+
+def _environment(spec: SwarmSpec, kind: str, robot: int) -> dict[str, str]:
+    entry = registry.spec(kind)
+    config = spec.config_for(
+        kind,
+        robot,
+        connect=(f"tcp/router:{ROUTER_PORT}",),
+        listen=(f"tcp/0.0.0.0:{ROUTER_PORT}",) if kind == "router" else (),
+        data_dir=DATA_DIR if entry.stateful else None,
+        metrics_port=METRICS_PORT,
+        metrics_host="0.0.0.0",
+    )
+    return config_env(config)
+
+
+def _robot_service(spec: SwarmSpec, s: ComposeSettings, kind: str, robot: int) -> dict[str, Any]:
+    name = service_name(kind, robot)
+    svc: dict[str, Any] = {
+        "image": s.image,
+        "hostname": name,
+        "command": [kind],
+        "environment": _environment(spec, kind, robot),
+        "depends_on": {"router": {"condition": "service_healthy"}},
+        "restart": "unless-stopped",
+        "stop_grace_period": "15s",
+        "labels": {"org.swarmrec.service": kind, "org.swarmrec.robot": str(robot)},
+    }
+    volumes = []
+    if registry.spec(kind).stateful:
+        volumes.append(f"{name}-data:{DATA_DIR}")
+    detector = spec.component(DetectorSettings)
+    if kind == "detector" and isinstance(detector, DetectorSettings) and detector.dataset:
+        volumes.append(f"./dataset:{DATASET_MOUNT}:ro")
+        if detector.labels_file is not None:
+            volumes.append(f"./labels.txt:{LABELS_MOUNT}:ro")
+    if volumes:
+        svc["volumes"] = volumes
+    return svc
+
+
+def compose_document(spec: SwarmSpec, s: ComposeSettings) -> dict[str, Any]:
+    """The compose file as a dict (the Compose Specification: no ``version`` key)."""
+    spec = _container_spec(spec)
+    services: dict[str, Any] = {
+        "router": {
+            "image": s.image,
+            "hostname": "router",
+            "command": ["router"],
+            "environment": _environment(spec, "router", 0),
+            "ports": [f"127.0.0.1:{s.router_port}:{ROUTER_PORT}"],
+            "restart": "unless-stopped",
+            "stop_grace_period": "15s",
+            "labels": {"org.swarmrec.service": "router", "org.swarmrec.robot": "0"},
+        }
+    }
+    volumes: dict[str, Any] = {}
+    for robot in range(spec.robots):
+        for kind in spec.kinds:
+            name = service_name(kind, robot)
+            services[name] = _robot_service(spec, s, kind, robot)
+            if registry.spec(kind).stateful:
+                volumes[f"{name}-data"] = {}
+    services["prometheus"] = {
+        "image": s.prometheus_image,
+        "hostname": "prometheus",
+        "volumes": ["./prometheus.yml:/etc/prometheus/prometheus.yml:ro", "prometheus-data:/prometheus"],
+        "ports": [f"127.0.0.1:{s.prometheus_port}:9090"],
+        "restart": "unless-stopped",
+        "labels": {"org.swarmrec.service": "prometheus", "org.swarmrec.robot": "0"},
+    }
+    volumes["prometheus-data"] = {}
+    return {"services": services, "volumes": volumes}
+
+
+def prometheus_document(spec: SwarmSpec, s: ComposeSettings) -> dict[str, Any]:
+    """Prometheus' configuration: every service of the swarm, labelled by service and robot."""
+    groups: list[dict[str, Any]] = [
+        {"targets": [f"router:{METRICS_PORT}"], "labels": {"service": "router", "robot": "0"}}
+    ]
+    for robot in range(spec.robots):
+        for kind in spec.kinds:
+            groups.append(
+                {
+                    "targets": [f"{service_name(kind, robot)}:{METRICS_PORT}"],
+                    "labels": {"service": kind, "robot": str(robot)},
+                }
+            )
+    return {
+        "global": {"scrape_interval": f"{s.scrape_interval_s}s", "scrape_timeout": "1s"},
+        "scrape_configs": [
+            # honor_labels: the services' own info series carry the same service and robot labels.
+            {"job_name": "swarmrec", "honor_labels": True, "static_configs": groups}
+        ],
+    }
+
+
+def render_yaml(doc: Any, indent: int = 0) -> str:
+    """``doc`` (dicts, lists, strings, numbers, booleans) as block-style YAML.
+
+    Every string is written double-quoted with JSON escapes, which YAML reads
+    back unchanged: no value ("on", "0755", "1.10") is ever re-typed.
+    """
+    pad = "  " * indent
+    if isinstance(doc, dict):
+        if not doc:
+            return "{}"
+        lines = []
+        for key, value in doc.items():
+            k = str(key)
+            if isinstance(value, dict | list) and value:
+                lines.append(f"{pad}{k}:\n{render_yaml(value, indent + 1)}")
+            else:
+                lines.append(f"{pad}{k}: {render_yaml(value, 0)}")
+        return "\n".join(lines)
+    if isinstance(doc, list):
+        if not doc:
+            return "[]"
+        lines = []
+        for item in doc:
+            if isinstance(item, dict) and item:
+                body = render_yaml(item, indent + 1)
+                lines.append(f"{pad}- {body.lstrip()}")
+            else:
+                lines.append(f"{pad}- {render_yaml(item, 0)}")
+        return "\n".join(lines)
+    if isinstance(doc, bool):
+        return "true" if doc else "false"
+    if isinstance(doc, int | float):
+        return json.dumps(doc)
+    if doc is None:
+        return "null"
+    return json.dumps(str(doc))
+
+
+def _shared_env(spec: SwarmSpec) -> dict[str, str]:
+    """The settings every robot's services share: the environment of each robot-0 service,
+    less what differs per robot or per container (robot id, addresses, storage)."""
+    out: dict[str, str] = {}
+    per_service = {"SWARMREC_ROBOT", "SWARMREC_DATA_DIR", "SWARMREC_FSYNC", "SWARMREC_MODE"}
+    for kind in spec.kinds:
+        env = config_env(spec.config_for(kind, 0))
+        out.update({k: v for k, v in env.items() if k not in per_service})
+    return out
+
+
+def write_compose(
+    spec: SwarmSpec, s: ComposeSettings, *, experiment: dict[str, Any] | None = None
+) -> SwarmFile:
+    """Write compose.yml, prometheus.yml and swarm.json for ``spec`` under ``s.out``.
+
+    A detector's dataset (a folder or a zip on the host) is copied to ``s.out/dataset``,
+    the folder the compose file mounts, unless it is that folder already.
+    """
+    if not 1 <= spec.robots <= MAX_ROBOTS:
+        raise ConfigError(f"a compose swarm has 1 .. {MAX_ROBOTS} robots, got {spec.robots}")
+    out = s.out.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    detector = spec.component(DetectorSettings)
+    if isinstance(detector, DetectorSettings) and detector.dataset:
+        _copy_dataset(Path(detector.dataset), out / "dataset")
+        if detector.labels_file is not None:
+            shutil.copy2(detector.labels_file, out / "labels.txt")
+    compose_file = out / "compose.yml"
+    header = (
+        f"# Generated by `swarmrec compose` (swarmrec {swarmrec.__version__}): {spec.robots} robots, "
+        f"{spec.workload or 'custom'} workload, swarm {spec.swarm!r}.\n"
+        "# Edit the generator (swarmrec/deployments/compose.py), not this file.\n"
+    )
+    compose_file.write_text(header + render_yaml(compose_document(spec, s)) + "\n")
+    (out / "prometheus.yml").write_text(header + render_yaml(prometheus_document(spec, s)) + "\n")
+    info = SwarmFile(
+        project=s.project,
+        swarm=spec.swarm,
+        robots=spec.robots,
+        workload=spec.workload,
+        kinds=list(spec.kinds),
+        router_endpoint=f"tcp/127.0.0.1:{s.router_port}",
+        prometheus_url=f"http://127.0.0.1:{s.prometheus_port}",
+        compose_file=str(compose_file),
+        experiment=dict(experiment or {}),
+        shared_env=_shared_env(_container_spec(spec)),
+    )
+    (out / "swarm.json").write_text(json.dumps(asdict(info), indent=2) + "\n")
+    return info
+
+
+def _copy_dataset(source: Path, target: Path) -> None:
+    if source.resolve() == target.resolve():
+        return
+    if target.exists():
+        shutil.rmtree(target)
+    if source.is_dir():
+        shutil.copytree(source, target)
+    else:
+        target.mkdir(parents=True)
+        shutil.copy2(source, target / source.name)
+
+
+def read_swarm_file(folder: Path) -> SwarmFile:
+    """The ``swarm.json`` written by :func:`write_compose` in ``folder``."""
+    path = folder / "swarm.json"
+    try:
+        data = json.loads(path.read_text())
+        info = SwarmFile(**data)
+    except FileNotFoundError:
+        hint = f"swarmrec compose up --out {folder}"
+        raise ConfigError(f"{path} not found: write it first with `{hint}`") from None
+    except (json.JSONDecodeError, TypeError) as e:
+        raise ConfigError(f"{path} is not a swarm file written by this version of swarmrec: {e}") from None
+    unknown = [k for k in info.kinds if k not in registry.REGISTRY]
+    if unknown:
+        raise ConfigError(f"{path}: unknown service kinds {unknown}; kinds: {', '.join(registry.REGISTRY)}")
+    return info
+
+
+class ComposeDeployment:
+    """A compose swarm that already runs (``swarmrec compose up``), as a Deployment."""
+
+    def __init__(self, folder: Path, *, wait_s: float = 120.0) -> None:
+        self.folder = folder
+        self.info = read_swarm_file(folder)
+        self.description = f"compose project {self.info.project}"
+        self.wait_s = wait_s
+        self._baseline: Scrape | None = None
+        self._spec: SwarmSpec | None = None
+
+    @property
+    def endpoint(self) -> str:
+        return self.info.router_endpoint
+
+    def start(self, spec: SwarmSpec, *, progress: bool = False) -> None:
+        """Check that the running swarm is ``spec`` and take the counters' baseline."""
+        info, problems = self.info, []
+        if spec.workload and spec.workload != info.workload:
+            problems.append(f"it runs the {info.workload} workload, not {spec.workload}")
+        if tuple(info.kinds) != spec.kinds:
+            problems.append(f"its robots run {info.kinds}, not {list(spec.kinds)}")
+        if info.robots != spec.robots:
+            problems.append(f"it has {info.robots} robots, not {spec.robots}")
+        if info.swarm != spec.swarm:
+            problems.append(f"its swarm is {info.swarm!r}, not {spec.swarm!r}")
+        if not problems:
+            wanted = _shared_env(_container_spec(spec))
+            differ = sorted(
+                k for k in wanted.keys() | info.shared_env.keys() if wanted.get(k) != info.shared_env.get(k)
+            )
+            if differ:
+                shown = ", ".join(
+                    f"{k}={info.shared_env.get(k)!r} (wanted {wanted.get(k)!r})" for k in differ[:5]
+                )
+                problems.append(f"its settings differ: {shown}")
+        if problems:
+            raise ConfigError(f"the swarm in {self.folder} is not this run's: " + "; ".join(problems))
+        self._spec = spec
+        self._baseline = scrape_prometheus(info.prometheus_url, fresh_after=time.time())
+
+    def wait_ready(self, timeout_s: float | None = None) -> None:
+        spec = self._spec
+        if spec is None:
+            raise ConfigError("start (check) the spec first")
+        with SwarmClient([self.endpoint], spec.swarm, timeout_s=5.0) as client:
+            client.wait_for(spec.expected(), timeout_s if timeout_s is not None else self.wait_s)
+
+    def metrics(self) -> Scrape:
+        """The counters Prometheus holds now, less those at :meth:`start`."""
+        after = scrape_prometheus(self.info.prometheus_url, fresh_after=time.time())
+        return after if self._baseline is None else after.minus(self._baseline)
+
+    def stop(self) -> dict[str, int]:
+        """Nothing: the containers belong to ``swarmrec compose``; no process was started here."""
+        return {}
+
+
+def compose_command() -> list[str]:
+    """``docker compose`` (v2) when the CLI has it, else ``docker-compose`` (v1.29)."""
+    if shutil.which("docker") is not None:
+        probe = subprocess.run(["docker", "compose", "version"], capture_output=True, check=False)
+        if probe.returncode == 0:
+            return ["docker", "compose"]
+    if shutil.which("docker-compose") is not None:
+        return ["docker-compose"]
+    raise ComposeError("no compose tool found: run deploy/engine.sh (installs docker-compose)")
+
+
+def _compose(info: SwarmFile, *args: str, timeout_s: float = 600.0) -> subprocess.CompletedProcess[str]:
+    cmd = [*compose_command(), "-p", info.project, "-f", info.compose_file, *args]
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, check=False)
+    except subprocess.TimeoutExpired:
+        raise ComposeError(f"{' '.join(cmd)} did not finish in {timeout_s:g} s") from None
+    if proc.returncode != 0:
+        raise ComposeError(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
+    return proc
+
+
+def up(info: SwarmFile, timeout_s: float = 300.0) -> float:
+    """Start every container and wait until all are healthy; returns the seconds it took."""
+    t0 = time.monotonic()
+    _compose(info, "up", "-d", "--no-build", timeout_s=timeout_s)
+    wait_healthy(info.project, timeout_s - (time.monotonic() - t0))
+    return time.monotonic() - t0
+
+
+def down(info: SwarmFile, *, volumes: bool = True, timeout_s: float = 300.0) -> None:
+    """Stop and remove the containers and the network (and the named volumes)."""
+    args = ["down", "--remove-orphans", "--timeout", "15"]
+    if volumes:
+        args.append("--volumes")
+    _compose(info, *args, timeout_s=timeout_s)
+
+
+def _states(project: str) -> dict[str, str]:
+    """Health (or state, for containers without a health check) of the project's containers."""
+    ids = subprocess.run(
+        ["docker", "ps", "-aq", "--filter", f"label=com.docker.compose.project={project}"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.split()
+    if not ids:
+        return {}
+    fmt = "{{.Name}} {{if .State.Health}}{{.State.Health.Status}}{{else}}{{.State.Status}}{{end}}"
+    out = subprocess.run(["docker", "inspect", "-f", fmt, *ids], capture_output=True, text=True, check=True)
+    states = {}
+    for line in out.stdout.splitlines():
+        name, _, state = line.strip().partition(" ")
+        states[name.lstrip("/")] = state
+    return states
+
+
+def wait_healthy(project: str, timeout_s: float = 300.0) -> None:
+    """Return when every container of ``project`` is healthy; raise when one fails or time is up."""
+    deadline = time.monotonic() + timeout_s
+    states: dict[str, str] = {}
+    while time.monotonic() < deadline:
+        states = _states(project)
+        bad = {n: st for n, st in states.items() if st in ("unhealthy", "exited", "dead")}
+        if bad:
+            raise ComposeError(f"containers failed: {bad}; see `docker logs <name>`")
+        if states and all(st == "healthy" for st in states.values()):
+            return
+        time.sleep(1.0)
+    waiting = sorted(n for n, st in states.items() if st != "healthy")
+    raise ComposeError(f"not healthy after {timeout_s:g} s: {', '.join(waiting) or 'no containers'}")
+
+
+def bus_for(robots: int, swarm: str = "compose", request_timeout_s: float = 5.0) -> BusSettings:
+    """The bus settings of a compose swarm of ``robots`` (the CLI's defaults)."""
+    return BusSettings(swarm=swarm, n_robots=robots, request_timeout_s=request_timeout_s)

@@ -1,0 +1,224 @@
+"""Place recognition through a swarm: the pipeline behind ``swarmrec run``.
+
+``main(settings, deployment)`` wires the stages and knows nothing of where the
+swarm runs::
+
+    prepare      the dataset (the built-in synthetic world by default) or, from
+                 pixels, the RGB-D folder; the label ranges; the swarm's spec
+    deploy       deployment.start(spec): local processes by default, or a check
+                 that a running compose swarm is this spec (``run --attach``)
+    replay       lock-step or paced, through the detectors (:mod:`.replay`)
+    collect      the services' counters (deployment.metrics()), the loop closures
+    report       pair scores, PR/AUC, bytes, load, the check against the offline
+                 evaluation (:mod:`.report`, docs/swarm.md "The main job")
+
+In lock-step mode (the default) step t of every robot finishes before step
+t + 1 starts, exactly as the offline decentralized evaluation simulates, and
+the report checks that the swarm's pair scores equal the offline ones. From
+pixels (``--from-pixels`` renders the synthetic world, ``--rgbd`` names a
+TUM-format folder) the detectors detect objects in RGB-D frames instead of
+replaying constellations, and the report scores the constellations they made
+(:mod:`.pixels`, docs/detector.md).
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from swarmrec.client import SwarmClient
+from swarmrec.core.association import build_table, warm_up
+from swarmrec.core.presets import Preset, get_preset
+from swarmrec.core.ranges import label_bounds
+from swarmrec.core.split import split_frames
+from swarmrec.core.types import ConstellationSequence, Trajectory
+from swarmrec.datasets.constellations import write_constellations
+from swarmrec.datasets.source import load_dataset
+from swarmrec.deployments.base import Deployment, SwarmSpec
+from swarmrec.deployments.local import LocalDeployment
+from swarmrec.errors import ConfigError
+from swarmrec.evaluation.scoring import label_frequency_prior
+from swarmrec.experiments.places.pixels import PixelSource, detected_sequence, prepare_pixels, rgbd_settings
+from swarmrec.experiments.places.replay import collect_loop_closures, replay
+from swarmrec.experiments.places.report import DetectorFigures, PlacesSummary, RunRecord, write_report
+from swarmrec.experiments.places.settings import PlacesSettings
+from swarmrec.runtime.settings import Component
+from swarmrec.services.registry import WORKLOADS
+from swarmrec.services.settings import DetectorSettings, PlaceSettings
+from swarmrec.wire.codec import constellation_from_proto, constellation_to_proto
+
+__all__ = ["Prepared", "as_on_the_wire", "main", "prepare", "swarm_bounds"]
+
+IntArray = npt.NDArray[np.int64]
+
+
+def as_on_the_wire(seq: ConstellationSequence) -> ConstellationSequence:
+    """``seq`` as the services see it: positions rounded to the wire's millimetres."""
+    out = [
+        constellation_from_proto(constellation_to_proto(c, 0, 0), seq.n_labels) for c in seq.constellations
+    ]
+    return ConstellationSequence(
+        seq.frame_ids, seq.timestamps, tuple(out), seq.label_names, seq.name, dict(seq.skipped)
+    )
+
+
+def swarm_bounds(preset: Preset, robots: int, n_labels: int, seq: ConstellationSequence | None) -> IntArray:
+    """The shards' label ranges for ``preset`` (``balanced`` weighs labels by their
+    frequency in ``seq``, which RGB-D frames do not have before detection)."""
+    load = None
+    if preset.ranges == "balanced":
+        if seq is None:
+            raise ConfigError(
+                "the balanced preset balances label ranges on the dataset's label frequencies, which "
+                "RGB-D frames do not have before detection (a synthetic render has them in its "
+                "constellations/); use --preset paper"
+            )
+        load = label_frequency_prior(build_table(seq.constellations, seq.n_labels))
+    return label_bounds(preset.ranges, n_labels, robots, load)
+
+
+@dataclass(frozen=True, eq=False)
+class Prepared:
+    """The data of a run and the swarm that will replay it."""
+
+    spec: SwarmSpec
+    preset: Preset
+    bounds: IntArray
+    blocks: list[range]
+    #: The constellations replayed (None from pixels: they are detected during the run).
+    sequence: ConstellationSequence | None
+    trajectory: Trajectory | None
+    pixels: PixelSource | None
+
+
+def prepare(settings: PlacesSettings, *, dataset_dir: Path) -> Prepared:
+    """Load (or render) the data, choose the label ranges and write the swarm's spec;
+    a dataset that is not on disk as the detectors will read it is written to ``dataset_dir``."""
+    preset = get_preset(settings.preset)
+    parts: list[Component]
+    if settings.pixels.enabled:
+        px = prepare_pixels(settings)
+        n_frames, n_labels = len(px), len(px.label_names)
+        bounds = swarm_bounds(preset, settings.robots, n_labels, px.exact)
+        detector = DetectorSettings(detector_mode="rgbd", dataset=str(px.folder), labels_file=px.labels_file)
+        parts = [detector, rgbd_settings(px, settings)]
+        seq, trajectory = None, px.trajectory
+    else:
+        px = None
+        data = load_dataset(settings.source, materialize=dataset_dir)
+        seq, trajectory = data.sequence, data.trajectory
+        n_frames, n_labels = len(seq), seq.n_labels
+        bounds = swarm_bounds(preset, settings.robots, n_labels, seq)
+        assert data.folder is not None  # materialized
+        parts = [
+            DetectorSettings(detector_mode="replay", dataset=str(data.folder), labels_file=data.labels_file)
+        ]
+    places = settings.places(n_labels, tuple(int(b) for b in bounds))
+    spec = SwarmSpec(settings.bus(), WORKLOADS["places"], (places, *parts), workload="places")
+    return Prepared(spec, preset, bounds, split_frames(n_frames, settings.robots), seq, trajectory, px)
+
+
+def _local(out: Path) -> LocalDeployment:
+    """A fresh local swarm in ``out`` (stores and detections of an earlier run removed)."""
+    for old in (out / "data").glob("robot*/*/*.log"):
+        old.unlink()
+    for old in (out / "data").glob("robot*/detector/constellations/*.txt"):
+        old.unlink()
+    return LocalDeployment(data_dir=out / "data", log_dir=out / "logs")
+
+
+def main(
+    settings: PlacesSettings,
+    deployment: Deployment | None = None,
+    *,
+    on_step: Callable[[int], None] | None = None,
+    swarm_hook: Callable[[Deployment], None] | None = None,
+) -> PlacesSummary:
+    """Run the swarm (``deployment``, or local processes), write the report, return the summary.
+
+    ``on_step`` is called after each lock-step step and ``swarm_hook`` once the
+    swarm is up (tests use them to inject faults).
+    """
+    t_start = time.perf_counter()
+    out = settings.out
+    out.mkdir(parents=True, exist_ok=True)
+    prepared = prepare(settings, dataset_dir=out / "dataset")
+    spec = prepared.spec
+    if prepared.pixels is not None and not isinstance(deployment, LocalDeployment | None):
+        raise ConfigError("a run from pixels reads the detectors' constellations from a local deployment")
+    if deployment is None:
+        deployment = _local(out)
+        # Compiled once here, the verifier processes load the kernels from numba's cache.
+        warm_up()
+    timings: dict[str, float] = {"prepare_s": time.perf_counter() - t_start}
+    exit_codes: dict[str, int] = {}
+    try:
+        t0 = time.perf_counter()
+        deployment.start(spec, progress=settings.progress)
+        deployment.wait_ready()
+        timings["start_s"] = time.perf_counter() - t0
+        with SwarmClient([deployment.endpoint], spec.swarm, timeout_s=settings.request_timeout_s) as client:
+            holding = {f"{m.kind}-{m.robot}": m.stored_items for m in client.members() if m.stored_items}
+            if holding:
+                # Frames of an earlier replay would be found as loop closures of this one.
+                raise ConfigError(
+                    f"the swarm already holds data from an earlier run ({holding}); "
+                    "start it afresh (for compose: swarmrec compose down, then up)"
+                )
+            if swarm_hook is not None:
+                swarm_hook(deployment)
+            result = replay(client, prepared.blocks, settings, on_step)
+            timings["replay_s"] = result.wall_s
+            t0 = time.perf_counter()
+            metrics = deployment.metrics()
+            timings["scrape_s"] = time.perf_counter() - t0
+            closures = collect_loop_closures(client, settings.robots, result)
+    finally:
+        t0 = time.perf_counter()
+        exit_codes = deployment.stop()
+        timings["stop_s"] = time.perf_counter() - t0
+    seq, detector = prepared.sequence, None
+    if prepared.pixels is not None:
+        px = prepared.pixels
+        assert isinstance(deployment, LocalDeployment)  # checked before the run
+        seq, not_made = detected_sequence(px, deployment.data_dir, prepared.blocks)
+        shutil.rmtree(out / "detections", ignore_errors=True)
+        write_constellations(seq, out / "detections")
+        detector = DetectorFigures(
+            mode="rgbd",
+            folder=str(px.folder),
+            model=str(px.model),
+            conf_threshold=px.conf_threshold,
+            camera=asdict(px.camera),
+            frames_without_constellation=len(not_made),
+            render=px.render,
+        )
+        if px.render is not None:
+            timings["render_s"] = px.render["total_s"]
+    assert seq is not None
+    timings["total_s"] = time.perf_counter() - t_start
+    places = spec.component(PlaceSettings)
+    assert isinstance(places, PlaceSettings)
+    record = RunRecord(
+        seq=seq,
+        wire_seq=as_on_the_wire(seq),
+        trajectory=prepared.trajectory,
+        preset=prepared.preset,
+        bounds=prepared.bounds,
+        blocks=prepared.blocks,
+        replay=result,
+        metrics=metrics,
+        closures=closures,
+        exit_codes=exit_codes,
+        timings=timings,
+        deployment=deployment.description,
+        loop_closure_min_score=places.loop_closure_min_score,
+        detector=detector,
+    )
+    return write_report(settings, record)

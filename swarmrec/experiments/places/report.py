@@ -1,0 +1,450 @@
+"""The place-recognition run's report: pair scores, accuracy, bytes and load, measured.
+
+Bytes per query and the shard load come from the services' Prometheus metrics
+as the deployment read them at the end of the run, not from a formula:
+``bytes`` sums the payload bytes every service counted as sent between robots
+(``swarmrec_message_bytes_sent_total{scope="swarm"}``). The summary is a typed
+record (:class:`PlacesSummary`); ``summary.json`` is its dictionary. The files
+are described in docs/swarm.md ("The main job").
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from swarmrec.core.presets import Preset
+from swarmrec.core.types import ConstellationSequence, Trajectory
+from swarmrec.datasets.constellations import label_counts
+from swarmrec.deployments.metrics import Scrape
+from swarmrec.evaluation.bandwidth import HolderLoad
+from swarmrec.evaluation.groundtruth import ground_truth
+from swarmrec.evaluation.plots import plot_bytes, plot_holder_load, plot_pr, plot_similarity
+from swarmrec.evaluation.pr import PRCurve, precision_recall
+from swarmrec.evaluation.scoring import ScoreMatrix, decentralized_marks, score_decentralized
+from swarmrec.experiments.places.replay import Replay
+from swarmrec.experiments.places.settings import PlacesSettings
+from swarmrec.wire import messages as pb
+
+__all__ = [
+    "ByteStats",
+    "ClosureStats",
+    "DatasetInfo",
+    "DetectorFigures",
+    "OfflineCheck",
+    "PairStats",
+    "PlacesSummary",
+    "QueryStats",
+    "ShardLoad",
+    "SwarmInfo",
+    "pair_matrix",
+    "write_report",
+]
+
+
+@dataclass
+class DatasetInfo:
+    name: str
+    source: str
+    frames: int
+    labels: int
+    groundtruth: bool
+
+
+@dataclass
+class SwarmInfo:
+    robots: int
+    pace: str
+    preset: dict[str, Any]
+    label_bounds: list[int]
+    deployment: str
+    #: Processes the deployment started (0 for a swarm that was already running).
+    processes: int
+
+
+@dataclass
+class QueryStats:
+    frames_replayed: int
+    queried: int
+    missing_slots: int
+    missing_by_robot: dict[str, int]
+    failed_shard_requests: int
+    failed_verifier_requests: int
+    errors: list[str]
+    latency_ms: dict[str, float]
+    step_latency_ms: dict[str, float]
+
+
+@dataclass
+class ByteStats:
+    between_robots_total: float
+    per_query: float
+    per_frame: float
+    per_query_by_message: dict[str, float]
+    messages_per_query: dict[str, float]
+    within_robot_total: float
+    to_clients_total: float
+    note: str = (
+        "protobuf payload bytes sent between robots, summed from every service's "
+        "swarmrec_message_bytes_sent_total{scope='swarm'}; per_query divides by the frames "
+        "that queried, per_frame by every (robot, step) slot as the paper's byte model averages"
+    )
+
+
+@dataclass
+class ShardLoad:
+    partial_queries: list[int]
+    balance_ratio: float
+    note: str = (
+        "partial queries served per index shard (swarmrec_shard_partial_queries_total); "
+        "balance_ratio is the busiest shard over the mean"
+    )
+
+
+@dataclass
+class ClosureStats:
+    count: int
+    scraped_total: float
+    #: The threshold this run's descriptors published loop closures at.
+    min_score: float
+
+
+@dataclass
+class PairStats:
+    checked_positive: int
+    conflicting: int
+
+
+@dataclass
+class OfflineCheck:
+    identical: bool
+    positive_pairs_swarm: int
+    positive_pairs_offline: int
+    scores_differ: int
+    only_in_swarm: int
+    only_offline: int
+
+
+@dataclass
+class DetectorFigures:
+    """A run from pixels: how the detectors were set up and what they counted."""
+
+    mode: str
+    folder: str
+    model: str
+    conf_threshold: float
+    camera: dict[str, float]
+    frames_without_constellation: int
+    render: dict[str, Any] | None
+    frames: int = 0
+    frames_by_outcome: dict[str, int] = field(default_factory=dict)
+    skipped: dict[str, int] = field(default_factory=dict)
+    boxes_dropped: dict[str, int] = field(default_factory=dict)
+    objects: int = 0
+    objects_per_frame: float = 0.0
+    stage_ms_mean: dict[str, float] = field(default_factory=dict)
+    note: str = (
+        "scraped from the detectors' swarmrec_detector_* metrics; objects_per_frame is over "
+        "the frames a constellation was made of (detected or no_objects)"
+    )
+
+
+@dataclass
+class PlacesSummary:
+    """Everything a run reports; ``summary.json`` holds :meth:`to_dict`."""
+
+    dataset: DatasetInfo
+    swarm: SwarmInfo
+    queries: QueryStats
+    bytes: ByteStats
+    shard_load: ShardLoad
+    rejected_requests: float
+    peer_failures: dict[str, float]
+    loop_closures: ClosureStats
+    pairs: PairStats
+    scrape_failed: list[str]
+    exit_codes: dict[str, int]
+    timings: dict[str, float]
+    auc: float | None = None
+    offline_check: OfflineCheck | None = None
+    detector: DetectorFigures | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """The summary as JSON-ready data; optional parts absent from the run are left out."""
+        out = asdict(self)
+        return {k: v for k, v in out.items() if v is not None}
+
+
+def pair_matrix(
+    reports: list[pb.QueryReport], seq: ConstellationSequence, blocks: list[range], preset: Preset
+) -> tuple[ScoreMatrix, int]:
+    """The swarm's verified pairs as a ScoreMatrix over global frame indices
+    (robot r's frame f is ``blocks[r].start + f``), in the offline convention;
+    also the number of pairs reached from both sides with different scores."""
+    n = len(seq)
+    scores: dict[tuple[int, int], float] = {}
+    conflicts = 0
+    for rep in reports:
+        g = blocks[rep.robot_id].start + rep.frame_index
+        for m in rep.matches:
+            h = blocks[m.match_robot_id].start + m.match_frame_index
+            key = (min(g, h), max(g, h))
+            if key in scores and scores[key] != m.score:
+                conflicts += 1
+            scores[key] = m.score
+    keys_sorted = sorted(scores)
+    lo = np.array([k[0] for k in keys_sorted], np.int64)
+    hi = np.array([k[1] for k in keys_sorted], np.int64)
+    sizes = np.array([len(c) for c in seq.constellations])
+    valid = sizes >= preset.min_objects
+    marked = decentralized_marks(valid, blocks)
+    values = np.array([scores[k] for k in keys_sorted], np.float64)
+    return ScoreMatrix(lo, hi, values, n, preset.exclusion, ~valid, marked), conflicts
+
+
+def _positive(matrix: ScoreMatrix) -> dict[tuple[int, int], float]:
+    keep = matrix.scores > 0
+    return {
+        (int(i), int(j)): float(s)
+        for i, j, s in zip(matrix.pairs_i[keep], matrix.pairs_j[keep], matrix.scores[keep], strict=True)
+    }
+
+
+def _compare_offline(
+    matrix: ScoreMatrix,
+    wire_seq: ConstellationSequence,
+    robots: int,
+    preset: Preset,
+    bounds: npt.NDArray[np.int64],
+) -> OfflineCheck:
+    run = score_decentralized(wire_seq, robots, preset, bounds=bounds)
+    ours, theirs = _positive(matrix), _positive(run.matrix)
+    differ = sum(1 for k in ours.keys() & theirs.keys() if ours[k] != theirs[k])
+    only_swarm, only_offline = len(ours.keys() - theirs.keys()), len(theirs.keys() - ours.keys())
+    return OfflineCheck(
+        identical=differ == 0 and only_swarm == 0 and only_offline == 0,
+        positive_pairs_swarm=len(ours),
+        positive_pairs_offline=len(theirs),
+        scores_differ=differ,
+        only_in_swarm=only_swarm,
+        only_offline=only_offline,
+    )
+
+
+def _bytes(metrics: Scrape, n_queries: int, n_slots: int) -> ByteStats:
+    by_type = metrics.by_label("swarmrec_message_bytes_sent_total", "message", scope="swarm")
+    msgs = metrics.by_label("swarmrec_messages_sent_total", "message", scope="swarm")
+    total = sum(by_type.values())
+    return ByteStats(
+        between_robots_total=total,
+        per_query=total / n_queries if n_queries else 0.0,
+        per_frame=total / n_slots if n_slots else 0.0,
+        per_query_by_message={k: v / n_queries for k, v in sorted(by_type.items())} if n_queries else {},
+        messages_per_query={k: v / n_queries for k, v in sorted(msgs.items())} if n_queries else {},
+        within_robot_total=metrics.total("swarmrec_message_bytes_sent_total", scope="robot"),
+        to_clients_total=metrics.total("swarmrec_message_bytes_sent_total", scope="client"),
+    )
+
+
+def _detector_figures(detector: DetectorFigures, metrics: Scrape) -> DetectorFigures:
+    """``detector`` with what the rgbd detectors counted: frames by outcome, skips, dropped
+    boxes, objects, stage times."""
+    by_outcome = metrics.by_label("swarmrec_detector_frames_total", "outcome")
+    outcomes = {k: int(v) for k, v in sorted(by_outcome.items())}
+    made = outcomes.get("detected", 0) + outcomes.get("no_objects", 0)
+    objects = metrics.total("swarmrec_detector_objects_total")
+    sums = metrics.by_label("swarmrec_detector_stage_seconds_sum", "stage")
+    counts = metrics.by_label("swarmrec_detector_stage_seconds_count", "stage")
+    detector.frames = sum(outcomes.values())
+    detector.frames_by_outcome = outcomes
+    detector.skipped = {k: v for k, v in outcomes.items() if k not in ("detected", "no_objects")}
+    dropped = metrics.by_label("swarmrec_detector_boxes_dropped_total", "reason")
+    detector.boxes_dropped = {k: int(v) for k, v in dropped.items()}
+    detector.objects = int(objects)
+    detector.objects_per_frame = objects / made if made else 0.0
+    detector.stage_ms_mean = {k: 1e3 * sums[k] / counts[k] for k in sorted(sums) if counts.get(k)}
+    return detector
+
+
+@dataclass(frozen=True, eq=False)
+class RunRecord:
+    """What the pipeline hands the report: the data, the swarm's answers and counters."""
+
+    seq: ConstellationSequence
+    #: The sequence as the services saw it (positions as the wire carried them).
+    wire_seq: ConstellationSequence
+    trajectory: Trajectory | None
+    preset: Preset
+    bounds: npt.NDArray[np.int64]
+    blocks: list[range]
+    replay: Replay
+    metrics: Scrape
+    closures: list[pb.LoopClosure]
+    exit_codes: dict[str, int]
+    timings: dict[str, float]
+    deployment: str
+    loop_closure_min_score: float
+    detector: DetectorFigures | None = None
+
+
+def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
+    """Write the report files under ``settings.out`` and return the summary."""
+    out = settings.out
+    replay, metrics, seq, wire_seq = run.replay, run.metrics, run.seq, run.wire_seq
+    matrix, conflicts = pair_matrix(replay.reports, wire_seq, run.blocks, run.preset)
+    queried = [r for r in replay.reports if r.queried]
+    n_slots = settings.robots * max((len(b) for b in run.blocks), default=0)
+    shard_load = metrics.per_service("swarmrec_shard_partial_queries_total", "index-shard")
+    loads = [int(shard_load.get(r, 0)) for r in range(settings.robots)]
+    mean_load = float(np.mean(loads)) if loads else 0.0
+    missing_by_robot: dict[str, int] = {}
+    for r, _t in replay.missing:
+        missing_by_robot[str(r)] = missing_by_robot.get(str(r), 0) + 1
+    summary = PlacesSummary(
+        dataset=DatasetInfo(
+            name=seq.name,
+            source=settings.source.dataset,
+            frames=len(seq),
+            labels=seq.n_labels,
+            groundtruth=run.trajectory is not None,
+        ),
+        swarm=SwarmInfo(
+            robots=settings.robots,
+            pace=settings.pace,
+            preset=asdict(run.preset),
+            label_bounds=[int(b) for b in run.bounds],
+            deployment=run.deployment,
+            processes=len(run.exit_codes),
+        ),
+        queries=QueryStats(
+            frames_replayed=len(replay.reports),
+            queried=len(queried),
+            missing_slots=len(replay.missing),
+            missing_by_robot=missing_by_robot,
+            failed_shard_requests=sum(len(r.failed_shard_robot_ids) for r in replay.reports),
+            failed_verifier_requests=sum(len(r.failed_verifier_robot_ids) for r in replay.reports),
+            errors=replay.errors[:50],
+            latency_ms={k: v / 1e3 for k, v in _pct([r.duration_us for r in queried]).items()},
+            step_latency_ms={k: v * 1e3 for k, v in _pct(replay.step_seconds).items()},
+        ),
+        bytes=_bytes(metrics, len(queried), n_slots),
+        shard_load=ShardLoad(
+            partial_queries=loads,
+            balance_ratio=float(max(loads) / mean_load) if mean_load > 0 else 0.0,
+        ),
+        rejected_requests=metrics.total("swarmrec_rejected_requests_total"),
+        peer_failures=metrics.by_label("swarmrec_peer_failures_total", "reason"),
+        loop_closures=ClosureStats(
+            count=len(run.closures),
+            scraped_total=metrics.total("swarmrec_loop_closures_total"),
+            min_score=run.loop_closure_min_score,
+        ),
+        pairs=PairStats(checked_positive=int(np.count_nonzero(matrix.scores > 0)), conflicting=conflicts),
+        scrape_failed=metrics.failed,
+        exit_codes=run.exit_codes,
+        timings=run.timings,
+    )
+    if run.detector is not None:
+        summary.detector = _detector_figures(run.detector, metrics)
+    if settings.check_offline and settings.lockstep and not replay.missing:
+        summary.offline_check = _compare_offline(matrix, wire_seq, settings.robots, run.preset, run.bounds)
+    dense = matrix.dense()
+    curves: dict[str, PRCurve] = {}
+    truth = None
+    if run.trajectory is not None:
+        gt = ground_truth(wire_seq, run.trajectory, exclusion=run.preset.exclusion)
+        name = f"swarm x{settings.robots}"
+        curves[name] = precision_recall(dense, gt.closures)
+        summary.auc = curves[name].auc
+        truth = gt.closures
+    _write_pairs(out / "pairs.csv", matrix, wire_seq)
+    _write_closures(out / "loop_closures.csv", run.closures, run.blocks, seq, truth)
+    if settings.plots:
+        _plots(settings, summary, dense, curves, wire_seq, run.bounds, loads)
+    (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
+    return summary
+
+
+def _pct(values: list[float] | list[int]) -> dict[str, float]:
+    if not values:
+        return {}
+    arr = np.asarray(values, dtype=np.float64)
+    return {f"p{q}": float(np.percentile(arr, q)) for q in (50, 90, 99)} | {"mean": float(arr.mean())}
+
+
+def _write_pairs(path: Path, matrix: ScoreMatrix, seq: ConstellationSequence) -> None:
+    keep = matrix.scores > 0
+    with path.open("w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f)
+        w.writerow(["frame_i", "frame_j", "frame_id_i", "frame_id_j", "score"])
+        for i, j, s in zip(matrix.pairs_i[keep], matrix.pairs_j[keep], matrix.scores[keep], strict=True):
+            w.writerow([int(i), int(j), seq.frame_ids[i], seq.frame_ids[j], repr(float(s))])
+
+
+def _write_closures(
+    path: Path,
+    closures: list[pb.LoopClosure],
+    blocks: list[range],
+    seq: ConstellationSequence,
+    truth: npt.NDArray[np.bool_] | None,
+) -> None:
+    with path.open("w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f)
+        w.writerow(
+            [
+                "query_robot",
+                "query_frame",
+                "match_robot",
+                "match_frame",
+                "query_frame_id",
+                "match_frame_id",
+                "score",
+                "n_matched",
+                "true_closure",
+            ]
+        )
+        for c in sorted(closures, key=lambda c: (c.query_robot_id, c.query_frame_index)):
+            g = blocks[c.query_robot_id].start + c.query_frame_index
+            h = blocks[c.match_robot_id].start + c.match_frame_index
+            true = "" if truth is None else int(truth[g, h])
+            w.writerow(
+                [
+                    c.query_robot_id,
+                    c.query_frame_index,
+                    c.match_robot_id,
+                    c.match_frame_index,
+                    seq.frame_ids[g],
+                    seq.frame_ids[h],
+                    f"{c.score:.6f}",
+                    c.n_matched,
+                    true,
+                ]
+            )
+
+
+def _plots(
+    settings: PlacesSettings,
+    summary: PlacesSummary,
+    dense: npt.NDArray[np.float64],
+    curves: dict[str, PRCurve],
+    seq: ConstellationSequence,
+    bounds: npt.NDArray[np.int64],
+    loads: list[int],
+) -> None:
+    out = settings.out
+    plot_similarity(dense, f"{seq.name}: swarm of {settings.robots} robots", out / "similarity.png")
+    if curves:
+        plot_pr(curves, out / "precision_recall.png")
+    counts = label_counts(seq.constellations, seq.n_labels)
+    holder = np.repeat(np.arange(len(loads)), np.diff(bounds))
+    labels = np.bincount(holder, weights=(counts > 0), minlength=len(loads)).astype(int).tolist()
+    objects = np.bincount(holder, weights=counts, minlength=len(loads)).astype(int).tolist()
+    load = HolderLoad(bounds=[int(b) for b in bounds], partial_queries=loads, labels=labels, objects=objects)
+    plot_holder_load(load, counts, seq.label_names, out / "shard_load.png")
+    plot_bytes(summary.bytes.per_query_by_message, out / "bytes_per_query.png")

@@ -1,0 +1,77 @@
+"""Key expressions of the v1 swarm.
+
+Every key starts with ``swarmrec/v1/<swarm>``: the schema version and the
+swarm name are part of every route, so two swarms (or two schema versions)
+sharing one router never see each other's messages.
+
+    swarmrec/v1/<swarm>/<kind>/<robot>/<endpoint>     request/response (queryables), and the
+                                                      subscriptions a service declares beside its
+                                                      endpoints (fusion/<robot>/inbox: flooded outputs)
+    swarmrec/v1/<swarm>/alive/<kind>/<robot>          liveliness token, one per service
+    swarmrec/v1/<swarm>/events/<event>/<robot>        published events
+
+The service kinds are the registry's (:mod:`swarmrec.services.registry`).
+"""
+
+from __future__ import annotations
+
+import re
+
+from swarmrec.errors import ConfigError
+
+__all__ = [
+    "PREFIX",
+    "alive",
+    "alive_all",
+    "endpoint",
+    "event",
+    "parse_alive",
+    "validate_swarm_name",
+]
+
+PREFIX = "swarmrec/v1"
+
+_SWARM_NAME = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+
+
+def validate_swarm_name(name: str) -> str:
+    """``name`` if it is one plain key segment, else ConfigError.
+
+    Wildcards and slashes in a swarm name would make its keys match another
+    swarm's, which is exactly what the name is there to prevent.
+    """
+    if not _SWARM_NAME.fullmatch(name):
+        raise ConfigError(f"swarm name must be 1-64 of A-Z a-z 0-9 _ -, got {name!r}")
+    return name
+
+
+def _robot(robot: int | str) -> str:
+    return "*" if robot == "*" else str(int(robot))
+
+
+def endpoint(swarm: str, kind: str, robot: int | str, name: str) -> str:
+    """Key of a service's request/response endpoint (``robot="*"``: every robot)."""
+    return f"{PREFIX}/{swarm}/{kind}/{_robot(robot)}/{name}"
+
+
+def alive(swarm: str, kind: str, robot: int) -> str:
+    """Key of a service's liveliness token."""
+    return f"{PREFIX}/{swarm}/alive/{kind}/{robot}"
+
+
+def alive_all(swarm: str) -> str:
+    """Selector of every liveliness token of a swarm."""
+    return f"{PREFIX}/{swarm}/alive/**"
+
+
+def parse_alive(key: str) -> tuple[str, int] | None:
+    """(kind, robot) of a liveliness token key, None for any other key."""
+    parts = key.split("/")
+    if len(parts) != 6 or parts[3] != "alive" or not parts[5].isdigit():
+        return None
+    return parts[4], int(parts[5])
+
+
+def event(swarm: str, name: str, robot: int | str) -> str:
+    """Key of a published event (``robot="*"``: every robot)."""
+    return f"{PREFIX}/{swarm}/events/{name}/{_robot(robot)}"

@@ -1,0 +1,503 @@
+"""The one runner every service shares: session, lifecycle, plumbing, metrics, logs.
+
+A service is a small class (:class:`ServiceBase`): the endpoints it answers
+(:class:`Endpoint`, a request type, a reply type and a handler), the
+subscriptions it listens to (:class:`Subscription`, a message type and a
+handler), what it says about itself (``member_info``) and ``close``. The
+runner owns everything else, in this order:
+
+1. open the zenoh session (``with zenoh.open``: nothing is left to interpreter exit),
+2. serve Prometheus metrics: the families every service has
+   (:class:`~swarmrec.runtime.metrics.ServiceMetrics`) and the set its kind
+   declares (:class:`~swarmrec.runtime.metrics.MetricSet`),
+3. build the service; a stateful one asks for its record logs
+   (:meth:`ServiceContext.open_log`) and replays them in its constructor,
+4. declare one queryable per endpoint, one subscriber per subscription, plus
+   ``info``; zenoh's callbacks only put the query or sample in a channel or a
+   bounded queue, worker threads do the work,
+5. declare the liveliness token last, then print the readiness line,
+6. on SIGTERM/SIGINT: drop the token first, undeclare queryables and
+   subscribers, let the workers finish, close the service and its logs, close
+   the session.
+
+Requests and subscribed messages go through the same checks: the encoding's
+schema must be the declared type's, the payload must fit ``max_message_bytes``
+and decode; bytes are counted by message type and scope. A handler returns its
+reply (or nothing, for a subscription) or raises: the error reply's code is the
+exception's own (:class:`~swarmrec.errors.RequestError` and
+:class:`~swarmrec.errors.WireError` carry one); anything else is answered
+``INTERNAL`` with the traceback in the log. Every refusal is counted in
+``swarmrec_rejected_requests_total{endpoint, code}``. Bad input is answered and
+counted, never fatal. A router is a service with no endpoints whose session
+runs in router mode.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, TypeVar
+
+import zenoh
+
+# protobuf ships no type stubs and types-protobuf is not a dev dependency; with
+# the stubs installed the ignore is unused, hence both codes.
+from google.protobuf.message import Message  # type: ignore[import-untyped, unused-ignore]
+
+import swarmrec
+from swarmrec.errors import (
+    ErrorCode,
+    InvalidArgument,
+    MessageTooLargeError,
+    RequestError,
+    WireError,
+)
+from swarmrec.runtime import keys
+from swarmrec.runtime.metrics import MetricSet, ServiceMetrics, scope_between
+from swarmrec.runtime.rpc import Caller, caller_robot, encoding_for, schema_of
+from swarmrec.runtime.settings import BusSettings, Component, Config, StorageSettings
+from swarmrec.runtime.storage import RecordLog
+from swarmrec.wire import messages as pb
+from swarmrec.wire.codec import decode, encode, error_reply, schema_name
+
+__all__ = [
+    "Endpoint",
+    "RequestContext",
+    "ServiceBase",
+    "ServiceContext",
+    "Subscription",
+    "install_signals",
+    "run_service",
+    "service_logger",
+    "zenoh_config",
+]
+
+C = TypeVar("C", bound=Component)
+S = TypeVar("S", bound=MetricSet)
+
+#: Subscribed messages waiting for a worker; beyond it the zenoh callback drops (and
+#: counts, code UNAVAILABLE) rather than block zenoh's receive thread.
+SUBSCRIPTION_CAPACITY = 65536
+
+
+@dataclass(frozen=True)
+class RequestContext:
+    """What a handler knows about a request or message besides its content."""
+
+    #: The sender's robot id (from the attachment); None for a client outside the swarm.
+    caller_robot: int | None
+    key: str
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    """One request type a service answers, at ``<kind>/<robot>/<name>``.
+
+    ``handler`` is the service class's own method, called as ``handler(service,
+    request, context)``; it returns a ``reply`` message or raises.
+    """
+
+    name: str
+    request: type[Message]
+    reply: type[Message]
+    handler: Callable[[Any, Any, RequestContext], Message]
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class Subscription:
+    """Messages a service takes without answering (puts to ``<kind>/<robot>/<name>``).
+
+    ``handler(service, message, context)`` returns nothing or raises; ``workers``
+    is 1 by default so messages are handled in the order they arrived.
+    """
+
+    name: str
+    message: type[Message]
+    handler: Callable[[Any, Any, RequestContext], None]
+    doc: str = ""
+    workers: int = 1
+    capacity: int = SUBSCRIPTION_CAPACITY
+
+
+class ServiceBase:
+    """What a service supplies to the runner. Subclasses set ``ENDPOINTS`` (and
+    ``SUBSCRIPTIONS``) after their handlers, take a :class:`ServiceContext` in
+    ``__init__`` and override :meth:`member_info` and :meth:`close` as needed."""
+
+    ENDPOINTS: ClassVar[Sequence[Endpoint]] = ()
+    SUBSCRIPTIONS: ClassVar[Sequence[Subscription]] = ()
+
+    def member_info(self) -> pb.MemberInfo:
+        """What the service says of itself beyond kind, robot and version (its label
+        range, what it stores); the runner fills in the rest."""
+        return pb.MemberInfo()
+
+    def close(self) -> None:
+        """Release what the service holds; its record logs are closed by the runner."""
+
+
+@dataclass
+class ServiceContext:
+    """What the runner hands a service when building it."""
+
+    config: Config
+    kind: str
+    session: zenoh.Session
+    metrics: ServiceMetrics
+    caller: Caller
+    stop: threading.Event
+    log: logging.Logger
+    kind_metrics: MetricSet | None = None
+    _logs: list[RecordLog] = field(default_factory=list)
+
+    @property
+    def bus(self) -> BusSettings:
+        return self.config.bus
+
+    def settings(self, component: type[C]) -> C:
+        """This service's ``component`` settings."""
+        return self.config.get(component)
+
+    def metric_set(self, kind: type[S]) -> S:
+        """The metric set the registry declares for this kind (a ``kind`` instance)."""
+        if not isinstance(self.kind_metrics, kind):
+            raise TypeError(f"{self.kind} declares {type(self.kind_metrics).__name__}, not {kind.__name__}")
+        return self.kind_metrics
+
+    def open_log(self, name: str) -> RecordLog:
+        """The record log ``<data_dir>/<name>.log`` (memory only without a data_dir);
+        replay ``records()`` to restore, ``append`` before answering. Closed by the runner."""
+        storage = self.config.get(StorageSettings) if self.config.has(StorageSettings) else None
+        path = storage.data_dir / f"{name}.log" if storage and storage.data_dir else None
+        log = RecordLog(path, fsync=bool(storage and storage.fsync), log=self.log)
+        self._logs.append(log)
+        return log
+
+    def publish(self, key: str, msg: Message) -> None:
+        """Publish an event; it must arrive, so congestion blocks rather than drops."""
+        payload = encode(msg)
+        self.metrics.count_sent(schema_name(msg).rsplit(".", 1)[-1], "client", len(payload))
+        self.session.put(
+            key, payload, encoding=encoding_for(msg), congestion_control=zenoh.CongestionControl.BLOCK
+        )
+
+    def put(self, key: str, msg: Message, *, target_robot: int, payload: bytes | None = None) -> None:
+        """Put ``msg`` on another service's subscription key, signed with this robot's id
+        (the receiver counts its scope); blocks rather than drops under congestion.
+        ``payload`` passes bytes already encoded (one broadcast, many targets)."""
+        data = encode(msg) if payload is None else payload
+        self.session.put(
+            key,
+            data,
+            encoding=encoding_for(msg),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            attachment=str(self.bus.robot).encode(),
+        )
+        scope = scope_between(self.bus.robot, target_robot)
+        self.metrics.count_sent(schema_name(msg).rsplit(".", 1)[-1], scope, len(data))
+
+
+class _JsonFormatter(logging.Formatter):
+    def __init__(self, kind: str, robot: int) -> None:
+        super().__init__()
+        self.kind, self.robot = kind, robot
+
+    def format(self, record: logging.LogRecord) -> str:
+        entry = {
+            "ts": round(record.created, 3),
+            "level": record.levelname,
+            "service": self.kind,
+            "robot": self.robot,
+            "msg": record.getMessage(),
+        }
+        entry.update(getattr(record, "fields", {}))
+        if record.exc_info:
+            entry["exc"] = self.formatException(record.exc_info)
+        return json.dumps(entry)
+
+
+def service_logger(kind: str, robot: int, level: str) -> logging.Logger:
+    """JSON lines on stderr, one logger per (kind, robot)."""
+    log = logging.getLogger(f"swarmrec.{kind}.{robot}")
+    log.handlers.clear()
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_JsonFormatter(kind, robot))
+    log.addHandler(handler)
+    log.setLevel(level.upper())
+    log.propagate = False
+    return log
+
+
+def zenoh_config(bus: BusSettings) -> zenoh.Config:
+    """A zenoh config from the bus settings: explicit endpoints, no multicast scouting
+    (containers have no multicast), clients retry until the router is up."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(bus.mode))
+    if bus.connect and bus.mode != "router":
+        conf.insert_json5("connect/endpoints", json.dumps(list(bus.connect)))
+        # Without this a client fails at start when the router is not up yet.
+        conf.insert_json5("connect/timeout_ms", "-1")
+    if bus.listen:
+        conf.insert_json5("listen/endpoints", json.dumps(list(bus.listen)))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
+def install_signals(stop: threading.Event) -> None:
+    if threading.current_thread() is not threading.main_thread():
+        return  # only the main thread may set handlers (tests run services in threads)
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+
+
+def _code_of(e: Exception) -> ErrorCode:
+    if isinstance(e, RequestError | WireError):
+        return e.code
+    return ErrorCode.INTERNAL
+
+
+class _Dispatcher:
+    """Serves one endpoint or subscription: check, decode, call the handler, count,
+    never raise."""
+
+    def __init__(self, ctx: ServiceContext, service: ServiceBase, name: str, expected: type[Message]) -> None:
+        self.ctx, self.service, self.name = ctx, service, name
+        self.expected_type = expected
+        self.expected = schema_name(expected)
+        self.latency = ctx.metrics.request_seconds.labels(name)
+
+    def parse(self, data: bytes, schema: str, scope: str) -> Message:
+        """The payload as the declared type, counted as received; raises the error to answer."""
+        ctx = self.ctx
+        ctx.metrics.count_received(self.expected_type.__name__, scope, len(data))
+        if schema and schema != self.expected:
+            raise InvalidArgument(f"{self.name} takes {self.expected}, got {schema}")
+        if len(data) > ctx.bus.max_message_bytes:
+            raise MessageTooLargeError(len(data), ctx.bus.max_message_bytes)
+        return decode(data, self.expected_type)
+
+    def refuse(self, e: Exception, sender: int | None) -> ErrorCode:
+        """Count and log a refusal; the code to answer with."""
+        ctx = self.ctx
+        code = _code_of(e)
+        ctx.metrics.rejected.labels(self.name, code.wire_name).inc()
+        fields = {"endpoint": self.name, "code": code.wire_name, "sender": sender}
+        if code == ErrorCode.INTERNAL:
+            ctx.log.error("handler failed", exc_info=e, extra={"fields": fields})
+        else:
+            ctx.log.warning("rejected request", extra={"fields": fields | {"reason": str(e)[:300]}})
+        return code
+
+
+class _EndpointDispatcher(_Dispatcher):
+    def __init__(self, ctx: ServiceContext, service: ServiceBase, endpoint: Endpoint) -> None:
+        super().__init__(ctx, service, endpoint.name, endpoint.request)
+        self.endpoint = endpoint
+
+    def serve(self, query: zenoh.Query) -> None:
+        t0 = time.perf_counter()
+        robot = caller_robot(query.attachment)
+        scope = scope_between(self.ctx.bus.robot, robot)
+        try:
+            data = query.payload.to_bytes() if query.payload is not None else b""
+            request = self.parse(data, schema_of(query.encoding), scope)
+            reply = self.endpoint.handler(self.service, request, RequestContext(robot, str(query.key_expr)))
+            payload = encode(reply)
+            query.reply(query.key_expr, payload, encoding=encoding_for(reply))
+            self.ctx.metrics.count_sent(type(reply).__name__, scope, len(payload))
+        except Exception as e:
+            self._reply_error(query, scope, e, robot)
+        finally:
+            query.drop()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub  # finish the query so the caller does not wait for its timeout
+            self.latency.observe(time.perf_counter() - t0)
+
+    def _reply_error(self, query: zenoh.Query, scope: str, e: Exception, robot: int | None) -> None:
+        code = self.refuse(e, robot)
+        message = e.message if isinstance(e, RequestError) else str(e)
+        if code == ErrorCode.INTERNAL and not isinstance(e, RequestError):
+            message = f"{type(e).__name__}: {e}"
+        err = error_reply(code, message)
+        payload = encode(err)
+        try:
+            query.reply_err(payload, encoding=encoding_for(err))
+            self.ctx.metrics.count_sent("ErrorReply", scope, len(payload))
+        except zenoh.ZError:
+            pass  # the caller is gone; nothing left to tell
+
+
+@dataclass(frozen=True)
+class _Sample:
+    """What a subscription callback hands its worker: bytes and headers, nothing parsed."""
+
+    data: bytes
+    schema: str
+    sender: int | None
+    key: str
+
+
+class _SubscriptionDispatcher(_Dispatcher):
+    def __init__(self, ctx: ServiceContext, service: ServiceBase, sub: Subscription) -> None:
+        super().__init__(ctx, service, sub.name, sub.message)
+        self.sub = sub
+        self.inbox: queue.Queue[_Sample | None] = queue.Queue(maxsize=sub.capacity)
+
+    def on_sample(self, sample: zenoh.Sample) -> None:
+        # zenoh's thread: copy the bytes out and return; the worker does the rest.
+        item = _Sample(
+            sample.payload.to_bytes(),
+            schema_of(sample.encoding),
+            caller_robot(sample.attachment),
+            str(sample.key_expr),
+        )
+        try:
+            self.inbox.put_nowait(item)
+        except queue.Full:
+            self.ctx.metrics.rejected.labels(self.name, ErrorCode.UNAVAILABLE.wire_name).inc()
+            self.ctx.log.warning(
+                "subscription queue full, message dropped", extra={"fields": {"endpoint": self.name}}
+            )
+
+    def work(self) -> None:
+        while True:
+            item = self.inbox.get()
+            if item is None:
+                return
+            t0 = time.perf_counter()
+            try:
+                msg = self.parse(item.data, item.schema, scope_between(self.ctx.bus.robot, item.sender))
+                self.sub.handler(self.service, msg, RequestContext(item.sender, item.key))
+            except Exception as e:  # one bad message must not end the worker
+                self.refuse(e, item.sender)
+            finally:
+                self.latency.observe(time.perf_counter() - t0)
+
+    def close(self, threads: int) -> None:
+        # After what is queued: the workers drain first. A full queue means a stuck
+        # worker; it is a daemon thread and ends with the process.
+        for _ in range(threads):
+            try:
+                self.inbox.put(None, timeout=5.0)
+            except queue.Full:
+                return
+
+
+def _work(queryable: zenoh.Queryable[Any], serve: Callable[[zenoh.Query], None]) -> None:
+    # Iteration ends when the queryable is undeclared (its channel closes).
+    for query in queryable.handler:
+        serve(query)
+
+
+def run_service(
+    config: Config,
+    *,
+    kind: str,
+    wire_kind: int,
+    factory: Callable[[ServiceContext], ServiceBase],
+    metric_set: type[MetricSet] | None = None,
+    stop: threading.Event | None = None,
+    on_ready: Callable[[pb.MemberInfo], None] | None = None,
+) -> int:
+    """Run one service until ``stop`` is set (or SIGTERM/SIGINT); returns an exit code.
+
+    ``kind``, ``wire_kind``, ``factory`` and ``metric_set`` come from the service's
+    registry entry (:func:`swarmrec.services.registry.serve` passes them)."""
+    bus = config.bus
+    stop = stop or threading.Event()
+    install_signals(stop)
+    log = service_logger(kind, bus.robot, bus.log_level)
+    metrics = ServiceMetrics.create(kind, bus.robot, bus.swarm)
+    with zenoh.open(zenoh_config(bus)) as session:
+        if bus.metrics_port >= 0:
+            metrics.serve(bus.metrics_host, bus.metrics_port)
+        caller = Caller(session, bus.robot, bus.request_timeout_s, metrics, bus.max_message_bytes)
+        own = metric_set.create(metrics.registry) if metric_set is not None else None
+        ctx = ServiceContext(config, kind, session, metrics, caller, stop, log, own)
+        service: ServiceBase | None = None
+        declared: list[Any] = []
+        threads: list[threading.Thread] = []
+        subscriptions: list[tuple[_SubscriptionDispatcher, int]] = []
+        try:
+            service = factory(ctx)
+            for ep in service.ENDPOINTS:
+                q = session.declare_queryable(keys.endpoint(bus.swarm, kind, bus.robot, ep.name))
+                declared.append(q)
+                serve = _EndpointDispatcher(ctx, service, ep).serve
+                for i in range(bus.workers):
+                    t = threading.Thread(target=_work, args=(q, serve), name=f"{ep.name}-{i}", daemon=True)
+                    t.start()
+                    threads.append(t)
+            for sub in service.SUBSCRIPTIONS:
+                dispatcher = _SubscriptionDispatcher(ctx, service, sub)
+                for i in range(sub.workers):
+                    t = threading.Thread(target=dispatcher.work, name=f"{sub.name}-{i}", daemon=True)
+                    t.start()
+                    threads.append(t)
+                subscriptions.append((dispatcher, sub.workers))
+                key = keys.endpoint(bus.swarm, kind, bus.robot, sub.name)
+                declared.append(session.declare_subscriber(key, dispatcher.on_sample))
+            declared.append(_declare_info(ctx, service, wire_kind, threads))
+            token = session.liveliness().declare_token(keys.alive(bus.swarm, kind, bus.robot))
+            metrics.ready.set(1)
+            info = _member_info(service, ctx, wire_kind)
+            log.info("ready", extra={"fields": {"metrics_url": metrics.url, "listen": list(bus.listen)}})
+            ready = {"event": "ready", "service": kind, "robot": bus.robot, "metrics_url": metrics.url}
+            if bus.listen:
+                ready["listen"] = list(bus.listen)
+            print(json.dumps(ready), flush=True)
+            if on_ready is not None:
+                on_ready(info)
+            stop.wait()
+            log.info("stopping")
+            metrics.ready.set(0)
+            token.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
+        finally:
+            for d in declared:
+                d.undeclare()
+            for dispatcher, workers in subscriptions:
+                dispatcher.close(workers)
+            for t in threads:
+                t.join(timeout=5.0)
+            if service is not None:
+                service.close()
+            for record_log in ctx._logs:
+                record_log.close()
+            metrics.close()
+    log.info("stopped")
+    return 0
+
+
+def _declare_info(
+    ctx: ServiceContext, service: ServiceBase, wire_kind: int, threads: list[threading.Thread]
+) -> zenoh.Queryable[Any]:
+    bus = ctx.bus
+    q = ctx.session.declare_queryable(keys.endpoint(bus.swarm, ctx.kind, bus.robot, "info"))
+
+    def answer(query: zenoh.Query) -> None:
+        info = _member_info(service, ctx, wire_kind)
+        try:
+            query.reply(query.key_expr, encode(info), encoding=encoding_for(info))
+        finally:
+            query.drop()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
+
+    t = threading.Thread(target=_work, args=(q, answer), name="info", daemon=True)
+    t.start()
+    threads.append(t)
+    return q
+
+
+def _member_info(service: ServiceBase, ctx: ServiceContext, wire_kind: int) -> pb.MemberInfo:
+    info = service.member_info()
+    info.kind = wire_kind  # type: ignore[assignment]  # an enum value
+    info.robot_id = ctx.bus.robot
+    info.version = swarmrec.__version__
+    info.metrics_url = ctx.metrics.url
+    info.swarm = ctx.bus.swarm
+    return info

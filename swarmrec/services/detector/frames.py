@@ -1,0 +1,125 @@
+"""Playing a robot's frames into its descriptor service: the ``step`` and ``replay``
+endpoints of the replay and rgbd modes.
+
+The dataset is cut into ``n_robots`` consecutive sub-trajectories, as the
+paper's evaluation cuts it (``frames_per_robot`` overrides the even split);
+this robot plays block ``robot``. Frames are sent as requests to the
+descriptor (``descriptor/<robot>/process``), so the replay waits for each
+query to finish: a slow swarm slows the replay rather than losing frames.
+
+* ``step`` (lock-step replay): the main job asks every detector for step t and
+  waits for all before t + 1. A frame the detector cannot make a constellation
+  of is answered with an error reply that says why; the service goes on.
+* ``replay`` (free replay): the whole block at ``rate_hz`` (0: as fast as the
+  swarm answers), in the background; reports appear on ``events/query/<robot>``.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from typing import Protocol
+
+from swarmrec.core.split import split_frames
+from swarmrec.core.types import Constellation
+from swarmrec.errors import CallError, InvalidArgument, RequestError, Unavailable, WireError
+from swarmrec.runtime import ServiceContext, keys
+from swarmrec.runtime.settings import BusSettings
+from swarmrec.services.settings import DetectorSettings
+from swarmrec.wire import messages as pb
+from swarmrec.wire.codec import constellation_to_proto
+
+__all__ = ["FramePlayer", "FrameSource", "robot_block"]
+
+
+def robot_block(n_frames: int, bus: BusSettings, detector: DetectorSettings) -> range:
+    """The frames (indices into the whole sequence) that robot ``bus.robot`` plays."""
+    if detector.frames_per_robot:
+        per = detector.frames_per_robot
+        return range(min(bus.robot * per, n_frames), min((bus.robot + 1) * per, n_frames))
+    return split_frames(n_frames, bus.n_robots)[bus.robot]
+
+
+class FrameSource(Protocol):
+    """Where a robot's constellations come from (recorded, or detected in RGB-D frames)."""
+
+    #: One id per frame of this robot's block (a timestamp, a file name).
+    frame_ids: list[str]
+
+    def constellation(self, t: int) -> Constellation:
+        """The constellation of this robot's frame ``t``; may raise RequestError for a
+        frame it cannot make (counted and logged by the source)."""
+        ...
+
+
+class FramePlayer:
+    """Sends a source's frames to the robot's descriptor, by step or as a free replay."""
+
+    def __init__(self, ctx: ServiceContext, source: FrameSource) -> None:
+        self.ctx, self.source = ctx, source
+        bus = ctx.bus
+        self.lock = threading.Lock()
+        self.replaying: threading.Thread | None = None
+        self.key = keys.endpoint(bus.swarm, "descriptor", bus.robot, "process")
+        # A frame's query holds several nested requests; give it their time and some.
+        self.timeout_s = 4 * bus.request_timeout_s
+
+    def _send(self, t: int) -> pb.QueryReport:
+        robot = self.ctx.bus.robot
+        c = self.source.constellation(t)
+        try:
+            wire = constellation_to_proto(c, robot, t, self.source.frame_ids[t])
+        except WireError as e:
+            # A frame the detector cannot put on the wire (NaN position): counted, skipped.
+            self.ctx.metrics.rejected.labels("frame", "ERROR_CODE_INVALID_ARGUMENT").inc()
+            self.ctx.log.warning("frame not sent", extra={"fields": {"frame": t, "reason": str(e)}})
+            raise InvalidArgument(f"frame {t}: {e}") from None
+        return self.ctx.caller.call(
+            self.key, wire, pb.QueryReport, target_robot=robot, endpoint="process", timeout_s=self.timeout_s
+        )
+
+    def step(self, req: pb.StepRequest) -> pb.StepReply:
+        robot = self.ctx.bus.robot
+        if req.step >= len(self.source.frame_ids):
+            return pb.StepReply(robot_id=robot, step=req.step, finished=True)
+        with self.lock:  # steps of one robot run in order
+            try:
+                report = self._send(req.step)
+            except CallError as e:
+                raise Unavailable(f"descriptor: {e}") from None
+        return pb.StepReply(robot_id=robot, step=req.step, report=report)
+
+    def replay(self, req: pb.ReplayRequest) -> pb.ReplayReply:
+        if not (math.isfinite(req.rate_hz) and req.rate_hz >= 0):
+            raise InvalidArgument(f"rate_hz must be >= 0, got {req.rate_hz}")
+        with self.lock:
+            if self.replaying is not None and self.replaying.is_alive():
+                raise Unavailable("a replay is already running")
+            self.replaying = threading.Thread(target=self._replay, args=(req.rate_hz,), daemon=True)
+            self.replaying.start()
+        return pb.ReplayReply(robot_id=self.ctx.bus.robot, n_frames=len(self.source.frame_ids))
+
+    def _replay(self, rate_hz: float) -> None:
+        period = 1.0 / rate_hz if rate_hz > 0 else 0.0
+        # Robots are not synchronised: each starts at its own phase of the period,
+        # or all ten would query at the same instant, every time.
+        bus = self.ctx.bus
+        start = time.perf_counter() + period * bus.robot / bus.n_robots
+        n = len(self.source.frame_ids)
+        for t in range(n):
+            if self.ctx.stop.is_set():
+                return
+            if period:
+                delay = start + t * period - time.perf_counter()
+                if delay > 0 and self.ctx.stop.wait(delay):
+                    return
+            try:
+                self._send(t)
+            except (CallError, RequestError) as e:
+                self.ctx.log.warning("frame failed", extra={"fields": {"frame": t, "reason": str(e)}})
+        self.ctx.log.info("replay finished", extra={"fields": {"frames": n}})
+
+    def close(self) -> None:
+        if self.replaying is not None:
+            self.replaying.join(timeout=5.0)

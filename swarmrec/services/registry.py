@@ -1,0 +1,236 @@
+"""The service registry: one entry per service kind, the one list every part reads.
+
+The CLI (``swarmrec serve <kind>``: which kinds exist, which settings each
+takes), the runner (wire enum, metrics, router mode), the client (kind names
+from the wire enum), every deployment (which kinds run per robot, which keep
+data on a volume) and the contract pages under ``services/`` all read
+:data:`REGISTRY`. A new service is one class plus one entry here; a test
+checks the entries against the protobuf ``ServiceKind`` enum.
+
+Factories are named ``"module:Class"`` and imported on demand, so a shard's
+process never loads the detector's onnxruntime or the verifier's numba kernels.
+"""
+
+from __future__ import annotations
+
+import importlib
+import threading
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Literal, cast
+
+from swarmrec.errors import ConfigError
+from swarmrec.runtime.metrics import MetricSet
+from swarmrec.runtime.runner import ServiceBase, ServiceContext, run_service
+from swarmrec.runtime.settings import BusSettings, Component, Config, StorageSettings
+from swarmrec.services.metrics import (
+    DescriptorMetrics,
+    DetectorMetrics,
+    FusionMetrics,
+    ShardMetrics,
+    VerifierMetrics,
+)
+from swarmrec.services.settings import (
+    ClassifierSettings,
+    DetectorSettings,
+    FusionSettings,
+    LandmarkSettings,
+    PlaceSettings,
+    RgbdSettings,
+)
+from swarmrec.wire import messages as pb
+
+__all__ = [
+    "REGISTRY",
+    "WORKLOADS",
+    "ServiceSpec",
+    "all_components",
+    "kind_of_wire",
+    "kinds",
+    "register",
+    "serve",
+    "spec",
+]
+
+Scope = Literal["robot", "swarm"]
+
+
+@dataclass(frozen=True)
+class ServiceSpec:
+    """One service kind."""
+
+    #: The kind's name: ``swarmrec serve <kind>``, the key segment, the container name part.
+    kind: str
+    #: The ``swarmrec.v1.ServiceKind`` value it reports in MemberInfo.
+    wire: int
+    #: ``"module:Class"`` of its :class:`~swarmrec.runtime.runner.ServiceBase` subclass.
+    factory: str
+    #: One line for ``--help`` and the contract page.
+    summary: str
+    #: ``robot``: one per robot; ``swarm``: one for the whole swarm (the router).
+    scope: Scope = "robot"
+    #: Keeps what it stores in record logs under its data_dir (a volume in containers).
+    stateful: bool = False
+    #: Settings components it reads besides the bus (and storage, for a stateful kind).
+    components: tuple[type[Component], ...] = ()
+    #: The metric families it exports besides every service's own.
+    metrics: type[MetricSet] | None = None
+    #: A zenoh mode forced on its session (the router's), else the settings' own.
+    zenoh_mode: str | None = None
+
+    @property
+    def all_components(self) -> tuple[type[Component], ...]:
+        """Every component the kind reads, bus first (what its flags and variables cover)."""
+        extra = (StorageSettings,) if self.stateful and StorageSettings not in self.components else ()
+        return (BusSettings, *extra, *self.components)
+
+    def load(self) -> type[ServiceBase]:
+        """The service class (imported now)."""
+        module, _, name = self.factory.partition(":")
+        cls = getattr(importlib.import_module(module), name)
+        if not (isinstance(cls, type) and issubclass(cls, ServiceBase)):
+            raise TypeError(f"{self.factory} is not a ServiceBase subclass")
+        return cls
+
+
+_PLACES = (PlaceSettings,)
+
+REGISTRY: dict[str, ServiceSpec] = {}
+
+
+def register(entry: ServiceSpec) -> ServiceSpec:
+    """Add a kind (tests add their own); its name and wire value must be new."""
+    if entry.kind in REGISTRY:
+        raise ValueError(f"service kind {entry.kind!r} is already registered")
+    if any(e.wire == entry.wire for e in REGISTRY.values()):
+        raise ValueError(f"wire value {entry.wire} of {entry.kind!r} is already taken")
+    REGISTRY[entry.kind] = entry
+    return entry
+
+
+for _entry in (
+    ServiceSpec(
+        "router",
+        pb.ServiceKind.SERVICE_KIND_ROUTER,
+        "swarmrec.services.router:Router",
+        "a zenoh router: routes the swarm's traffic, holds nothing",
+        scope="swarm",
+        zenoh_mode="router",
+    ),
+    ServiceSpec(
+        "detector",
+        pb.ServiceKind.SERVICE_KIND_DETECTOR,
+        "swarmrec.services.detector:Detector",
+        "its robot's frames to constellations (replay, rgbd) or views to landmark probabilities (classifier)",
+        components=(
+            StorageSettings,
+            PlaceSettings,
+            DetectorSettings,
+            RgbdSettings,
+            ClassifierSettings,
+            LandmarkSettings,
+        ),
+        metrics=DetectorMetrics,
+    ),
+    ServiceSpec(
+        "descriptor",
+        pb.ServiceKind.SERVICE_KIND_DESCRIPTOR,
+        "swarmrec.services.descriptor:Descriptor",
+        "the two-step query for each of its robot's frames; keeps the loop closures",
+        stateful=True,
+        components=_PLACES,
+        metrics=DescriptorMetrics,
+    ),
+    ServiceSpec(
+        "index-shard",
+        pb.ServiceKind.SERVICE_KIND_INDEX_SHARD,
+        "swarmrec.services.index_shard:IndexShard",
+        "one label range of the swarm's descriptor index: candidates for partial queries",
+        stateful=True,
+        components=_PLACES,
+        metrics=ShardMetrics,
+    ),
+    ServiceSpec(
+        "verifier",
+        pb.ServiceKind.SERVICE_KIND_VERIFIER,
+        "swarmrec.services.verifier:Verifier",
+        "holds its robot's constellations and verifies candidates geometrically",
+        stateful=True,
+        components=_PLACES,
+        metrics=VerifierMetrics,
+    ),
+    ServiceSpec(
+        "fusion",
+        pb.ServiceKind.SERVICE_KIND_FUSION,
+        "swarmrec.services.fusion:FusionService",
+        "floods classifier outputs to its radio neighbours and fuses what it hears (weighted naive Bayes)",
+        components=(LandmarkSettings, FusionSettings),
+        metrics=FusionMetrics,
+    ),
+):
+    register(_entry)
+
+#: Each robot's services for each experiment, in start order.
+WORKLOADS: Mapping[str, tuple[str, ...]] = {
+    "places": ("index-shard", "verifier", "descriptor", "detector"),
+    "landmarks": ("fusion", "detector"),
+}
+
+
+def spec(kind: str) -> ServiceSpec:
+    """The entry of ``kind``; ConfigError listing the known kinds."""
+    try:
+        return REGISTRY[kind]
+    except KeyError:
+        raise ConfigError(f"unknown service {kind!r}; services: {', '.join(REGISTRY)}") from None
+
+
+def kinds(scope: Scope | None = None) -> tuple[str, ...]:
+    """The registered kinds (of one scope), in registration order."""
+    return tuple(k for k, e in REGISTRY.items() if scope is None or e.scope == scope)
+
+
+def kind_of_wire(value: int) -> str:
+    """The kind name of a ``ServiceKind`` wire value ("unknown" for one this version lacks)."""
+    for entry in REGISTRY.values():
+        if entry.wire == value:
+            return entry.kind
+    return "unknown"
+
+
+def all_components() -> tuple[type[Component], ...]:
+    """Every component any kind reads, each once (the settings a TOML file may name)."""
+    seen: dict[type[Component], None] = {}
+    for entry in REGISTRY.values():
+        for comp in entry.all_components:
+            seen.setdefault(comp)
+    return tuple(seen)
+
+
+def serve(
+    kind: str,
+    config: Config,
+    *,
+    stop: threading.Event | None = None,
+    on_ready: Callable[[pb.MemberInfo], None] | None = None,
+) -> int:
+    """Run one service of ``kind`` with ``config`` until stopped; returns an exit code."""
+    entry = spec(kind)
+    if entry.zenoh_mode is not None and config.bus.mode != entry.zenoh_mode:
+        config = config.replace(config.bus.with_(mode=entry.zenoh_mode))
+    factory = cast(Callable[[ServiceContext], ServiceBase], entry.load())
+    return run_service(
+        config,
+        kind=entry.kind,
+        wire_kind=entry.wire,
+        factory=factory,
+        metric_set=entry.metrics,
+        stop=stop,
+        on_ready=on_ready,
+    )
+
+
+def missing_components(kind: str, parts: Sequence[Component]) -> list[str]:
+    """Components ``kind`` reads that ``parts`` lacks (their defaults will be used)."""
+    have = {type(p) for p in parts}
+    return [c.__name__ for c in spec(kind).all_components if c not in have]

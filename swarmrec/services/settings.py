@@ -1,0 +1,233 @@
+"""The services' settings components, beyond the bus and storage (:mod:`swarmrec.runtime.settings`).
+
+Each component is one concern; the registry lists which components each
+service kind reads, so ``swarmrec serve index-shard --help`` shows the bus,
+storage and place-recognition settings and nothing of cameras or fusion.
+Every field becomes a flag (``--name``), an environment variable
+(``SWARMREC_NAME``) and a key of the TOML file.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, ClassVar, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from swarmrec.core.presets import get_preset
+from swarmrec.core.ranges import label_bounds
+from swarmrec.datasets.tum import DEFAULT_MAX_DT, TUM_DEPTH_SCALE
+from swarmrec.errors import ConfigError
+from swarmrec.runtime.settings import BusSettings, Component, Config, setting
+
+if TYPE_CHECKING:
+    from swarmrec.detection.points import CameraIntrinsics
+
+__all__ = [
+    "DETECTOR_MODES",
+    "ClassifierSettings",
+    "DetectorSettings",
+    "FusionSettings",
+    "LandmarkSettings",
+    "PlaceSettings",
+    "RgbdSettings",
+]
+
+DetectorMode = Literal["replay", "rgbd", "classifier"]
+DETECTOR_MODES: tuple[str, ...] = ("replay", "rgbd", "classifier")
+FusionLaw = Literal["paper", "agreement"]
+
+
+@dataclass(frozen=True)
+class PlaceSettings(Component):
+    """Place recognition with constellations: the preset, the label list and its ranges."""
+
+    title: ClassVar[str] = "place recognition"
+
+    preset: str = setting("paper", "place-recognition preset (swarmrec.core.presets: paper, balanced)")
+    n_labels: int = setting(80, "size of the swarm's label list")
+    label_bounds: tuple[int, ...] = setting(
+        (), "label range boundaries, n_robots + 1 values; empty: even ranges (the paper's)"
+    )
+    lockstep: bool = setting(False, "shards answer from the frames stored before the query's step")
+    loop_closure_min_score: float = setting(
+        0.3, "a verified match at least this good is published as a loop closure"
+    )
+
+    def problems(self) -> list[str]:
+        problems = []
+        if self.n_labels < 1:
+            problems.append(f"n_labels must be >= 1, got {self.n_labels}")
+        if not math.isfinite(self.loop_closure_min_score):
+            problems.append(f"loop_closure_min_score must be a number, got {self.loop_closure_min_score}")
+        try:
+            get_preset(self.preset)
+        except ConfigError as e:
+            problems.append(str(e))
+        return problems
+
+    def problems_with(self, config: Config) -> list[str]:
+        n = config.bus.n_robots
+        b = self.label_bounds
+        if b:
+            if (
+                len(b) != n + 1
+                or b[0] != 0
+                or b[-1] != self.n_labels
+                or any(x >= y for x, y in itertools.pairwise(b))
+            ):
+                return [
+                    f"label_bounds must be {n + 1} increasing values from 0 to {self.n_labels}, got {list(b)}"
+                ]
+            return []
+        if self.n_labels < n:
+            return [f"{self.n_labels} labels cannot be split over {n} robots"]
+        if get_preset(self.preset).ranges == "balanced":
+            return ["the balanced preset needs explicit label_bounds (computed from label loads)"]
+        return []
+
+    def bounds(self, bus: BusSettings) -> npt.NDArray[np.int64]:
+        """The swarm's label range boundaries: explicit, or the preset's (even) ranges."""
+        if self.label_bounds:
+            return np.asarray(self.label_bounds, np.int64)
+        return label_bounds("even", self.n_labels, bus.n_robots)
+
+
+@dataclass(frozen=True)
+class DetectorSettings(Component):
+    """The detector: where its robot's frames come from."""
+
+    title: ClassVar[str] = "detector"
+
+    detector_mode: DetectorMode = setting(
+        "replay",
+        "replay: recorded constellations; rgbd: objects detected in RGB-D frames (docs/detector.md); "
+        "classifier: camera views to landmark probabilities",
+    )
+    dataset: str = setting(
+        "", "replay: a folder or zip of constellation files; rgbd: a TUM RGB-D folder (rgb.txt, depth.txt)"
+    )
+    labels_file: Path | None = setting(
+        None, "label names of the dataset or the model's classes (default COCO)"
+    )
+    frames_per_robot: int = setting(
+        0, "frames played by each robot; 0 splits the dataset evenly over n_robots"
+    )
+
+    def problems(self) -> list[str]:
+        problems = []
+        if self.detector_mode not in DETECTOR_MODES:
+            problems.append(f"detector_mode must be {', '.join(DETECTOR_MODES)}; got {self.detector_mode!r}")
+        if self.frames_per_robot < 0:
+            problems.append(f"frames_per_robot must be >= 0, got {self.frames_per_robot}")
+        return problems
+
+
+@dataclass(frozen=True)
+class RgbdSettings(Component):
+    """The detector's rgbd mode: the ONNX model and the depth camera."""
+
+    title: ClassVar[str] = "detector, rgbd mode"
+
+    detector_model: str = setting(
+        "", "YOLO-style ONNX model (v5 or v8 output, n_labels classes); empty: the project's own"
+    )
+    conf_threshold: float | None = setting(
+        None, "keep boxes at least this confident; unset: the model's recommended one, else 0.25"
+    )
+    iou_threshold: float = setting(
+        0.45, "boxes of one class overlapping a better one more than this are dropped"
+    )
+    detector_threads: int = setting(1, "onnxruntime threads for one frame (0: onnxruntime decides)")
+    camera_fx: float = setting(535.4, "depth camera focal length x, pixels (default: TUM freiburg3)")
+    camera_fy: float = setting(539.2, "depth camera focal length y, pixels")
+    camera_cx: float = setting(320.1, "depth camera principal point x, pixels")
+    camera_cy: float = setting(247.6, "depth camera principal point y, pixels")
+    depth_scale: float = setting(TUM_DEPTH_SCALE, "depth units per metre of the depth PNGs (TUM: 5000)")
+    rgbd_max_dt: float = setting(
+        DEFAULT_MAX_DT, "RGB and depth images further apart (seconds) are not paired"
+    )
+
+    def problems(self) -> list[str]:
+        problems = []
+        if self.conf_threshold is not None and not 0.0 <= self.conf_threshold <= 1.0:
+            problems.append(f"conf_threshold must be in [0, 1], got {self.conf_threshold}")
+        if not 0.0 < self.iou_threshold <= 1.0:
+            problems.append(f"iou_threshold must be in (0, 1], got {self.iou_threshold}")
+        if self.detector_threads < 0:
+            problems.append(f"detector_threads must be >= 0 (0: automatic), got {self.detector_threads}")
+        # The same rules as CameraIntrinsics, checked here without loading the detection stack.
+        for name in ("camera_fx", "camera_fy", "depth_scale"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                problems.append(f"{name} must be a positive number, got {value}")
+        if not (math.isfinite(self.camera_cx) and math.isfinite(self.camera_cy)):
+            problems.append(f"camera_cx, camera_cy must be finite, got ({self.camera_cx}, {self.camera_cy})")
+        if not (math.isfinite(self.rgbd_max_dt) and self.rgbd_max_dt > 0):
+            problems.append(f"rgbd_max_dt must be > 0 (seconds), got {self.rgbd_max_dt}")
+        return problems
+
+    def camera(self) -> CameraIntrinsics:
+        """The depth camera these settings describe."""
+        from swarmrec.detection.points import CameraIntrinsics  # onnxruntime and OpenCV: rgbd mode only
+
+        return CameraIntrinsics(
+            self.camera_fx, self.camera_fy, self.camera_cx, self.camera_cy, self.depth_scale
+        )
+
+
+@dataclass(frozen=True)
+class LandmarkSettings(Component):
+    """The landmarks the classifier and fusion share."""
+
+    title: ClassVar[str] = "landmarks"
+
+    n_classes: int = setting(19, "classes of the shared class list (the paper's street has 19 landmarks)")
+
+    def problems(self) -> list[str]:
+        return [] if self.n_classes >= 2 else [f"n_classes must be >= 2, got {self.n_classes}"]
+
+
+@dataclass(frozen=True)
+class ClassifierSettings(Component):
+    """The detector's classifier mode: the landmark CNN."""
+
+    title: ClassVar[str] = "detector, classifier mode"
+
+    classifier_model: str = setting("", "the landmark classifier's ONNX model; empty: the project's own")
+
+
+@dataclass(frozen=True)
+class FusionSettings(Component):
+    """Cooperative landmark recognition: the weight law and the flooding's limits."""
+
+    title: ClassVar[str] = "fusion"
+
+    fusion_law: FusionLaw = setting(
+        "paper", "weight law of a received message: paper (Eq. 16) or agreement (docs/fusion.md)"
+    )
+    fusion_lambda: float | None = setting(
+        None, "lambda of Eq. 14; unset: the law's own (paper 2, agreement 1)"
+    )
+    fusion_r_max: int = setting(0, "r_max of Sec. 3.4, the most hops a message travels; 0: no limit")
+    fusion_early_messages: int = setting(
+        1024, "messages kept per round that arrive before this robot starts that round"
+    )
+
+    def problems(self) -> list[str]:
+        problems = []
+        if self.fusion_law not in ("paper", "agreement"):
+            problems.append(f"fusion_law must be paper or agreement, got {self.fusion_law!r}")
+        if self.fusion_lambda is not None and not (
+            math.isfinite(self.fusion_lambda) and self.fusion_lambda >= 0
+        ):
+            problems.append(f"fusion_lambda must be finite and >= 0, got {self.fusion_lambda}")
+        if self.fusion_r_max < 0:
+            problems.append(f"fusion_r_max must be >= 0 (0: no limit), got {self.fusion_r_max}")
+        if self.fusion_early_messages < 0:
+            problems.append(f"fusion_early_messages must be >= 0, got {self.fusion_early_messages}")
+        return problems
