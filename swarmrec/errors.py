@@ -10,6 +10,9 @@ so a caller can catch the whole family in one place::
     │   ├── UnknownLabelError  a label is not in the label list
     │   └── datasets.tum_rgbd.RgbdImageError  a frame's RGB or depth image is missing, corrupt or mismatched
     ├── WireError              a message on the bus does not decode or validate
+    ├── SecurityError          a certificate, key or security setting cannot be used
+    │   ├── PkiConflictError   a file of the PKI differs from what was asked (nothing is overwritten)
+    │   └── CertificateExpiredError  a certificate is past (or before) its validity
     ├── detection.DetectionError   an image, a model or its output cannot be used
     │   ├── ModelError             the ONNX model cannot be loaded or has unusable inputs/outputs
     │   └── OutputLayoutError      a model output is neither YOLO layout (or both)
@@ -20,7 +23,7 @@ so a caller can catch the whole family in one place::
     ├── models.ModelNotFound       a shipped model is in none of the places models are looked up
     └── swarm.compose.ComposeError the compose tool failed or containers did not become healthy
 
-The families below the first four live beside the code that raises them
+The families below the first five live beside the code that raises them
 (``swarmrec.detection.errors``, ``swarmrec.fusion``, ``swarmrec.services.fusion``,
 ``swarmrec.models``, ``swarmrec.swarm.compose``).
 """
@@ -31,9 +34,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 __all__ = [
+    "CertificateExpiredError",
     "ConfigError",
     "DatasetError",
     "MalformedLineError",
+    "PkiConflictError",
+    "SecurityError",
     "SwarmrecError",
     "UnknownLabelError",
     "WireError",
@@ -78,3 +84,30 @@ class UnknownLabelError(DatasetError):
 
 class WireError(SwarmrecError, ValueError):
     """A message on the bus does not decode or does not validate."""
+
+
+class SecurityError(SwarmrecError):
+    """A certificate, a private key or a security setting cannot be used."""
+
+
+class PkiConflictError(SecurityError):
+    """A file of the swarm's PKI exists but is not what was asked for.
+
+    Raised instead of overwriting it: a certificate signed by another CA, for
+    another name, with another key, or a key without its certificate.
+    """
+
+    def __init__(self, path: str | Path, reason: str) -> None:
+        super().__init__(f"{path}: {reason}")
+        self.path = Path(path)
+        self.reason = reason
+
+
+class CertificateExpiredError(SecurityError):
+    """A certificate is outside its validity period (expired or not yet valid)."""
+
+    def __init__(self, path: str | Path, not_before: str, not_after: str) -> None:
+        super().__init__(f"{path}: valid only from {not_before} to {not_after}")
+        self.path = Path(path)
+        self.not_before = not_before
+        self.not_after = not_after
