@@ -336,6 +336,25 @@ def test_a_refused_client_that_retries_keeps_being_refused(pki: Path, other_pki:
         assert time.monotonic() - t0 >= 1.4  # it did retry, and never got in
 
 
+def test_a_link_closes_when_the_client_certificate_expires(pki: Path, tmp_path: Path) -> None:
+    folder = tmp_path / "short"
+    folder.mkdir(mode=0o700)
+    for name in ("ca.pem", "ca.key"):
+        shutil.copy2(pki / name, folder / name)
+    ident = Identity.client(SWARM, "short")
+    # Valid for one day, issued a day minus five seconds ago.
+    ensure_identity(folder, ident, days=1, now=dt.datetime.now(dt.UTC) - dt.timedelta(days=1, seconds=-5))
+    with in_process_router(pki) as (_, endpoint):
+        conf = client_config(endpoint, files(folder, ident.common_name))
+        with (
+            zenoh.open(conf) as short,
+            zenoh.open(client_config(endpoint, files(pki, f"client.cli.{SWARM}"))) as ok,
+        ):
+            assert len(short.info.routers_zid()) == 1
+            wait_until(lambda: not short.info.routers_zid(), DEADLINE_S, "the expired link closed")
+            assert len(ok.info.routers_zid()) == 1  # the control: a valid certificate's link stays
+
+
 def test_a_client_refuses_a_router_whose_certificate_another_ca_signed(pki: Path, other_pki: Path) -> None:
     with in_process_router(other_pki) as (_, endpoint):
         with pytest.raises(zenoh.ZError, match="Unable to connect"):
