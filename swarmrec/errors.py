@@ -23,6 +23,9 @@ so a caller can catch the whole family in one place::
     │   ├── NoReply                nobody answered (gone, crashed, not discovered yet)
     │   ├── ReplyTimeout           the peer did not answer in time
     │   └── RemoteError            the peer answered with an error reply (.code, .message)
+    ├── SecurityError              a certificate, key or security setting cannot be used
+    │   ├── PkiConflictError       a file of the PKI differs from what was asked (nothing is overwritten)
+    │   └── CertificateExpiredError  a certificate is past (or before) its validity
     ├── detection.DetectionError   an image, a model or its output cannot be used
     │   ├── ModelError             the ONNX model cannot be loaded or has unusable inputs/outputs
     │   └── OutputLayoutError      a model output is neither YOLO layout (or both)
@@ -55,6 +58,7 @@ from typing import ClassVar
 
 __all__ = [
     "CallError",
+    "CertificateExpiredError",
     "ConfigError",
     "DatasetError",
     "ErrorCode",
@@ -67,9 +71,11 @@ __all__ = [
     "MessageTooLargeError",
     "NoReply",
     "NotFound",
+    "PkiConflictError",
     "RemoteError",
     "ReplyTimeout",
     "RequestError",
+    "SecurityError",
     "SwarmrecError",
     "Unavailable",
     "UnknownLabelError",
@@ -253,3 +259,33 @@ class RemoteError(CallError):
         self.code = ErrorCode.of(code)
         super().__init__(key, f"{self.code.wire_name}: {message}")
         self.message = message
+
+
+# --- security -----------------------------------------------------------------
+
+
+class SecurityError(SwarmrecError):
+    """A certificate, a private key or a security setting cannot be used."""
+
+
+class PkiConflictError(SecurityError):
+    """A file of the swarm's PKI exists but is not what was asked for.
+
+    Raised instead of overwriting it: a certificate signed by another CA, for
+    another name, with another key, or a key without its certificate.
+    """
+
+    def __init__(self, path: str | Path, reason: str) -> None:
+        super().__init__(f"{path}: {reason}")
+        self.path = Path(path)
+        self.reason = reason
+
+
+class CertificateExpiredError(SecurityError):
+    """A certificate is outside its validity period (expired or not yet valid)."""
+
+    def __init__(self, path: str | Path, not_before: str, not_after: str) -> None:
+        super().__init__(f"{path}: valid only from {not_before} to {not_after}")
+        self.path = Path(path)
+        self.not_before = not_before
+        self.not_after = not_after

@@ -1,0 +1,222 @@
+"""The router's access control: default deny, one policy per identity.
+
+The router checks every message a node sends it (``ingress``) and every
+message it is about to send a node (``egress``) against the rules of the
+node's certificate common name (zenoh 1.10 ``access_control``; a rule allows
+a message when one of its key expressions *includes* the message's key).
+What is allowed is derived from the protocol (docs/security.md has the table):
+
+* the points of control are the ingress side: what a node may put, query,
+  reply, and which queryables, subscribers and liveliness tokens it may
+  declare. A service declares queryables and replies only under its own
+  ``<kind>/<robot>/``, puts only its own robot's events, and queries only
+  what its stage calls.
+* egress is allowed for the whole swarm prefix: a node is only ever sent
+  queries for queryables, and samples for subscribers, that ingress let it
+  declare, and it must see the others' declarations or zenoh's writer-side
+  filtering drops its own puts and queries before they leave.
+
+Limits (measured or by construction, see docs/security.md): the ACL sees key
+expressions, not payloads, so an index-shard ``query`` that stores (its
+``read_only`` flag unset) looks like one that does not; clients therefore
+query the shard endpoint named by ``shard_read_endpoint``, to be moved to a
+read-only endpoint of its own.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import zenoh
+
+from swarmrec.errors import ConfigError
+from swarmrec.runtime import keys
+from swarmrec.security.identity import SERVICE_KINDS, Identity
+
+__all__ = [
+    "ACL_MESSAGES",
+    "Grant",
+    "access_control",
+    "configure_access_control",
+    "grants",
+    "swarm_identities",
+]
+
+Flow = Literal["ingress", "egress"]
+
+#: Every message type zenoh 1.10's access control filters.
+ACL_MESSAGES = (
+    "put",
+    "delete",
+    "declare_subscriber",
+    "query",
+    "reply",
+    "declare_queryable",
+    "liveliness_token",
+    "declare_liveliness_subscriber",
+    "liveliness_query",
+)
+
+# What a node may be sent from the rest of the swarm (see the module docstring).
+_EGRESS = ("put", "query", "reply", "declare_subscriber", "declare_queryable", "liveliness_token")
+
+# What each kind queries, as (kind, robot, endpoint); "self" is the service's own robot.
+_QUERIES: dict[str, tuple[tuple[str, str, str], ...]] = {
+    "detector": (("descriptor", "self", "process"), ("fusion", "self", "start_round")),
+    "descriptor": (
+        ("index-shard", "*", "query"),
+        ("verifier", "*", "verify"),
+        ("verifier", "self", "store"),
+    ),
+    "index-shard": (),
+    "verifier": (),
+    "fusion": (),
+}
+
+# Read-only endpoints every client may query (shards' are added per call).
+_CLIENT_QUERIES = (
+    ("*", "info"),
+    ("verifier", "verify"),
+    ("descriptor", "loop_closures"),
+    ("fusion", "posterior"),
+)
+# What an operator adds: driving the replay (lock-step steps, free replay, classifier views).
+_OPERATOR_QUERIES = (("detector", "step"), ("detector", "replay"), ("detector", "classify"))
+
+
+@dataclass(frozen=True)
+class Grant:
+    """``messages`` a node may send (ingress) or be sent (egress) on ``key_exprs``."""
+
+    flow: Flow
+    messages: tuple[str, ...]
+    key_exprs: tuple[str, ...]
+
+
+def _prefix(swarm: str) -> str:
+    return f"{keys.PREFIX}/{swarm}"
+
+
+def _robot(spec: str, own: int) -> int | str:
+    return own if spec == "self" else spec
+
+
+def grants(identity: Identity, robots: Sequence[int], *, shard_read_endpoint: str = "query") -> list[Grant]:
+    """What ``identity`` may do in a swarm of ``robots``; everything else is denied."""
+    s, p = identity.swarm, _prefix(identity.swarm)
+    out = [Grant("egress", _EGRESS, (f"{p}/**",))]
+    if identity.role == "service":
+        kind, r = identity.kind, identity.robot
+        own = keys.endpoint(s, kind, r, "*")
+        out += [
+            Grant("ingress", ("declare_queryable", "reply"), (own,)),
+            Grant("ingress", ("liveliness_token",), (keys.alive(s, kind, r),)),
+            Grant("ingress", ("put",), (keys.event(s, "*", r),)),
+        ]
+        queries = tuple(keys.endpoint(s, k, _robot(rob, r), ep) for k, rob, ep in _QUERIES[kind])
+        if queries:
+            out.append(Grant("ingress", ("query",), queries))
+        if kind == "fusion":
+            # Flooding puts onto the neighbours' inboxes; who is a neighbour
+            # changes with the radio graph, so every other robot of the swarm.
+            inboxes = tuple(keys.endpoint(s, "fusion", j, "inbox") for j in robots if j != r)
+            out.append(Grant("ingress", ("declare_subscriber",), (keys.endpoint(s, "fusion", r, "inbox"),)))
+            if inboxes:
+                out.append(Grant("ingress", ("put",), inboxes))
+    elif identity.role in ("client", "operator"):
+        ends = [*_CLIENT_QUERIES, ("index-shard", shard_read_endpoint)]
+        if identity.role == "operator":
+            ends += _OPERATOR_QUERIES
+        out += [
+            Grant("ingress", ("query",), tuple(keys.endpoint(s, k, "*", ep) for k, ep in ends)),
+            Grant("ingress", ("declare_subscriber",), (f"{p}/events/**",)),
+            Grant("ingress", ("liveliness_query", "declare_liveliness_subscriber"), (keys.alive_all(s),)),
+        ]
+    else:
+        # A router dialling this one (several routers) is not a client: no rules
+        # yet, so default deny applies until router-to-router links are designed.
+        return []
+    return out
+
+
+def swarm_identities(
+    swarm: str,
+    robots: Sequence[int],
+    *,
+    kinds: Sequence[str] = SERVICE_KINDS,
+    clients: Sequence[str] = (),
+    operators: Sequence[str] = (),
+) -> list[Identity]:
+    """Every identity the ACL names: each robot's services, clients, operators."""
+    out = [Identity.service(swarm, k, r) for r in robots for k in kinds]
+    out += [Identity.client(swarm, n) for n in clients]
+    out += [Identity.operator(swarm, n) for n in operators]
+    return out
+
+
+def _robots(robots: int | Iterable[int]) -> list[int]:
+    ids = list(range(robots)) if isinstance(robots, int) else sorted(set(robots))
+    if not ids:
+        raise ConfigError("the ACL needs at least one robot")
+    return ids
+
+
+def access_control(
+    swarm: str,
+    robots: int | Iterable[int],
+    *,
+    kinds: Sequence[str] = SERVICE_KINDS,
+    clients: Sequence[str] = (),
+    operators: Sequence[str] = (),
+    shard_read_endpoint: str = "query",
+) -> dict[str, Any]:
+    """The ``access_control`` section of the router's zenoh config.
+
+    ``robots`` is a count (ids 0..n-1) or the ids. Each identity becomes a
+    subject matched on its certificate CN, with one policy holding its rules;
+    a certificate whose CN is not listed, or a connection without one, gets
+    the default: deny.
+    """
+    keys.validate_swarm_name(swarm)
+    ids = _robots(robots)
+    rules: list[dict[str, Any]] = []
+    subjects: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+    for ident in swarm_identities(swarm, ids, kinds=kinds, clients=clients, operators=operators):
+        cn = ident.common_name
+        rule_ids = []
+        for n, g in enumerate(grants(ident, ids, shard_read_endpoint=shard_read_endpoint)):
+            rule_ids.append(f"{cn}/{n}")
+            rules.append(
+                {
+                    "id": rule_ids[-1],
+                    "permission": "allow",
+                    "flows": [g.flow],
+                    "messages": list(g.messages),
+                    "key_exprs": list(g.key_exprs),
+                }
+            )
+        subjects.append({"id": cn, "cert_common_names": [cn]})
+        policies.append({"id": cn, "rules": rule_ids, "subjects": [cn]})
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    }
+
+
+def configure_access_control(conf: zenoh.Config, acl: Mapping[str, Any]) -> None:
+    """Put ``acl`` (from :func:`access_control`) into a router's ``conf``.
+
+    Zenoh checks the section's shape here (an unknown field or message name
+    raises) and its consistency (unknown rule or subject ids, duplicate ids)
+    only at ``zenoh.open``.
+    """
+    if acl.get("default_permission") != "deny" or acl.get("enabled") is not True:
+        raise ConfigError("the swarm's access control is enabled and denies by default; got otherwise")
+    conf.insert_json5("access_control", json.dumps(acl))

@@ -1,0 +1,118 @@
+"""Who is who on the swarm's links: one identity per certificate.
+
+The router's access control can only tell connections apart by the common
+name (CN) of the certificate each one presented, so the CN carries
+everything a rule needs, and nothing else:
+
+    r<robot>.<kind>.<swarm>      a robot's service        r3.index-shard.lab
+    client.<name>.<swarm>        a read-only client       client.cli.lab
+    operator.<name>.<swarm>      a client that also drives replay (detector step/replay/classify)
+    router.<swarm>               the router
+
+Dots separate the parts because no part can hold one: swarm names are one
+key segment of ``[A-Za-z0-9_-]`` (swarmrec.runtime.keys), kinds are the
+registry's names and client names are restricted to ``[a-z0-9-]`` here. The
+swarm is part of every CN so a certificate of one swarm never matches a rule
+of another, even when both swarms share a CA by mistake.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Literal
+
+from swarmrec.errors import ConfigError
+from swarmrec.runtime import keys
+from swarmrec.services import registry
+
+__all__ = ["SERVICE_KINDS", "Identity", "Role", "parse_common_name"]
+
+Role = Literal["service", "client", "operator", "router"]
+
+#: The kinds a robot runs (the registry's per-robot kinds); the router is an identity of its own.
+SERVICE_KINDS: tuple[str, ...] = registry.kinds("robot")
+
+_NAME = re.compile(r"^[a-z0-9](?:[a-z0-9-]{0,30}[a-z0-9])?$")
+_ROBOT = re.compile(r"^r(0|[1-9][0-9]{0,5})$")
+MAX_ROBOT = 999_999
+
+
+@dataclass(frozen=True)
+class Identity:
+    """One certificate's owner. Build with :meth:`service`, :meth:`client`,
+    :meth:`operator` or :meth:`router`; the fields are validated either way."""
+
+    swarm: str
+    role: Role
+    kind: str = ""
+    robot: int = -1
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        keys.validate_swarm_name(self.swarm)
+        if self.role == "service":
+            if self.kind not in SERVICE_KINDS:
+                raise ConfigError(f"service kind must be one of {SERVICE_KINDS}, got {self.kind!r}")
+            if not 0 <= self.robot <= MAX_ROBOT:
+                raise ConfigError(f"robot id must be 0..{MAX_ROBOT}, got {self.robot}")
+            if self.name:
+                raise ConfigError("a service identity has no name, only a kind and a robot")
+        elif self.role in ("client", "operator"):
+            if not _NAME.fullmatch(self.name):
+                raise ConfigError(
+                    f"{self.role} name must be 1-32 of a-z 0-9 - (not starting or ending with -), "
+                    f"got {self.name!r}"
+                )
+            if self.kind or self.robot != -1:
+                raise ConfigError(f"a {self.role} identity has a name, not a kind or a robot")
+        elif self.role == "router":
+            if self.kind or self.name or self.robot != -1:
+                raise ConfigError("the router identity has only a swarm")
+        else:
+            raise ConfigError(f"unknown role {self.role!r}")
+
+    @classmethod
+    def service(cls, swarm: str, kind: str, robot: int) -> Identity:
+        return cls(swarm, "service", kind=kind, robot=robot)
+
+    @classmethod
+    def client(cls, swarm: str, name: str) -> Identity:
+        return cls(swarm, "client", name=name)
+
+    @classmethod
+    def operator(cls, swarm: str, name: str) -> Identity:
+        return cls(swarm, "operator", name=name)
+
+    @classmethod
+    def router(cls, swarm: str) -> Identity:
+        return cls(swarm, "router")
+
+    @property
+    def common_name(self) -> str:
+        if self.role == "service":
+            return f"r{self.robot}.{self.kind}.{self.swarm}"
+        if self.role == "router":
+            return f"router.{self.swarm}"
+        return f"{self.role}.{self.name}.{self.swarm}"
+
+    def __str__(self) -> str:
+        return self.common_name
+
+
+def parse_common_name(cn: str) -> Identity:
+    """The identity a CN names; ConfigError for anything outside the scheme."""
+    parts = cn.split(".")
+    if len(parts) == 2 and parts[0] == "router":
+        return Identity.router(parts[1])
+    if len(parts) == 3:
+        first, middle, swarm = parts
+        if first in ("client", "operator"):
+            return Identity(swarm, "client" if first == "client" else "operator", name=middle)
+        robot = _ROBOT.fullmatch(first)
+        if robot:
+            return Identity.service(swarm, middle, int(robot.group(1)))
+    raise ConfigError(
+        f"{cn!r} is not a swarmrec common name "
+        "(r<robot>.<kind>.<swarm>, client.<name>.<swarm>, operator.<name>.<swarm>, router.<swarm>)"
+    )
