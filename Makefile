@@ -6,6 +6,7 @@
 #   make test    regenerated-code check, lint, types, all tests (unit, local processes, containers, training)
 #   make landmarks  the cooperative landmark recognition simulation (10 robots, 118 configurations) and its figures
 #   make bench   benchmarks, figures written to bench/results/
+#   make contracts  regenerate services/ (each service kind's contract) and the architecture figure
 #   make images  container engine (installed and started if none answers) and the swarm's images
 #   make swarm-up ROBOTS=4   a compose swarm of ROBOTS robots (3 to 10) + Prometheus, on this host
 #   make swarm-run           replay the synthetic world through it (report in runs/compose/report)
@@ -31,7 +32,7 @@ TRAIN_VENV  := .venv-train
 TRAIN_STAMP := $(TRAIN_VENV)/.installed-stamp
 TRAIN_REQS  := models/requirements-train.txt
 
-.PHONY: help venv train-env train-landmarks train-detector landmarks run evaluate test unit lint typecheck proto check-proto bench images swarm-up swarm-run swarm-down clean
+.PHONY: help venv contracts train-env train-landmarks train-detector landmarks run evaluate test unit lint typecheck proto check-proto bench images swarm-up swarm-run swarm-down clean
 
 help:
 	@sed -n 's/^#   //p' Makefile
@@ -87,6 +88,10 @@ proto: $(STAMP)
 
 check-proto: $(STAMP)
 	$(BIN)/python proto/generate.py --check
+
+contracts: $(STAMP)
+	$(BIN)/python -m swarmrec.services.contracts
+	$(BIN)/python -m swarmrec.layers --figure docs/figures/architecture.png
 
 bench: $(STAMP)
 	$(BIN)/python bench/bench_offline.py --out bench/results/offline.json

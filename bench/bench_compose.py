@@ -42,11 +42,10 @@ from swarmrec.deployments.compose import (
     SwarmFile,
     down,
     up,
-    write_compose,
 )
 from swarmrec.deployments.local import LocalDeployment, free_port
 from swarmrec.experiments.places import PlacesSettings, main
-from swarmrec.experiments.places.pipeline import prepare
+from swarmrec.experiments.places.pipeline import compose, prepare
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -112,9 +111,8 @@ def _rss_mb(pid: int) -> float:
 def _compose(robots: int, project: str, swarm: str, out: Path) -> tuple[SwarmFile, PlacesSettings]:
     """A places swarm of ``robots`` on the synthetic world, composed (not up) in ``out``."""
     run = PlacesSettings(robots=robots, swarm=swarm, out=out, progress=False, plots=False)
-    spec = prepare(run, dataset_dir=out / "dataset").spec
     settings = ComposeSettings(project=project, out=out, router_port=free_port(), prometheus_port=free_port())
-    return write_compose(spec, settings, experiment=run.record()), run
+    return compose(run, settings), run
 
 
 def bench_cold_start(robots: int, tmp: Path) -> dict[str, Any]:

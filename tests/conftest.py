@@ -14,6 +14,7 @@ from swarmrec.datasets.labels import COCO_NAMES
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("SWARMREC_SHARED_DATA", REPO.parent / "shared" / "data"))
 TUM_ZIP = SHARED_DATA / "tum_fr3_long_office_household_constellations.zip"
+TUM_GROUNDTRUTH = SHARED_DATA / "tum_fr3_long_office_household_groundtruth.txt"
 
 
 def label(name: str) -> int:
@@ -31,13 +32,24 @@ def make(*objects: tuple[str, float, float, float]) -> Constellation:
 
 @pytest.fixture(scope="session")
 def tum_zip() -> Path:
-    """The real TUM constellations. Skipped only where ../shared is absent (a
-    user's machine); CI always has it, so there the test must run."""
-    if not TUM_ZIP.exists():
+    """The real TUM constellations (../shared/data)."""
+    return shared(TUM_ZIP)
+
+
+def shared(path: Path) -> Path:
+    """A file of ../shared/data. Skipped only where ../shared is absent (a user's machine);
+    CI always has it, so there the test must run."""
+    if not path.exists():
         if os.environ.get("CI"):
-            pytest.fail(f"CI must have the shared data at {TUM_ZIP}")
-        pytest.skip(f"shared TUM data not found at {TUM_ZIP}")
-    return TUM_ZIP
+            pytest.fail(f"CI must have the shared data at {path}")
+        pytest.skip(f"shared data not found at {path}")
+    return path
+
+
+@pytest.fixture(scope="session")
+def tum_groundtruth() -> Path:
+    """The TUM sequence's motion-capture trajectory (../shared/data)."""
+    return shared(TUM_GROUNDTRUTH)
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

@@ -9,7 +9,7 @@ from swarmrec.cli.common import Subparsers, add_dataset_flags, dataset_source
 from swarmrec.deployments import compose
 from swarmrec.deployments.base import SwarmSpec
 from swarmrec.experiments.landmarks.simulation import LandmarkSettings, swarm_spec
-from swarmrec.experiments.places.pipeline import prepare
+from swarmrec.experiments.places.pipeline import compose as compose_places
 from swarmrec.experiments.places.settings import PlacesSettings
 from swarmrec.services.registry import WORKLOADS
 
@@ -53,15 +53,16 @@ def add(sub: Subparsers) -> None:
     p.set_defaults(handler=run)
 
 
-def spec_of(args: argparse.Namespace) -> tuple[SwarmSpec, dict[str, object]]:
-    """The swarm the flags describe, and the experiment record a later run reads back."""
+def write(args: argparse.Namespace, settings: compose.ComposeSettings) -> tuple[compose.SwarmFile, SwarmSpec]:
+    """The compose files of the swarm the flags describe."""
     if args.workload == "landmarks":
         lm = LandmarkSettings(
             out=args.out / "report", robots=args.robots, swarm=args.swarm, request_timeout_s=args.timeout
         )
         record = {"swarm": lm.swarm, "robots": lm.robots, "request_timeout_s": lm.request_timeout_s}
-        return swarm_spec(lm), record
-    settings = PlacesSettings(
+        spec = swarm_spec(lm)
+        return compose.write_compose(spec, settings, experiment=record), spec
+    run = PlacesSettings(
         source=dataset_source(args),
         robots=args.robots,
         preset=args.preset,
@@ -70,8 +71,8 @@ def spec_of(args: argparse.Namespace) -> tuple[SwarmSpec, dict[str, object]]:
         request_timeout_s=args.timeout,
         out=args.out,
     )
-    prepared = prepare(settings, dataset_dir=args.out.resolve() / "dataset")
-    return prepared.spec, settings.record()
+    info = compose_places(run, settings)
+    return info, SwarmSpec(run.bus(), WORKLOADS["places"], workload="places")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -84,8 +85,7 @@ def run(args: argparse.Namespace) -> int:
     settings = compose.ComposeSettings(
         project=args.project, out=args.out, router_port=args.router_port, prometheus_port=args.prometheus_port
     )
-    spec, record = spec_of(args)
-    info = compose.write_compose(spec, settings, experiment=record)
+    info, spec = write(args, settings)
     containers = len(spec.kinds) * spec.robots + 2
     print(f"wrote {info.compose_file} ({spec.robots} robots, {args.workload}, {containers} containers)")
     if args.action == "up":

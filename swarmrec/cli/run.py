@@ -47,6 +47,13 @@ def add(sub: Subparsers) -> None:
         help="skip comparing the pair scores with the offline evaluation",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument(
+        "--wire-positions",
+        choices=("mm", "exact"),
+        default="",
+        help="object positions on the wire: mm (2 bytes a coordinate) or exact doubles (8 bytes); "
+        "default: the preset's (paper: exact, so the swarm's scores are the published ones)",
+    )
     pixels = p.add_argument_group(
         "from pixels",
         "detectors find objects in RGB-D frames with an ONNX model instead of replaying constellations "
@@ -124,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
             swarm=args.swarm,
             request_timeout_s=args.timeout,
             out=args.out,
+            wire_positions=args.wire_positions,
             pixels=PixelSettings(
                 from_pixels=args.from_pixels,
                 rgbd=args.rgbd,
@@ -154,6 +162,13 @@ def print_summary(s: PlacesSummary, out: Path) -> None:
         print(f"  query latency p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms")
     print(f"  measured bytes between robots: {b.per_query:.1f} B per query ({b.per_frame:.1f} B per frame)")
     print(f"  partial queries per shard {load.partial_queries}; busiest / mean = {load.balance_ratio:.2f}")
+    if s.positions_effect is not None:
+        pe = s.positions_effect
+        print(
+            f"  positions in mm on the wire: offline AUC {pe.auc_offline_mm_positions:.4f} "
+            f"(exact positions {pe.auc_offline_exact_positions:.4f}, "
+            f"{pe.pair_scores_changed} pair scores changed)"
+        )
     if s.offline_check is not None:
         oc = s.offline_check
         verdict = "identical" if oc.identical else f"DIFFERENT ({oc})"

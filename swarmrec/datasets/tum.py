@@ -9,6 +9,7 @@ its constants live here so that settings can name them without loading OpenCV.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,16 @@ import numpy.typing as npt
 from swarmrec.core.types import Trajectory
 from swarmrec.errors import DatasetError, MalformedLineError
 
-__all__ = ["DEFAULT_MAX_DT", "TUM_DEPTH_SCALE", "associate_poses", "read_trajectory", "write_trajectory"]
+__all__ = [
+    "DEFAULT_MAX_DT",
+    "POSE_MAX_DT",
+    "POSE_WARN_DT",
+    "TUM_DEPTH_SCALE",
+    "PoseAssociation",
+    "associate_poses",
+    "read_trajectory",
+    "write_trajectory",
+]
 
 #: Depth units per metre in TUM's 16-bit depth PNGs (and in the synthetic renders).
 TUM_DEPTH_SCALE = 5000.0
@@ -71,15 +81,53 @@ def write_trajectory(traj: Trajectory, path: str | Path) -> None:
     Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 
-def associate_poses(
-    traj: Trajectory, timestamps: npt.ArrayLike, max_dt: float = 0.05
-) -> npt.NDArray[np.int64]:
-    """Index of the pose nearest in time to each timestamp.
+#: Seconds: a frame whose nearest pose is farther than this is reported (the motion-capture
+#: rate is 100 Hz, so a good match is within 0.005 s; TUM's tools warn at 0.02 s).
+POSE_WARN_DT = 0.05
+#: Seconds: a frame whose nearest pose is farther than this has no usable pose (it is refused,
+#: never given a pose of another part of the path).
+POSE_MAX_DT = 0.5
 
-    On an exact tie the later pose wins, as in the published evaluation.
-    A frame with no pose within ``max_dt`` seconds is an error: silently
-    borrowing a far pose would corrupt the ground truth.
+
+@dataclass(frozen=True)
+class PoseAssociation:
+    """The pose of each frame (``index``) and how far in time it is (``gap``, seconds)."""
+
+    index: npt.NDArray[np.int64]
+    gap: npt.NDArray[np.float64]
+    warn_dt: float
+
+    @property
+    def far(self) -> npt.NDArray[np.int64]:
+        """Frames whose nearest pose is more than ``warn_dt`` away."""
+        return np.flatnonzero(self.gap > self.warn_dt)
+
+    def describe(self) -> str:
+        """One line for a warning (empty when every pose is close)."""
+        far = self.far
+        if not far.size:
+            return ""
+        worst = int(far[np.argmax(self.gap[far])])
+        return (
+            f"{far.size} frame(s) matched to a pose more than {self.warn_dt:g} s away "
+            f"(nearest pose in time, as the published evaluation does; worst: frame {worst}, "
+            f"{self.gap[worst]:.3f} s)"
+        )
+
+
+def associate_poses(
+    traj: Trajectory, timestamps: npt.ArrayLike, max_dt: float = POSE_MAX_DT, warn_dt: float = POSE_WARN_DT
+) -> PoseAssociation:
+    """The pose nearest in time to each timestamp, as the published evaluation matches them.
+
+    On an exact tie the later pose wins, as in the published evaluation. A frame
+    whose nearest pose is more than ``warn_dt`` away is listed (:attr:`PoseAssociation.far`:
+    the first frames of a recording often start before its motion capture); a
+    frame with no pose within ``max_dt`` is an error, since borrowing a pose from
+    another part of the path would corrupt the ground truth.
     """
+    if not 0 < warn_dt <= max_dt:
+        raise ValueError(f"need 0 < warn_dt <= max_dt, got {warn_dt}, {max_dt}")
     t = np.asarray(timestamps, dtype=np.float64)
     gt = traj.timestamps
     after = np.clip(np.searchsorted(gt, t, side="left"), 0, len(gt) - 1)
@@ -91,7 +139,7 @@ def associate_poses(
         worst = int(np.argmax(gap))
         raise DatasetError(
             "trajectory",
-            f"frame at t={t[worst]:.6f} has no pose within {max_dt} s "
-            f"(nearest {gap[worst]:.3f} s away)",
+            f"frame {worst} at t={t[worst]:.6f} has no pose within {max_dt} s "
+            f"(nearest {gap[worst]:.3f} s away): is this the sequence's own groundtruth.txt?",
         )
-    return idx.astype(np.int64)
+    return PoseAssociation(idx.astype(np.int64), gap, warn_dt)

@@ -211,7 +211,7 @@ def read_tum_rgbd(
     if gt_path.exists():
         traj = read_trajectory(gt_path)
         # Nearest pose with the trajectory reader's tie rule; the gap is checked here, per frame.
-        nearest = associate_poses(traj, stamps, max_dt=math.inf)
+        nearest = associate_poses(traj, stamps, max_dt=math.inf, warn_dt=math.inf).index
         rotations = quaternion_to_matrix(traj.quaternions[nearest])
         for k, g in enumerate(nearest.tolist()):
             if abs(traj.timestamps[g] - stamps[k]) <= pose_max_dt:

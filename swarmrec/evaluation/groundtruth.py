@@ -21,7 +21,7 @@ import numpy.typing as npt
 
 from swarmrec.core.geometry import quaternion_to_matrix
 from swarmrec.core.types import ConstellationSequence, Trajectory
-from swarmrec.datasets.tum import associate_poses
+from swarmrec.datasets.tum import POSE_MAX_DT, PoseAssociation, associate_poses
 
 __all__ = ["GroundTruth", "ground_truth", "quaternion_to_matrix", "scene_points"]
 
@@ -72,6 +72,7 @@ class GroundTruth:
     distances: FloatArray  # (N, N), inf inside the exclusion window or filtered out
     closures: npt.NDArray[np.bool_]  # distances < max_distance
     scene: FloatArray  # (N, 3) scene points
+    poses: PoseAssociation  # which pose each frame took, and how far in time
 
 
 def ground_truth(
@@ -81,10 +82,13 @@ def ground_truth(
     max_distance: float = 2.0,
     exclusion: int = 100,
     rules: Rules = "none",
-    max_dt: float = 0.05,
+    max_dt: float = POSE_MAX_DT,
 ) -> GroundTruth:
-    """True loop closures of ``seq`` from ``trajectory`` (poses matched by time)."""
-    idx = associate_poses(trajectory, seq.timestamps, max_dt=max_dt)
+    """True loop closures of ``seq`` from ``trajectory``: each frame takes the pose nearest
+    in time, as the published evaluation does (:func:`~swarmrec.datasets.tum.associate_poses`;
+    ``associated.describe()`` says which frames were far from every pose)."""
+    associated = associate_poses(trajectory, seq.timestamps, max_dt=max_dt)
+    idx = associated.index
     poses = Trajectory(
         trajectory.timestamps[idx], trajectory.positions[idx], trajectory.quaternions[idx]
     )
@@ -98,4 +102,4 @@ def ground_truth(
     n = len(seq)
     k = np.arange(n)
     dist[np.abs(k[:, None] - k[None, :]) <= exclusion] = np.inf
-    return GroundTruth(dist, dist < max_distance, scene)
+    return GroundTruth(dist, dist < max_distance, scene, associated)

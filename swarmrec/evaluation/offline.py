@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -39,6 +40,8 @@ from swarmrec.evaluation.scoring import (
 )
 
 __all__ = ["EvaluationSettings", "main"]
+
+log = logging.getLogger(__name__)
 
 Mode = Literal["centralized", "decentralized", "both"]
 
@@ -152,6 +155,11 @@ def main(settings: EvaluationSettings) -> dict[str, Any]:
         t0 = time.perf_counter()
         gt = ground_truth(seq, trajectory, exclusion=preset.exclusion, rules=settings.gt_rules)
         timings["groundtruth_s"] = time.perf_counter() - t0
+        summary["dataset"]["frames_far_from_a_pose"] = int(gt.poses.far.size)
+        if gt.poses.far.size:
+            note = gt.poses.describe()
+            summary["dataset"]["pose_note"] = note
+            log.warning("ground truth: %s", note)
     else:
         summary["dataset"]["groundtruth_note"] = (
             "no trajectory: pair scores are written but precision-recall needs --groundtruth"

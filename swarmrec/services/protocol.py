@@ -111,6 +111,7 @@ def two_step_query(
         frame_index=wire.frame_index,
         labels=wire.labels,
         positions_mm=wire.positions_mm,
+        positions_m=wire.positions_m,
     )
     verifying: list[tuple[int, Pending]] = []
     for r in chosen.tolist():

@@ -9,11 +9,18 @@ checks the entries against the protobuf ``ServiceKind`` enum.
 
 Factories are named ``"module:Class"`` and imported on demand, so a shard's
 process never loads the detector's onnxruntime or the verifier's numba kernels.
+
+Another package adds a kind without touching this file: it declares an entry
+point in the group ``swarmrec.services`` naming its :class:`ServiceSpec`
+(``echo = my_package.echo:SPEC``), and every swarmrec process registers it at
+start (:func:`load_plugins`). Its wire value may be any number the
+``ServiceKind`` enum does not use (proto3 enums are open).
 """
 
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -41,12 +48,14 @@ from swarmrec.services.settings import (
 from swarmrec.wire import messages as pb
 
 __all__ = [
+    "PLUGIN_GROUP",
     "REGISTRY",
     "WORKLOADS",
     "ServiceSpec",
     "all_components",
     "kind_of_wire",
     "kinds",
+    "load_plugins",
     "register",
     "serve",
     "spec",
@@ -169,6 +178,29 @@ for _entry in (
     ),
 ):
     register(_entry)
+
+#: The entry-point group other packages declare their service kinds in.
+PLUGIN_GROUP = "swarmrec.services"
+
+
+def load_plugins() -> list[str]:
+    """Register the kinds installed packages declare (entry points of :data:`PLUGIN_GROUP`);
+    returns the kinds added. A kind already registered under that spec is left as is."""
+    added = []
+    for ep in importlib.metadata.entry_points(group=PLUGIN_GROUP):
+        entry = ep.load()
+        if not isinstance(entry, ServiceSpec):
+            raise ConfigError(f"entry point {ep.name} = {ep.value} ({PLUGIN_GROUP}) is not a ServiceSpec")
+        if entry.kind != ep.name:
+            raise ConfigError(f"entry point {ep.name} = {ep.value} names the kind {entry.kind!r}")
+        if REGISTRY.get(entry.kind) == entry:
+            continue
+        register(entry)
+        added.append(entry.kind)
+    return added
+
+
+load_plugins()
 
 #: Each robot's services for each experiment, in start order.
 WORKLOADS: Mapping[str, tuple[str, ...]] = {

@@ -12,7 +12,9 @@ than letting protobuf raise its own exception types or silently clamp.
 
 Positions travel as integer millimetres (zigzag varints, 1 to 2 bytes for the
 few metres a camera sees) instead of 4-byte floats: a millimetre is finer than
-any depth camera's noise, so nothing measurable is lost.
+any depth camera's noise, so nothing measurable is lost. A swarm that must
+reproduce published scores bit for bit (the ``paper`` preset) sends them as
+8-byte doubles instead (``exact``).
 """
 
 from __future__ import annotations
@@ -121,9 +123,7 @@ def _dense_counts(counts: npt.ArrayLike) -> IntArray:
     if arr.size and arr.min() < 0:
         raise WireError(f"descriptor count of label {int(np.argmin(arr))} is negative")
     if arr.size and arr.max() > _UINT32_MAX:
-        raise WireError(
-            f"descriptor count of label {int(np.argmax(arr))} does not fit in 32 unsigned bits"
-        )
+        raise WireError(f"descriptor count of label {int(np.argmax(arr))} does not fit in 32 unsigned bits")
     return arr.astype(np.int64, copy=False)
 
 
@@ -160,14 +160,15 @@ def _sparse_bins(
 
 
 def constellation_to_proto(
-    c: Constellation, robot: int, frame: int, frame_id: str = ""
+    c: Constellation, robot: int, frame: int, frame_id: str = "", *, exact: bool = False
 ) -> constellation_pb2.Constellation:
     """The wire form of robot ``robot``'s frame ``frame``.
 
     Positions are rounded to the nearest millimetre with ``np.rint``, which
     rounds exact halves to even (0.0625 m -> 62 mm, 0.1875 m -> 188 mm): it is
     IEEE's default, has no bias, and exact half-millimetres are vanishingly
-    rare in measured data. Object order is kept (the association uses it).
+    rare in measured data. With ``exact`` they travel as the doubles they are
+    (``positions_m``, 8 bytes each). Object order is kept (the association uses it).
     """
     robot_id = _uint32("robot id", robot)
     frame_index = _uint32("frame index", frame)
@@ -180,36 +181,40 @@ def constellation_to_proto(
     if not finite.all():
         k = int(np.flatnonzero(~finite)[0])
         raise WireError(f"object {k} has a non-finite position {c.positions[k].tolist()}")
+    msg = constellation_pb2.Constellation(
+        robot_id=robot_id, frame_index=frame_index, labels=labels.tolist(), frame_id=frame_id
+    )
+    if exact:
+        msg.positions_m.extend(c.positions.astype(np.float64).ravel().tolist())
+        return msg
     # A finite but huge position overflows to inf here; the range check below reports it.
     with np.errstate(over="ignore"):
         mm = np.rint(c.positions * MM_PER_M)
     fits = ((mm >= _INT32_MIN) & (mm <= _INT32_MAX)).all(axis=1)
     if not fits.all():
         k = int(np.flatnonzero(~fits)[0])
-        raise WireError(
-            f"object {k} at {c.positions[k].tolist()} m is out of the int32 millimetre range"
-        )
-    return constellation_pb2.Constellation(
-        robot_id=robot_id,
-        frame_index=frame_index,
-        labels=labels.tolist(),
-        positions_mm=mm.astype(np.int64).ravel().tolist(),
-        frame_id=frame_id,
-    )
+        raise WireError(f"object {k} at {c.positions[k].tolist()} m is out of the int32 millimetre range")
+    msg.positions_mm.extend(mm.astype(np.int64).ravel().tolist())
+    return msg
 
 
 def constellation_from_proto(msg: constellation_pb2.Constellation, n_labels: int) -> Constellation:
     """The constellation in a wire message, checked against a list of ``n_labels`` labels.
 
-    Positions come back as ``mm / 1000``: dividing (rather than multiplying by
+    Millimetres come back as ``mm / 1000``: dividing (rather than multiplying by
     0.001) gives the float nearest the exact decimal, so 1234 mm is 1.234.
+    Exact positions come back as the doubles that were sent.
     """
     _check_n_labels(n_labels)
     n = len(msg.labels)
-    if len(msg.positions_mm) != 3 * n:
+    exact = len(msg.positions_m) > 0
+    if exact and len(msg.positions_mm):
+        raise WireError("constellation carries both positions_mm and positions_m; send one")
+    count = len(msg.positions_m) if exact else len(msg.positions_mm)
+    if count != 3 * n:
+        field = "positions_m" if exact else "positions_mm"
         raise WireError(
-            f"constellation has {n} labels but {len(msg.positions_mm)} coordinates;"
-            f" expected 3 per label ({3 * n})"
+            f"constellation has {n} labels but {count} coordinates in {field}; expected 3 per label ({3 * n})"
         )
     labels = np.fromiter(msg.labels, dtype=np.int64, count=n)
     unknown = np.flatnonzero(labels >= n_labels)
@@ -218,6 +223,12 @@ def constellation_from_proto(msg: constellation_pb2.Constellation, n_labels: int
         raise LabelOutOfRangeError(
             f"object {k} has label {int(labels[k])}, outside the label list of {n_labels} labels"
         )
+    if exact:
+        metres = np.fromiter(msg.positions_m, dtype=np.float64, count=3 * n).reshape(n, 3)
+        bad = np.flatnonzero(~np.isfinite(metres).all(axis=1))
+        if bad.size:
+            raise WireError(f"object {int(bad[0])} has a non-finite position {metres[bad[0]].tolist()}")
+        return Constellation(labels, metres)
     mm = np.fromiter(msg.positions_mm, dtype=np.float64, count=3 * n)
     return Constellation(labels, mm.reshape(n, 3) / MM_PER_M)
 
@@ -253,9 +264,7 @@ def descriptor_from_proto(msg: descriptor_pb2.SemanticDescriptor, n_labels: int)
     """
     _check_n_labels(n_labels)
     if msg.n_labels != n_labels:
-        raise WireError(
-            f"descriptor is over {msg.n_labels} labels but the label list has {n_labels}"
-        )
+        raise WireError(f"descriptor is over {msg.n_labels} labels but the label list has {n_labels}")
     labels, counts = _sparse_bins(msg.labels, msg.counts, 0, n_labels)
     dense = np.zeros(n_labels, dtype=np.int64)
     dense[labels] = counts
@@ -287,9 +296,7 @@ def partial_descriptor_to_proto(
     )
 
 
-def partial_descriptor_from_proto(
-    msg: descriptor_pb2.PartialDescriptor, n_labels: int
-) -> DescriptorSlice:
+def partial_descriptor_from_proto(msg: descriptor_pb2.PartialDescriptor, n_labels: int) -> DescriptorSlice:
     """The dense slice in a partial descriptor, checked against a list of ``n_labels`` labels.
 
     The range must satisfy ``lo < hi <= n_labels``; whether it is the range
@@ -418,9 +425,7 @@ def matched_pairs_from_proto(match: verify_pb2.VerifyMatch, n_query: int) -> Int
     outside = np.flatnonzero(pairs[:, 0] >= n_query)
     if outside.size:
         i = int(outside[0])
-        raise WireError(
-            f"pair {i} names query object {int(pairs[i, 0])} of a {n_query}-object query"
-        )
+        raise WireError(f"pair {i} names query object {int(pairs[i, 0])} of a {n_query}-object query")
     for column, side in ((0, "query"), (1, "matched")):
         if np.unique(pairs[:, column]).size != pairs.shape[0]:
             raise WireError(f"a {side} object appears in more than one pair")

@@ -22,11 +22,10 @@ from swarmrec.deployments.compose import (
     SwarmFile,
     down,
     up,
-    write_compose,
 )
 from swarmrec.deployments.local import free_port
 from swarmrec.experiments.places import PlacesSettings, PlacesSummary, main
-from swarmrec.experiments.places.pipeline import prepare
+from swarmrec.experiments.places.pipeline import compose
 from tests.conftest import REPO
 
 
@@ -64,9 +63,8 @@ def start_swarm(tmp: Path, project: str, robots: int, frames: int) -> SwarmFile:
         request_timeout_s=2.0,
         out=tmp,
     )
-    spec = prepare(run, dataset_dir=tmp / "dataset").spec
     settings = ComposeSettings(project=project, out=tmp, router_port=free_port(), prometheus_port=free_port())
-    info = write_compose(spec, settings, experiment=run.record())
+    info = compose(run, settings)
     try:
         up(info, timeout_s=300.0)
     except Exception:

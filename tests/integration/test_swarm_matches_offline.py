@@ -17,7 +17,7 @@ from swarmrec.datasets.source import DatasetSource
 from swarmrec.evaluation.bandwidth import holder_load
 from swarmrec.evaluation.scoring import score_decentralized
 from swarmrec.experiments.places import PlacesSettings, main
-from swarmrec.experiments.places.pipeline import as_on_the_wire
+from tests.published import rows_differing
 
 
 def _positive_pairs(lo: np.ndarray, hi: np.ndarray, scores: np.ndarray) -> dict[tuple[int, int], float]:
@@ -37,7 +37,8 @@ def test_synthetic_swarm_of_four_scores_every_pair_as_the_offline_evaluation(tmp
     )
     summary = main(settings)
 
-    seq = as_on_the_wire(read_constellations(tmp_path / "run" / "dataset", COCO_NAMES))
+    # The paper preset carries positions exactly: the offline evaluation of the files as they are.
+    seq = read_constellations(tmp_path / "run" / "dataset", COCO_NAMES)
     offline = score_decentralized(seq, 4, get_preset("paper"))
     expected = _positive_pairs(offline.matrix.pairs_i, offline.matrix.pairs_j, offline.matrix.scores)
     got = _swarm_pairs(tmp_path / "run")
@@ -64,10 +65,19 @@ def test_tum_swarm_of_ten_scores_every_pair_as_the_offline_evaluation(tmp_path: 
                               progress=False, plots=False, check_offline=False)
     summary = main(settings)
 
-    seq = as_on_the_wire(read_constellations(tum_zip, COCO_NAMES))
+    seq = read_constellations(tum_zip, COCO_NAMES)
     offline = score_decentralized(seq, 10, get_preset("paper"))
     expected = _positive_pairs(offline.matrix.pairs_i, offline.matrix.pairs_j, offline.matrix.scores)
     assert len(expected) > 5000
-    assert _swarm_pairs(tmp_path / "run") == expected
+    got = _swarm_pairs(tmp_path / "run")
+    assert got == expected
+    # The live swarm's scores are the published scripts' own, row for row.
+    dense = np.zeros((len(seq), len(seq)))
+    for (i, j), score in got.items():
+        dense[i, j] = dense[j, i] = score
+    marked = offline.matrix.dense()  # the scripts mark ignored frames -2; the swarm never sees them
+    dense[marked < 0] = marked[marked < 0]
+    assert rows_differing("decentralized_10", dense) == []
     # The published load imbalance of even label ranges on this data, now measured.
     assert summary.shard_load.balance_ratio == pytest.approx(2.67, abs=0.005)
+    assert summary.swarm.wire_positions == "exact"

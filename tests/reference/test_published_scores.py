@@ -4,8 +4,6 @@ TUM constellations, pair by pair (via per-row digests, see the fixture's
 
 from __future__ import annotations
 
-import hashlib
-import json
 from pathlib import Path
 
 import numpy as np
@@ -15,28 +13,13 @@ from swarmrec.core.association import build_table
 from swarmrec.core.presets import get_preset
 from swarmrec.datasets.constellations import read_constellations
 from swarmrec.evaluation.scoring import score_centralized, score_decentralized
-
-FIXTURE = Path(__file__).parents[1] / "fixtures" / "published_scores_tum_fr3.json"
-PUBLISHED = json.loads(FIXTURE.read_text())["matrices"]
-
-
-def _row_digests(dense: np.ndarray) -> list[str]:
-    return [
-        hashlib.sha256(np.ascontiguousarray(r, "<f8").tobytes()).hexdigest()[:16] for r in dense
-    ]
+from tests.published import positive_entries, rows_differing
 
 
 def _assert_same(name: str, dense: np.ndarray) -> None:
-    expected = PUBLISHED[name]
-    assert int((dense > 0).sum()) == expected["positive_entries"]
-    differ = [
-        i
-        for i, (a, b) in enumerate(zip(_row_digests(dense), expected["rows"], strict=True))
-        if a != b
-    ]
-    assert not differ, (
-        f"{name}: {len(differ)} rows differ from the published output, first {differ[:10]}"
-    )
+    assert int((dense > 0).sum()) == positive_entries(name)
+    differ = rows_differing(name, dense)
+    assert not differ, f"{name}: {len(differ)} rows differ from the published output, first {differ[:10]}"
 
 
 @pytest.fixture(scope="module")

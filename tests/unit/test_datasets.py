@@ -153,13 +153,27 @@ def test_bad_trajectory_lines_name_the_line(tmp_path: Path, text: str, message: 
 
 def test_poses_are_associated_by_nearest_time_later_on_ties() -> None:
     traj = Trajectory(np.array([0.0, 1.0, 2.0]), np.zeros((3, 3)), np.tile([0, 0, 0, 1.0], (3, 1)))
-    assert associate_poses(traj, [0.1, 0.5, 1.6, 2.0], max_dt=0.5).tolist() == [0, 1, 2, 2]
+    assert associate_poses(traj, [0.1, 0.5, 1.6, 2.0], max_dt=0.5).index.tolist() == [0, 1, 2, 2]
 
 
 def test_a_frame_far_from_every_pose_is_an_error() -> None:
     traj = Trajectory(np.array([0.0, 1.0]), np.zeros((2, 3)), np.tile([0, 0, 0, 1.0], (2, 1)))
     with pytest.raises(DatasetError, match="no pose within"):
-        associate_poses(traj, [5.0], max_dt=0.05)
+        associate_poses(traj, [5.0], max_dt=0.05, warn_dt=0.05)
+    # The default limit: half a second.
+    with pytest.raises(DatasetError, match=r"no pose within 0\.5 s \(nearest 0\.600 s away\)"):
+        associate_poses(traj, [0.2, 1.6])
+
+
+def test_a_frame_a_little_before_the_first_pose_gets_it_and_is_listed() -> None:
+    # As the TUM sequence's first frame, 0.067 s before its motion capture starts.
+    traj = Trajectory(np.array([1.067, 1.077, 1.087]), np.zeros((3, 3)), np.tile([0, 0, 0, 1.0], (3, 1)))
+    found = associate_poses(traj, [1.0, 1.075, 1.09])
+    assert found.index.tolist() == [0, 1, 2]
+    assert found.far.tolist() == [0]
+    assert found.gap[0] == pytest.approx(0.067)
+    assert "1 frame(s) matched to a pose more than 0.05 s away" in found.describe()
+    assert associate_poses(traj, [1.07, 1.08]).describe() == ""
 
 
 def test_a_dataset_folder_is_read_from_its_constellations_subfolder(tmp_path: Path) -> None:

@@ -41,6 +41,7 @@ from swarmrec.core.types import ConstellationSequence, Trajectory
 from swarmrec.datasets.constellations import write_constellations
 from swarmrec.datasets.source import load_dataset
 from swarmrec.deployments.base import Deployment, SwarmSpec
+from swarmrec.deployments.compose import ComposeSettings, SwarmFile, write_compose
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.errors import ConfigError
 from swarmrec.evaluation.scoring import label_frequency_prior
@@ -53,13 +54,16 @@ from swarmrec.services.registry import WORKLOADS
 from swarmrec.services.settings import DetectorSettings, PlaceSettings
 from swarmrec.wire.codec import constellation_from_proto, constellation_to_proto
 
-__all__ = ["Prepared", "as_on_the_wire", "main", "prepare", "swarm_bounds"]
+__all__ = ["Prepared", "as_on_the_wire", "compose", "main", "prepare", "swarm_bounds"]
 
 IntArray = npt.NDArray[np.int64]
 
 
-def as_on_the_wire(seq: ConstellationSequence) -> ConstellationSequence:
-    """``seq`` as the services see it: positions rounded to the wire's millimetres."""
+def as_on_the_wire(seq: ConstellationSequence, *, exact: bool = False) -> ConstellationSequence:
+    """``seq`` as the services see it: positions rounded to the wire's millimetres (unchanged
+    when the swarm carries them ``exact``)."""
+    if exact:
+        return seq
     out = [
         constellation_from_proto(constellation_to_proto(c, 0, 0), seq.n_labels) for c in seq.constellations
     ]
@@ -122,6 +126,14 @@ def prepare(settings: PlacesSettings, *, dataset_dir: Path) -> Prepared:
     places = settings.places(n_labels, tuple(int(b) for b in bounds))
     spec = SwarmSpec(settings.bus(), WORKLOADS["places"], (places, *parts), workload="places")
     return Prepared(spec, preset, bounds, split_frames(n_frames, settings.robots), seq, trajectory, px)
+
+
+def compose(settings: PlacesSettings, compose_settings: ComposeSettings) -> SwarmFile:
+    """Write the compose files of this run's swarm (its dataset copied beside them); a later
+    ``swarmrec run --attach`` reads the run back from ``swarm.json``."""
+    out = compose_settings.out.resolve()
+    spec = prepare(settings, dataset_dir=out / "dataset").spec
+    return write_compose(spec, compose_settings, experiment=settings.record())
 
 
 def _local(out: Path) -> LocalDeployment:
@@ -207,7 +219,7 @@ def main(
     assert isinstance(places, PlaceSettings)
     record = RunRecord(
         seq=seq,
-        wire_seq=as_on_the_wire(seq),
+        wire_seq=as_on_the_wire(seq, exact=places.exact_positions),
         trajectory=prepared.trajectory,
         preset=prepared.preset,
         bounds=prepared.bounds,

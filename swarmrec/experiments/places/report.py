@@ -63,6 +63,8 @@ class SwarmInfo:
     pace: str
     preset: dict[str, Any]
     label_bounds: list[int]
+    #: How object positions travelled: "mm" or "exact" (doubles).
+    wire_positions: str
     deployment: str
     #: Processes the deployment started (0 for a swarm that was already running).
     processes: int
@@ -132,6 +134,19 @@ class OfflineCheck:
 
 
 @dataclass
+class PositionsEffect:
+    """What carrying positions in millimetres cost, measured offline on the same frames."""
+
+    auc_offline_exact_positions: float
+    auc_offline_mm_positions: float
+    pair_scores_changed: int
+    note: str = (
+        "the offline decentralized evaluation of this run's frames with exact positions and with the "
+        "millimetres the swarm carried; pair_scores_changed counts pairs whose score differs"
+    )
+
+
+@dataclass
 class DetectorFigures:
     """A run from pixels: how the detectors were set up and what they counted."""
 
@@ -173,6 +188,7 @@ class PlacesSummary:
     timings: dict[str, float]
     auc: float | None = None
     offline_check: OfflineCheck | None = None
+    positions_effect: PositionsEffect | None = None
     detector: DetectorFigures | None = None
 
     def to_dict(self) -> dict[str, Any]:
@@ -234,6 +250,16 @@ def _compare_offline(
         scores_differ=differ,
         only_in_swarm=only_swarm,
         only_offline=only_offline,
+    )
+
+
+def _positions_effect(run: RunRecord, robots: int, truth: npt.NDArray[np.bool_]) -> PositionsEffect:
+    exact = score_decentralized(run.seq, robots, run.preset, bounds=run.bounds).matrix.dense()
+    carried = score_decentralized(run.wire_seq, robots, run.preset, bounds=run.bounds).matrix.dense()
+    return PositionsEffect(
+        auc_offline_exact_positions=precision_recall(exact, truth).auc,
+        auc_offline_mm_positions=precision_recall(carried, truth).auc,
+        pair_scores_changed=int(np.count_nonzero(np.triu(exact != carried))),
     )
 
 
@@ -319,6 +345,7 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
             pace=settings.pace,
             preset=asdict(run.preset),
             label_bounds=[int(b) for b in run.bounds],
+            wire_positions="exact" if run.wire_seq is run.seq else "mm",
             deployment=run.deployment,
             processes=len(run.exit_codes),
         ),
@@ -363,6 +390,8 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
         curves[name] = precision_recall(dense, gt.closures)
         summary.auc = curves[name].auc
         truth = gt.closures
+        if run.wire_seq is not run.seq and settings.check_offline:
+            summary.positions_effect = _positions_effect(run, settings.robots, gt.closures)
     _write_pairs(out / "pairs.csv", matrix, wire_seq)
     _write_closures(out / "loop_closures.csv", run.closures, run.blocks, seq, truth)
     if settings.plots:

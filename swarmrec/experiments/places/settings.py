@@ -71,6 +71,8 @@ class PlacesSettings:
     #: Compare the pair scores with the offline decentralized evaluation (lock-step only).
     check_offline: bool = True
     pixels: PixelSettings = field(default_factory=PixelSettings)
+    #: How the swarm carries object positions: mm, exact, or "" for the preset's.
+    wire_positions: str = ""
 
     def __post_init__(self) -> None:
         if self.robots < 1:
@@ -90,8 +92,9 @@ class PlacesSettings:
             )
         if self.pixels.rgbd is not None and not self.source.synthetic:
             raise ConfigError("--rgbd DIR replaces --dataset: give one of them")
-        # The bus checks the swarm name and timeout.
+        # The bus checks the swarm name and timeout; the services' settings the preset and positions.
         self.bus()
+        self.places(80, ())
 
     @property
     def lockstep(self) -> bool:
@@ -104,7 +107,11 @@ class PlacesSettings:
     def places(self, n_labels: int, bounds: tuple[int, ...]) -> PlaceSettings:
         """The services' place-recognition settings for this run's label list and ranges."""
         return PlaceSettings(
-            preset=self.preset, n_labels=n_labels, label_bounds=bounds, lockstep=self.lockstep
+            preset=self.preset,
+            n_labels=n_labels,
+            label_bounds=bounds,
+            lockstep=self.lockstep,
+            wire_positions=self.wire_positions,
         )
 
     def with_(self, **changes: Any) -> PlacesSettings:
@@ -126,6 +133,7 @@ class PlacesSettings:
             "lockstep": self.lockstep,
             "swarm": self.swarm,
             "request_timeout_s": self.request_timeout_s,
+            "wire_positions": self.wire_positions,
         }
 
     @classmethod
@@ -146,6 +154,7 @@ class PlacesSettings:
                 swarm=str(record["swarm"]),
                 request_timeout_s=float(record["request_timeout_s"]),
                 pace="lockstep" if record.get("lockstep", True) else "fast",
+                wire_positions=str(record.get("wire_positions", "")),
             )
         except (KeyError, TypeError, ValueError) as e:
             raise ConfigError(f"the swarm file's experiment record is not a places run: {e}") from None

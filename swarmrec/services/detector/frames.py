@@ -26,7 +26,7 @@ from swarmrec.core.types import Constellation
 from swarmrec.errors import CallError, InvalidArgument, RequestError, Unavailable, WireError
 from swarmrec.runtime import ServiceContext, keys
 from swarmrec.runtime.settings import BusSettings
-from swarmrec.services.settings import DetectorSettings
+from swarmrec.services.settings import DetectorSettings, PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import constellation_to_proto
 
@@ -64,12 +64,13 @@ class FramePlayer:
         self.key = keys.endpoint(bus.swarm, "descriptor", bus.robot, "process")
         # A frame's query holds several nested requests; give it their time and some.
         self.timeout_s = 4 * bus.request_timeout_s
+        self.exact = ctx.settings(PlaceSettings).exact_positions
 
     def _send(self, t: int) -> pb.QueryReport:
         robot = self.ctx.bus.robot
         c = self.source.constellation(t)
         try:
-            wire = constellation_to_proto(c, robot, t, self.source.frame_ids[t])
+            wire = constellation_to_proto(c, robot, t, self.source.frame_ids[t], exact=self.exact)
         except WireError as e:
             # A frame the detector cannot put on the wire (NaN position): counted, skipped.
             self.ctx.metrics.rejected.labels("frame", "ERROR_CODE_INVALID_ARGUMENT").inc()
