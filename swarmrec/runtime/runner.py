@@ -301,6 +301,9 @@ class _EndpointDispatcher(_Dispatcher):
     def __init__(self, ctx: ServiceContext, service: ServiceBase, endpoint: Endpoint) -> None:
         super().__init__(ctx, service, endpoint.name, endpoint.request)
         self.endpoint = endpoint
+        # Replies go out on the service's own key, not the query's (which may be a wildcard:
+        # detector/*/step): a router's access control allows a robot to reply on its own keys only.
+        self.key = keys.endpoint(ctx.bus.swarm, ctx.kind, ctx.bus.robot, endpoint.name)
 
     def serve(self, query: zenoh.Query) -> None:
         t0 = time.perf_counter()
@@ -311,7 +314,7 @@ class _EndpointDispatcher(_Dispatcher):
             request = self.parse(data, schema_of(query.encoding), scope)
             reply = self.endpoint.handler(self.service, request, RequestContext(robot, str(query.key_expr)))
             payload = encode(reply)
-            query.reply(query.key_expr, payload, encoding=encoding_for(reply))
+            query.reply(self.key, payload, encoding=encoding_for(reply))
             self.ctx.metrics.count_sent(type(reply).__name__, scope, len(payload))
         except Exception as e:
             self._reply_error(query, scope, e, robot)
@@ -478,12 +481,13 @@ def _declare_info(
     ctx: ServiceContext, service: ServiceBase, wire_kind: int, threads: list[threading.Thread]
 ) -> zenoh.Queryable[Any]:
     bus = ctx.bus
-    q = ctx.session.declare_queryable(keys.endpoint(bus.swarm, ctx.kind, bus.robot, "info"))
+    key = keys.endpoint(bus.swarm, ctx.kind, bus.robot, "info")
+    q = ctx.session.declare_queryable(key)
 
     def answer(query: zenoh.Query) -> None:
         info = _member_info(service, ctx, wire_kind)
         try:
-            query.reply(query.key_expr, encode(info), encoding=encoding_for(info))
+            query.reply(key, encode(info), encoding=encoding_for(info))
         finally:
             query.drop()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
 
