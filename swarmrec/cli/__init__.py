@@ -30,6 +30,7 @@ COMMANDS: dict[str, str] = {
     "compose": "swarmrec.cli.compose",
     "landmarks": "swarmrec.cli.landmarks",
     "serve": "swarmrec.cli.serve",
+    "host": "swarmrec.cli.host",
     "query": "swarmrec.cli.clients",
     "members": "swarmrec.cli.clients",
     "loop-closures": "swarmrec.cli.clients",

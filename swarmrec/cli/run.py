@@ -48,6 +48,13 @@ def add(sub: Subparsers) -> None:
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument(
+        "--hosting",
+        default="service",
+        metavar="service|robot|robots:K",
+        help="how the local swarm puts services in processes: one per service (default), one per robot "
+        "(its services share a session), or K robots per process (a simulation of many robots)",
+    )
+    p.add_argument(
         "--wire-positions",
         choices=("mm", "exact"),
         default="",
@@ -132,6 +139,7 @@ def run(args: argparse.Namespace) -> int:
             request_timeout_s=args.timeout,
             out=args.out,
             wire_positions=args.wire_positions,
+            hosting=args.hosting,
             pixels=PixelSettings(
                 from_pixels=args.from_pixels,
                 rgbd=args.rgbd,

@@ -1,13 +1,20 @@
-"""The local deployment: a router and every robot's services as separate processes
-on this machine, on free loopback ports.
+"""The local deployment: a router and every robot's services as processes on this
+machine, on free loopback ports.
 
-Each process is ``python -m swarmrec serve <kind>`` with the flags of its
-configuration (:meth:`SwarmSpec.config_for`); it prints one JSON ``ready``
-line on stdout when it serves, and its JSON logs (stderr) go to
-``<log_dir>/<kind>-<robot>.log`` (appended, so a restarted service's log
+``hosting`` says how services share processes:
+
+* ``service`` (default): one process per service, ``python -m swarmrec serve <kind>``
+  with the flags of its configuration (:meth:`SwarmSpec.config_for`);
+* ``robot``: one process per robot hosting all its services over one zenoh session
+  (``swarmrec host``): calls between a robot's own services stay in the process;
+* ``robots:K``: K robots per process, the simulation mode for swarms of many robots.
+
+A process prints one JSON ``ready`` line on stdout when it serves, and its JSON logs
+(stderr) go to ``<log_dir>/<name>.log`` (appended, so a restarted process's log
 follows its predecessor's). A stateful service keeps its data under
-``<data_dir>/robot<r>/<kind>``. Stopping sends SIGTERM to the services, then
-the router, and escalates to SIGKILL for any process that does not exit in time.
+``<data_dir>/robot<r>/<kind>`` whatever the hosting. Stopping sends SIGTERM to the
+services, then the router, and escalates to SIGKILL for any process that does not
+exit in time.
 """
 
 from __future__ import annotations
@@ -31,12 +38,25 @@ from swarmrec.client import SwarmClient
 from swarmrec.deployments.base import SwarmSpec, SwarmStartError, config_flags
 from swarmrec.deployments.metrics import Scrape, scrape
 from swarmrec.errors import ConfigError
+from swarmrec.runtime.settings import Component, to_flags
 
 __all__ = ["LocalDeployment", "ServiceProcess", "free_port"]
 
 #: A router that cannot listen on the port it was given (taken between choosing and
 #: binding it) exits at once; it is started again on another port this many times.
 ROUTER_ATTEMPTS = 5
+
+
+def _robots_per_process(hosting: str) -> int | None:
+    """None for ``service`` hosting, else how many robots one process hosts."""
+    if hosting == "service":
+        return None
+    if hosting == "robot":
+        return 1
+    name, _, count = hosting.partition(":")
+    if name == "robots" and count.isdigit() and int(count) >= 1:
+        return int(count)
+    raise ConfigError(f"hosting must be service, robot or robots:K (K >= 1), got {hosting!r}")
 
 
 def free_port() -> int:
@@ -50,24 +70,31 @@ def free_port() -> int:
 
 @dataclass
 class ServiceProcess:
-    """One running service process."""
+    """One running process and the services it hosts: (kind, robot) pairs, the first one
+    named by ``kind`` and ``robot``."""
 
     kind: str
     robot: int
     proc: subprocess.Popen[str]
     log_path: Path
+    services: list[tuple[str, int]] = field(default_factory=list)
     ready: threading.Event = field(default_factory=threading.Event)
     info: dict[str, object] = field(default_factory=dict)
+    urls: dict[tuple[str, int], str] = field(default_factory=dict)
     reader: threading.Thread | None = None
+
+    def __post_init__(self) -> None:
+        if not self.services:
+            self.services = [(self.kind, self.robot)]
 
     @property
     def name(self) -> str:
-        return f"{self.kind}-{self.robot}"
+        return f"{self.kind}-{self.robot}" if len(self.services) == 1 else self.log_path.stem
 
     @property
     def metrics_url(self) -> str:
-        url = self.info.get("metrics_url")
-        return url if isinstance(url, str) else ""
+        """The metrics URL of the process's first service (its only one, in ``service`` hosting)."""
+        return self.urls.get((self.kind, self.robot), "")
 
     def release(self) -> None:
         """After the process exited: let the stdout reader finish, close the pipe."""
@@ -85,6 +112,10 @@ class ServiceProcess:
                 continue
             if isinstance(msg, dict) and msg.get("event") == "ready":
                 self.info = msg
+                entries = msg.get("services", [msg])
+                for e in entries if isinstance(entries, list) else []:
+                    if isinstance(e, dict) and isinstance(e.get("metrics_url"), str):
+                        self.urls[(str(e.get("service")), int(e.get("robot", 0)))] = e["metrics_url"]
                 self.ready.set()
 
     def tail(self, n: int = 15) -> str:
@@ -97,11 +128,16 @@ class ServiceProcess:
 class LocalDeployment:
     """A swarm as processes on this machine (see the module docstring)."""
 
-    description = "local processes"
-
-    def __init__(self, *, data_dir: Path, log_dir: Path, router_port: int | None = None) -> None:
+    def __init__(
+        self, *, data_dir: Path, log_dir: Path, router_port: int | None = None, hosting: str = "service"
+    ) -> None:
         self.data_dir, self.log_dir = data_dir, log_dir
         self.router_port = router_port
+        self.robots_per_process = _robots_per_process(hosting)
+        self.hosting = hosting
+        self.description = (
+            "local processes" if hosting == "service" else f"local processes ({hosting} hosting)"
+        )
         self.spec: SwarmSpec | None = None
         self.router: ServiceProcess | None = None
         self.procs: list[ServiceProcess] = []
@@ -119,8 +155,13 @@ class LocalDeployment:
         """Router first, then every robot's services; returns when all are ready."""
         self.start_router(spec)
         started: list[ServiceProcess] = []
-        for r in range(spec.robots):
-            started += self.start_robot(r)
+        if self.robots_per_process is None:
+            for r in range(spec.robots):
+                started += self.start_robot(r)
+        else:
+            k = self.robots_per_process
+            for first in range(0, spec.robots, k):
+                started.append(self.start_host(list(range(first, min(first + k, spec.robots)))))
         self._wait(started, timeout_s, progress=progress)
 
     def wait_ready(self, timeout_s: float = 60.0) -> None:
@@ -128,7 +169,8 @@ class LocalDeployment:
         self._wait(self.procs, timeout_s)
         spec = self._spec()
         with SwarmClient([self.endpoint], spec.swarm, timeout_s=5.0) as client:
-            client.wait_for({(sp.kind, sp.robot) for sp in self.procs if sp.proc.poll() is None}, timeout_s)
+            running = {s for sp in self.procs if sp.proc.poll() is None for s in sp.services}
+            client.wait_for(running, timeout_s)
 
     def metrics(self) -> Scrape:
         """Every running service's ``/metrics``, read now (the processes started with this run)."""
@@ -196,31 +238,63 @@ class LocalDeployment:
         return config_flags(config)
 
     def start_robot(self, robot: int, kinds: Sequence[str] | None = None) -> list[ServiceProcess]:
-        """Start ``kinds`` (default: the spec's) of ``robot``; does not wait."""
+        """Start ``kinds`` (default: the spec's) of ``robot``, a process each or (``robot``
+        hosting) one process for them all; does not wait."""
         spec = self._spec()
+        if self.robots_per_process is not None:
+            return [self.start_host([robot], kinds)]
         started = [self._spawn(k, robot, self.service_flags(k, robot)) for k in (kinds or spec.kinds)]
         self.procs.extend(started)
         return started
+
+    def start_host(self, robots: Sequence[int], kinds: Sequence[str] | None = None) -> ServiceProcess:
+        """One ``swarmrec host`` process for ``kinds`` of ``robots``; does not wait."""
+        spec = self._spec()
+        kinds = list(kinds or spec.kinds)
+        parts: dict[type, Component] = {}
+        for kind in kinds:
+            config = spec.config_for(
+                kind, robots[0], connect=(self.endpoint,), data_dir=self.data_dir, metrics_port=0
+            )
+            for part in config.parts:
+                parts.setdefault(type(part), part)
+        flags = [flag for part in parts.values() for flag in to_flags(part, only_changed=True)]
+        ids = ",".join(map(str, robots))
+        name = f"host-r{robots[0]}" if len(robots) == 1 else f"host-r{robots[0]}-{robots[-1]}"
+        sp = self._spawn_command(
+            ["host", "--kinds", ",".join(kinds), "--robots", ids, *flags],
+            name,
+            kinds[0],
+            robots[0],
+            [(k, r) for r in robots for k in kinds],
+        )
+        self.procs.append(sp)
+        return sp
 
     def wait_started(self, procs: Sequence[ServiceProcess], timeout_s: float = 60.0) -> None:
         """Return when each of ``procs`` printed its readiness line."""
         self._wait(procs, timeout_s)
 
     def _spawn(self, kind: str, robot: int, flags: list[str]) -> ServiceProcess:
+        return self._spawn_command(["serve", kind, *flags], f"{kind}-{robot}", kind, robot, [(kind, robot)])
+
+    def _spawn_command(
+        self, args: list[str], name: str, kind: str, robot: int, services: list[tuple[str, int]]
+    ) -> ServiceProcess:
         self.log_dir.mkdir(parents=True, exist_ok=True)
-        log_path = self.log_dir / f"{kind}-{robot}.log"
+        log_path = self.log_dir / f"{name}.log"
         log = log_path.open("a", encoding="utf-8")
         self._logs.append(log)
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         proc = subprocess.Popen(
-            [sys.executable, "-m", "swarmrec", "serve", kind, *flags],
+            [sys.executable, "-m", "swarmrec", *args],
             stdout=subprocess.PIPE,
             stderr=log,
             text=True,
             env=env,
             start_new_session=True,  # a Ctrl-C in the terminal reaches the main job only
         )
-        sp = ServiceProcess(kind, robot, proc, log_path)
+        sp = ServiceProcess(kind, robot, proc, log_path, services)
         sp.reader = threading.Thread(target=sp._read_stdout, daemon=True, name=f"stdout-{sp.name}")
         sp.reader.start()
         return sp

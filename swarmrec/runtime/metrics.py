@@ -23,11 +23,28 @@ from __future__ import annotations
 import socket
 import threading
 from dataclasses import dataclass
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import ClassVar, TypeVar
 
-from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, Info, start_http_server
+from prometheus_client import (
+    CONTENT_TYPE_LATEST,
+    CollectorRegistry,
+    Counter,
+    Gauge,
+    Histogram,
+    Info,
+    generate_latest,
+)
 
-__all__ = ["LATENCY_BUCKETS", "SCOPES", "MetricInfo", "MetricSet", "ServiceMetrics", "scope_between"]
+__all__ = [
+    "LATENCY_BUCKETS",
+    "SCOPES",
+    "MetricInfo",
+    "MetricSet",
+    "MetricsServer",
+    "ServiceMetrics",
+    "scope_between",
+]
 
 SCOPES = ("robot", "swarm", "client")
 
@@ -171,21 +188,62 @@ class ServiceMetrics:
         self.bytes_received.labels(message, scope).inc(size)
         self.messages_received.labels(message, scope).inc()
 
-    def serve(self, host: str, port: int) -> str:
-        """Serve ``/metrics`` over HTTP on a daemon thread; returns its URL."""
-        server, _thread = start_http_server(port, addr=host, registry=self.registry)
+
+class MetricsServer:
+    """One process's Prometheus endpoint: each hosted service's registry at its own path.
+
+    A process hosting one service serves it at ``/metrics`` (what the containers' health
+    check and Prometheus read). A process hosting several serves each at
+    ``/metrics/<kind>/<robot>`` and, at ``/metrics``, the host's own registry
+    (``swarmrec_service_ready``: 1 while every hosted service serves).
+    """
+
+    def __init__(self, host: str, port: int) -> None:
+        self.host, self.port = host, port
+        self.paths: dict[str, CollectorRegistry] = {}
+        self._server: ThreadingHTTPServer | None = None
+        self.base_url = ""
+
+    def start(self) -> str:
+        """Listen (port 0: a free one) on a daemon thread; returns the base URL."""
+        paths = self.paths
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_GET(self) -> None:
+                registry = paths.get(self.path.split("?", 1)[0].rstrip("/") or "/")
+                if registry is None:
+                    self.send_error(404, "no such metrics path")
+                    return
+                body = generate_latest(registry)
+                self.send_response(200)
+                self.send_header("Content-Type", CONTENT_TYPE_LATEST)
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
+            def log_message(self, *_args: object) -> None:
+                pass  # a scrape every few seconds is not worth a log line
+
+        server = ThreadingHTTPServer((self.host, self.port), Handler)
+        server.daemon_threads = True
         self._server = server
+        threading.Thread(target=server.serve_forever, name="metrics", daemon=True).start()
         # Bound to every interface (a container): peers reach it by host name.
-        shown = socket.gethostname() if host in ("0.0.0.0", "::", "") else host
-        self.url = f"http://{shown}:{server.server_port}/metrics"
-        return self.url
+        shown = socket.gethostname() if self.host in ("0.0.0.0", "::", "") else self.host
+        self.base_url = f"http://{shown}:{server.server_address[1]}"
+        return self.base_url
+
+    def add(self, path: str, registry: CollectorRegistry) -> str:
+        """Serve ``registry`` at ``path``; returns its URL (after :meth:`start`)."""
+        self.paths[path] = registry
+        return self.base_url + path
 
     def close(self) -> None:
-        server = getattr(self, "_server", None)
-        if server is not None:
+        if self._server is not None:
             # shutdown() waits for the serve loop; run it off-thread so a stuck
-            # scrape cannot hold up the service's exit.
-            t = threading.Thread(target=server.shutdown, daemon=True)
+            # scrape cannot hold up the process's exit.
+            t = threading.Thread(target=self._server.shutdown, daemon=True)
             t.start()
             t.join(timeout=2.0)
-            server.server_close()
+            self._server.server_close()
+            self._server = None

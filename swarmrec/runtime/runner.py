@@ -50,9 +50,11 @@ import zenoh
 # protobuf ships no type stubs and types-protobuf is not a dev dependency; with
 # the stubs installed the ignore is unused, hence both codes.
 from google.protobuf.message import Message  # type: ignore[import-untyped, unused-ignore]
+from prometheus_client import CollectorRegistry, Gauge
 
 import swarmrec
 from swarmrec.errors import (
+    ConfigError,
     ErrorCode,
     InvalidArgument,
     MessageTooLargeError,
@@ -60,7 +62,7 @@ from swarmrec.errors import (
     WireError,
 )
 from swarmrec.runtime import keys
-from swarmrec.runtime.metrics import MetricSet, ServiceMetrics, scope_between
+from swarmrec.runtime.metrics import MetricSet, MetricsServer, ServiceMetrics, scope_between
 from swarmrec.runtime.rpc import Caller, caller_robot, encoding_for, schema_of
 from swarmrec.runtime.settings import BusSettings, Component, Config, StorageSettings
 from swarmrec.runtime.storage import RecordLog
@@ -69,12 +71,14 @@ from swarmrec.wire.codec import decode, encode, error_reply, schema_name
 
 __all__ = [
     "Endpoint",
+    "Hosted",
     "RequestContext",
     "ServiceBase",
     "ServiceContext",
     "Subscription",
     "install_signals",
     "run_service",
+    "run_services",
     "service_logger",
     "zenoh_config",
 ]
@@ -398,6 +402,181 @@ def _work(queryable: zenoh.Queryable[Any], serve: Callable[[zenoh.Query], None])
         serve(query)
 
 
+@dataclass(frozen=True)
+class Hosted:
+    """One service a process runs: its configuration and its registry entry's parts."""
+
+    config: Config
+    kind: str
+    wire_kind: int
+    factory: Callable[[ServiceContext], ServiceBase]
+    metric_set: type[MetricSet] | None = None
+
+    @property
+    def name(self) -> str:
+        return f"{self.kind}-{self.config.bus.robot}"
+
+
+def _session_bus(hosted: Sequence[Hosted]) -> BusSettings:
+    """The bus settings the shared session is opened with; every hosted service must agree
+    on what the session is (swarm, mode, endpoints)."""
+    first = hosted[0].config.bus
+    for h in hosted[1:]:
+        bus = h.config.bus
+        same = (bus.swarm, bus.mode, bus.connect, bus.listen) == (
+            first.swarm,
+            first.mode,
+            first.connect,
+            first.listen,
+        )
+        if not same:
+            raise ConfigError(
+                f"{h.name} is on another session than {hosted[0].name}: one process, one session"
+            )
+    return first
+
+
+@dataclass
+class _Running:
+    """What the host set up for one service, to be torn down in order."""
+
+    hosted: Hosted
+    ctx: ServiceContext
+    service: ServiceBase | None = None
+    declared: list[Any] = field(default_factory=list)
+    threads: list[threading.Thread] = field(default_factory=list)
+    subscriptions: list[tuple[_SubscriptionDispatcher, int]] = field(default_factory=list)
+    token: Any = None
+
+
+def _start(r: _Running) -> None:
+    """Build the service and declare its endpoints, subscriptions, info and token."""
+    ctx, h = r.ctx, r.hosted
+    bus, session = ctx.bus, ctx.session
+    r.service = service = h.factory(ctx)
+    for ep in service.ENDPOINTS:
+        q = session.declare_queryable(keys.endpoint(bus.swarm, h.kind, bus.robot, ep.name))
+        r.declared.append(q)
+        serve = _EndpointDispatcher(ctx, service, ep).serve
+        for i in range(bus.workers):
+            t = threading.Thread(target=_work, args=(q, serve), name=f"{h.name}-{ep.name}-{i}", daemon=True)
+            t.start()
+            r.threads.append(t)
+    for sub in service.SUBSCRIPTIONS:
+        dispatcher = _SubscriptionDispatcher(ctx, service, sub)
+        for i in range(sub.workers):
+            t = threading.Thread(target=dispatcher.work, name=f"{h.name}-{sub.name}-{i}", daemon=True)
+            t.start()
+            r.threads.append(t)
+        r.subscriptions.append((dispatcher, sub.workers))
+        key = keys.endpoint(bus.swarm, h.kind, bus.robot, sub.name)
+        r.declared.append(session.declare_subscriber(key, dispatcher.on_sample))
+    r.declared.append(_declare_info(ctx, service, h.wire_kind, r.threads))
+    # Last: once the token is up, peers may route to this service.
+    r.token = session.liveliness().declare_token(keys.alive(bus.swarm, h.kind, bus.robot))
+    ctx.metrics.ready.set(1)
+
+
+def _stop(r: _Running) -> None:
+    """Token first, then queryables and subscribers, workers, the service, its logs."""
+    r.ctx.metrics.ready.set(0)
+    if r.token is not None:
+        r.token.undeclare()
+    for d in r.declared:
+        d.undeclare()
+    for dispatcher, workers in r.subscriptions:
+        dispatcher.close(workers)
+    for t in r.threads:
+        t.join(timeout=5.0)
+    if r.service is not None:
+        r.service.close()
+    for record_log in r.ctx._logs:
+        record_log.close()
+
+
+def run_services(
+    hosted: Sequence[Hosted],
+    *,
+    stop: threading.Event | None = None,
+    on_ready: Callable[[pb.MemberInfo], None] | None = None,
+) -> int:
+    """Run several services in this process over one zenoh session until ``stop`` is set
+    (or SIGTERM/SIGINT); returns an exit code.
+
+    A robot's services in one process talk to each other through the session without
+    a network hop (zenoh delivers a query to a queryable of the same session locally);
+    many robots can share a process the same way (a simulation). Each service keeps its
+    own endpoints, worker threads, logs, metrics registry and liveliness token, so peers
+    cannot tell it from a service alone in its process. Metrics: one HTTP endpoint for
+    the process (:class:`~swarmrec.runtime.metrics.MetricsServer`).
+    """
+    if not hosted:
+        raise ConfigError("a host runs at least one service")
+    bus = _session_bus(hosted)
+    stop = stop or threading.Event()
+    install_signals(stop)
+    single = len(hosted) == 1
+    host_log = service_logger(hosted[0].kind if single else "host", bus.robot, bus.log_level)
+    server = MetricsServer(bus.metrics_host, bus.metrics_port) if bus.metrics_port >= 0 else None
+    host_ready = None
+    if server is not None:
+        server.start()
+        if not single:
+            host_registry = CollectorRegistry(auto_describe=True)
+            host_ready = Gauge(
+                "swarmrec_service_ready",
+                "1 while every service of this process serves",
+                registry=host_registry,
+            )
+            host_ready.set(0)
+            server.add("/metrics", host_registry)
+    running: list[_Running] = []
+    with zenoh.open(zenoh_config(bus)) as session:
+        try:
+            for h in hosted:
+                b = h.config.bus
+                metrics = ServiceMetrics.create(h.kind, b.robot, b.swarm)
+                if server is not None:
+                    metrics.url = server.add(
+                        "/metrics" if single else f"/metrics/{h.kind}/{b.robot}", metrics.registry
+                    )
+                caller = Caller(session, b.robot, b.request_timeout_s, metrics, b.max_message_bytes)
+                own = h.metric_set.create(metrics.registry) if h.metric_set is not None else None
+                log = host_log if single else service_logger(h.kind, b.robot, b.log_level)
+                ctx = ServiceContext(h.config, h.kind, session, metrics, caller, stop, log, own)
+                r = _Running(h, ctx)
+                running.append(r)
+                _start(r)
+            if host_ready is not None:
+                host_ready.set(1)
+            services = [
+                {"service": r.hosted.kind, "robot": r.ctx.bus.robot, "metrics_url": r.ctx.metrics.url}
+                for r in running
+            ]
+            ready: dict[str, Any] = (
+                {"event": "ready", **services[0]} if single else {"event": "ready", "services": services}
+            )
+            if bus.listen:
+                ready["listen"] = list(bus.listen)
+            host_log.info("ready", extra={"fields": {"services": services, "listen": list(bus.listen)}})
+            print(json.dumps(ready), flush=True)
+            if on_ready is not None:
+                for r in running:
+                    assert r.service is not None
+                    on_ready(_member_info(r.service, r.ctx, r.hosted.wire_kind))
+            stop.wait()
+            host_log.info("stopping")
+        finally:
+            if host_ready is not None:
+                host_ready.set(0)
+            for r in reversed(running):
+                _stop(r)
+            if server is not None:
+                server.close()
+    host_log.info("stopped")
+    return 0
+
+
 def run_service(
     config: Config,
     *,
@@ -412,69 +591,7 @@ def run_service(
 
     ``kind``, ``wire_kind``, ``factory`` and ``metric_set`` come from the service's
     registry entry (:func:`swarmrec.services.registry.serve` passes them)."""
-    bus = config.bus
-    stop = stop or threading.Event()
-    install_signals(stop)
-    log = service_logger(kind, bus.robot, bus.log_level)
-    metrics = ServiceMetrics.create(kind, bus.robot, bus.swarm)
-    with zenoh.open(zenoh_config(bus)) as session:
-        if bus.metrics_port >= 0:
-            metrics.serve(bus.metrics_host, bus.metrics_port)
-        caller = Caller(session, bus.robot, bus.request_timeout_s, metrics, bus.max_message_bytes)
-        own = metric_set.create(metrics.registry) if metric_set is not None else None
-        ctx = ServiceContext(config, kind, session, metrics, caller, stop, log, own)
-        service: ServiceBase | None = None
-        declared: list[Any] = []
-        threads: list[threading.Thread] = []
-        subscriptions: list[tuple[_SubscriptionDispatcher, int]] = []
-        try:
-            service = factory(ctx)
-            for ep in service.ENDPOINTS:
-                q = session.declare_queryable(keys.endpoint(bus.swarm, kind, bus.robot, ep.name))
-                declared.append(q)
-                serve = _EndpointDispatcher(ctx, service, ep).serve
-                for i in range(bus.workers):
-                    t = threading.Thread(target=_work, args=(q, serve), name=f"{ep.name}-{i}", daemon=True)
-                    t.start()
-                    threads.append(t)
-            for sub in service.SUBSCRIPTIONS:
-                dispatcher = _SubscriptionDispatcher(ctx, service, sub)
-                for i in range(sub.workers):
-                    t = threading.Thread(target=dispatcher.work, name=f"{sub.name}-{i}", daemon=True)
-                    t.start()
-                    threads.append(t)
-                subscriptions.append((dispatcher, sub.workers))
-                key = keys.endpoint(bus.swarm, kind, bus.robot, sub.name)
-                declared.append(session.declare_subscriber(key, dispatcher.on_sample))
-            declared.append(_declare_info(ctx, service, wire_kind, threads))
-            token = session.liveliness().declare_token(keys.alive(bus.swarm, kind, bus.robot))
-            metrics.ready.set(1)
-            info = _member_info(service, ctx, wire_kind)
-            log.info("ready", extra={"fields": {"metrics_url": metrics.url, "listen": list(bus.listen)}})
-            ready = {"event": "ready", "service": kind, "robot": bus.robot, "metrics_url": metrics.url}
-            if bus.listen:
-                ready["listen"] = list(bus.listen)
-            print(json.dumps(ready), flush=True)
-            if on_ready is not None:
-                on_ready(info)
-            stop.wait()
-            log.info("stopping")
-            metrics.ready.set(0)
-            token.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
-        finally:
-            for d in declared:
-                d.undeclare()
-            for dispatcher, workers in subscriptions:
-                dispatcher.close(workers)
-            for t in threads:
-                t.join(timeout=5.0)
-            if service is not None:
-                service.close()
-            for record_log in ctx._logs:
-                record_log.close()
-            metrics.close()
-    log.info("stopped")
-    return 0
+    return run_services([Hosted(config, kind, wire_kind, factory, metric_set)], stop=stop, on_ready=on_ready)
 
 
 def _declare_info(

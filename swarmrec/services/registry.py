@@ -28,7 +28,7 @@ from typing import Literal, cast
 
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.metrics import MetricSet
-from swarmrec.runtime.runner import ServiceBase, ServiceContext, run_service
+from swarmrec.runtime.runner import Hosted, ServiceBase, ServiceContext, run_services
 from swarmrec.runtime.settings import BusSettings, Component, Config, StorageSettings
 from swarmrec.services.metrics import (
     DescriptorMetrics,
@@ -53,11 +53,13 @@ __all__ = [
     "WORKLOADS",
     "ServiceSpec",
     "all_components",
+    "hosted",
     "kind_of_wire",
     "kinds",
     "load_plugins",
     "register",
     "serve",
+    "serve_many",
     "spec",
 ]
 
@@ -239,6 +241,15 @@ def all_components() -> tuple[type[Component], ...]:
     return tuple(seen)
 
 
+def hosted(kind: str, config: Config) -> Hosted:
+    """A service of ``kind`` with ``config``, ready for :func:`~swarmrec.runtime.runner.run_services`."""
+    entry = spec(kind)
+    if entry.zenoh_mode is not None and config.bus.mode != entry.zenoh_mode:
+        config = config.replace(config.bus.with_(mode=entry.zenoh_mode))
+    factory = cast(Callable[[ServiceContext], ServiceBase], entry.load())
+    return Hosted(config, entry.kind, entry.wire, factory, entry.metrics)
+
+
 def serve(
     kind: str,
     config: Config,
@@ -247,19 +258,17 @@ def serve(
     on_ready: Callable[[pb.MemberInfo], None] | None = None,
 ) -> int:
     """Run one service of ``kind`` with ``config`` until stopped; returns an exit code."""
-    entry = spec(kind)
-    if entry.zenoh_mode is not None and config.bus.mode != entry.zenoh_mode:
-        config = config.replace(config.bus.with_(mode=entry.zenoh_mode))
-    factory = cast(Callable[[ServiceContext], ServiceBase], entry.load())
-    return run_service(
-        config,
-        kind=entry.kind,
-        wire_kind=entry.wire,
-        factory=factory,
-        metric_set=entry.metrics,
-        stop=stop,
-        on_ready=on_ready,
-    )
+    return run_services([hosted(kind, config)], stop=stop, on_ready=on_ready)
+
+
+def serve_many(
+    services: Sequence[tuple[str, Config]],
+    *,
+    stop: threading.Event | None = None,
+    on_ready: Callable[[pb.MemberInfo], None] | None = None,
+) -> int:
+    """Run several services (kinds, robots) in this process over one session (``swarmrec host``)."""
+    return run_services([hosted(kind, config) for kind, config in services], stop=stop, on_ready=on_ready)
 
 
 def missing_components(kind: str, parts: Sequence[Component]) -> list[str]:

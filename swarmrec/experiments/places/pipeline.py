@@ -136,13 +136,13 @@ def compose(settings: PlacesSettings, compose_settings: ComposeSettings) -> Swar
     return write_compose(spec, compose_settings, experiment=settings.record())
 
 
-def _local(out: Path) -> LocalDeployment:
+def _local(out: Path, hosting: str) -> LocalDeployment:
     """A fresh local swarm in ``out`` (stores and detections of an earlier run removed)."""
     for old in (out / "data").glob("robot*/*/*.log"):
         old.unlink()
     for old in (out / "data").glob("robot*/detector/constellations/*.txt"):
         old.unlink()
-    return LocalDeployment(data_dir=out / "data", log_dir=out / "logs")
+    return LocalDeployment(data_dir=out / "data", log_dir=out / "logs", hosting=hosting)
 
 
 def main(
@@ -165,7 +165,7 @@ def main(
     if prepared.pixels is not None and not isinstance(deployment, LocalDeployment | None):
         raise ConfigError("a run from pixels reads the detectors' constellations from a local deployment")
     if deployment is None:
-        deployment = _local(out)
+        deployment = _local(out, settings.hosting)
         # Compiled once here, the verifier processes load the kernels from numba's cache.
         warm_up()
     timings: dict[str, float] = {"prepare_s": time.perf_counter() - t_start}

@@ -73,6 +73,8 @@ class PlacesSettings:
     pixels: PixelSettings = field(default_factory=PixelSettings)
     #: How the swarm carries object positions: mm, exact, or "" for the preset's.
     wire_positions: str = ""
+    #: How a local swarm puts services in processes: service, robot or robots:K.
+    hosting: str = "service"
 
     def __post_init__(self) -> None:
         if self.robots < 1:
