@@ -321,16 +321,12 @@ class LocalDeployment:
 
     def metrics_targets(self) -> dict[tuple[str, int], str]:
         """``/metrics`` URL of every service still running, by (kind, robot)."""
-        return {
-            (sp.kind, sp.robot): sp.metrics_url
-            for sp in self.procs
-            if sp.proc.poll() is None and sp.metrics_url
-        }
+        return {key: url for sp in self.procs if sp.proc.poll() is None for key, url in sp.urls.items()}
 
     def find(self, kind: str, robot: int) -> ServiceProcess:
-        """The running process of ``kind`` on ``robot``."""
+        """The running process that hosts ``kind`` of ``robot``."""
         for sp in self.procs:
-            if sp.kind == kind and sp.robot == robot and sp.proc.poll() is None:
+            if (kind, robot) in sp.services and sp.proc.poll() is None:
                 return sp
         raise KeyError(f"no running {kind}-{robot}")
 

@@ -1,0 +1,45 @@
+"""How services share processes changes nothing a user can see but the process count:
+the same frames through a swarm of one process per service, one process per robot and
+one process for every robot give the same pair scores, equal to the offline evaluation,
+and the same bytes between robots."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from swarmrec.datasets.source import DatasetSource
+from swarmrec.experiments.places import PlacesSettings, PlacesSummary, main
+
+ROBOTS, FRAMES = 3, 300
+
+
+def run(tmp: Path, hosting: str) -> tuple[PlacesSummary, str]:
+    name = hosting.replace(":", "-")
+    settings = PlacesSettings(
+        source=DatasetSource(frames=FRAMES),
+        robots=ROBOTS,
+        out=tmp / name,
+        swarm=f"hosting-{name}",
+        hosting=hosting,
+        progress=False,
+        plots=False,
+    )
+    return main(settings), (tmp / name / "pairs.csv").read_text()
+
+
+@pytest.mark.slow
+def test_one_process_per_service_per_robot_or_for_all_robots_scores_the_same(tmp_path: Path) -> None:
+    services, pairs = run(tmp_path, "service")
+    assert services.offline_check is not None and services.offline_check.identical
+    assert services.swarm.processes == 1 + 4 * ROBOTS
+    assert pairs.count("\n") > 20  # the comparison is about something
+    for hosting, processes in (("robot", 1 + ROBOTS), (f"robots:{ROBOTS}", 2)):
+        summary, same = run(tmp_path, hosting)
+        assert summary.swarm.processes == processes, hosting
+        assert same == pairs, hosting
+        assert summary.offline_check is not None and summary.offline_check.identical, hosting
+        assert summary.bytes.between_robots_total == services.bytes.between_robots_total, hosting
+        assert summary.shard_load.partial_queries == services.shard_load.partial_queries, hosting
+        assert all(code == 0 for code in summary.exit_codes.values()), summary.exit_codes
