@@ -183,7 +183,8 @@ class SwarmClient:
     ) -> QueryResult:
         """Ask the swarm where ``constellation`` was seen; nothing is stored."""
         plan = plan or self.plan(preset)
-        wire = constellation_to_proto(constellation, 0, 0, exact=plan.preset.wire_positions == "exact")
+        # The verifiers read either form; a read-only lookup's last micrometres do not matter.
+        wire = constellation_to_proto(constellation, 0, 0)
         t0 = time.perf_counter()
         report = two_step_query(
             self._caller(),

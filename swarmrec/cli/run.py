@@ -57,9 +57,9 @@ def add(sub: Subparsers) -> None:
     p.add_argument(
         "--wire-positions",
         choices=("mm", "exact"),
-        default="",
-        help="object positions on the wire: mm (2 bytes a coordinate) or exact doubles (8 bytes); "
-        "default: the preset's (paper: exact, so the swarm's scores are the published ones)",
+        default="mm",
+        help="object positions on the wire: mm (about 2 bytes a coordinate, default) or exact doubles "
+        "(8 bytes; the swarm's pair scores are then the published scripts' to the last bit)",
     )
     pixels = p.add_argument_group(
         "from pixels",

@@ -8,15 +8,11 @@ improvements and say what they change; the paper preset never moves.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Literal
 
 from swarmrec.core.ranges import RangeStrategy
 from swarmrec.errors import ConfigError
 
-__all__ = ["PRESETS", "WIRE_POSITIONS", "Preset", "WirePositions", "get_preset"]
-
-WirePositions = Literal["mm", "exact"]
-WIRE_POSITIONS: tuple[str, ...] = ("mm", "exact")
+__all__ = ["PRESETS", "Preset", "get_preset"]
 
 
 @dataclass(frozen=True)
@@ -40,9 +36,6 @@ class Preset:
     same_label_only: bool = False
     #: How label ranges are assigned to holders.
     ranges: RangeStrategy = "even"
-    #: How the swarm carries object positions: integer millimetres (2 bytes a
-    #: coordinate) or exact doubles (8 bytes), which keep every score bit for bit.
-    wire_positions: WirePositions = "mm"
 
     def __post_init__(self) -> None:
         problems = []
@@ -60,8 +53,7 @@ class Preset:
             problems.append(f"n_fq must be >= 0, got {self.n_fq}")
         if self.ranges not in ("even", "balanced"):
             problems.append(f"ranges must be 'even' or 'balanced', got {self.ranges!r}")
-        if self.wire_positions not in WIRE_POSITIONS:
-            problems.append(f"wire_positions must be mm or exact, got {self.wire_positions!r}")
+
         if problems:
             raise ConfigError(f"preset {self.name!r}: " + "; ".join(problems))
 
@@ -72,10 +64,8 @@ class Preset:
 
 PRESETS: dict[str, Preset] = {
     # The published evaluation, exactly: min 3 objects, 100-frame exclusion,
-    # d = 0.25 m, n_ret = n_fq = 4, cross-label association search, even ranges;
-    # positions on the wire as the doubles they are, so a live swarm's scores are the
-    # published ones (millimetres change 188 of the 10-robot pair scores on TUM).
-    "paper": Preset(name="paper", wire_positions="exact"),
+    # d = 0.25 m, n_ret = n_fq = 4, cross-label association search, even ranges.
+    "paper": Preset(name="paper"),
     # Eq. 3 as the paper writes it (same-label search) and label ranges balanced
     # on label frequencies, which spreads the shard load the paper found uneven.
     "balanced": Preset(name="balanced", same_label_only=True, ranges="balanced"),

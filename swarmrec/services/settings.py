@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, ClassVar, Literal
 import numpy as np
 import numpy.typing as npt
 
-from swarmrec.core.presets import WIRE_POSITIONS, get_preset
+from swarmrec.core.presets import get_preset
 from swarmrec.core.ranges import label_bounds
 from swarmrec.datasets.tum import DEFAULT_MAX_DT, TUM_DEPTH_SCALE
 from swarmrec.errors import ConfigError
@@ -38,6 +38,8 @@ __all__ = [
 ]
 
 DetectorMode = Literal["replay", "rgbd", "classifier"]
+WirePositions = Literal["mm", "exact"]
+WIRE_POSITIONS: tuple[str, ...] = ("mm", "exact")
 DETECTOR_MODES: tuple[str, ...] = ("replay", "rgbd", "classifier")
 FusionLaw = Literal["paper", "agreement"]
 
@@ -57,8 +59,10 @@ class PlaceSettings(Component):
     loop_closure_min_score: float = setting(
         0.3, "a verified match at least this good is published as a loop closure"
     )
-    wire_positions: str = setting(
-        "", "object positions on the wire: mm (2 bytes a coordinate) or exact (8); empty: the preset's"
+    wire_positions: WirePositions = setting(
+        "mm",
+        "object positions on the wire: mm (integers, about 2 bytes a coordinate) or exact (8-byte doubles, "
+        "every score bit for bit the published scripts')",
     )
 
     def problems(self) -> list[str]:
@@ -71,16 +75,14 @@ class PlaceSettings(Component):
             get_preset(self.preset)
         except ConfigError as e:
             problems.append(str(e))
-        if self.wire_positions not in ("", *WIRE_POSITIONS):
-            problems.append(
-                f"wire_positions must be mm, exact or empty (the preset's), got {self.wire_positions!r}"
-            )
+        if self.wire_positions not in WIRE_POSITIONS:
+            problems.append(f"wire_positions must be mm or exact, got {self.wire_positions!r}")
         return problems
 
     @property
     def exact_positions(self) -> bool:
-        """Whether constellations carry positions as exact doubles (this setting, else the preset's)."""
-        return (self.wire_positions or get_preset(self.preset).wire_positions) == "exact"
+        """Whether constellations carry positions as exact doubles."""
+        return self.wire_positions == "exact"
 
     def problems_with(self, config: Config) -> list[str]:
         n = config.bus.n_robots

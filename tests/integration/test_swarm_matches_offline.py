@@ -17,6 +17,7 @@ from swarmrec.datasets.source import DatasetSource
 from swarmrec.evaluation.bandwidth import holder_load
 from swarmrec.evaluation.scoring import score_decentralized
 from swarmrec.experiments.places import PlacesSettings, main
+from swarmrec.experiments.places.pipeline import as_on_the_wire
 from tests.published import rows_differing
 
 
@@ -37,8 +38,8 @@ def test_synthetic_swarm_of_four_scores_every_pair_as_the_offline_evaluation(tmp
     )
     summary = main(settings)
 
-    # The paper preset carries positions exactly: the offline evaluation of the files as they are.
-    seq = read_constellations(tmp_path / "run" / "dataset", COCO_NAMES)
+    # Positions travel in millimetres: the offline evaluation of the frames as they travel.
+    seq = as_on_the_wire(read_constellations(tmp_path / "run" / "dataset", COCO_NAMES))
     offline = score_decentralized(seq, 4, get_preset("paper"))
     expected = _positive_pairs(offline.matrix.pairs_i, offline.matrix.pairs_j, offline.matrix.scores)
     got = _swarm_pairs(tmp_path / "run")
@@ -50,19 +51,39 @@ def test_synthetic_swarm_of_four_scores_every_pair_as_the_offline_evaluation(tmp
     assert summary.queries.missing_slots == 0 and not summary.queries.errors
     assert 0 < summary.bytes.per_query < 1000
     assert set(summary.bytes.per_query_by_message) == {
-        "PartialQuery", "CandidatesReply", "VerifyRequest", "VerifyReply"}
+        "PartialQuery",
+        "CandidatesReply",
+        "VerifyRequest",
+        "VerifyReply",
+    }
     assert summary.auc is not None and summary.auc > 0.3
+    # What millimetres cost, measured offline on the same frames, is in the report.
+    assert summary.positions_effect is not None and summary.swarm.wire_positions == "mm"
+    assert abs(summary.positions_effect.auc_offline_exact_positions - summary.auc) < 0.01
     assert all(code == 0 for code in summary.exit_codes.values()), summary.exit_codes
-    for name in ("summary.json", "similarity.png", "precision_recall.png", "shard_load.png",
-                 "bytes_per_query.png", "loop_closures.csv"):
+    for name in (
+        "summary.json",
+        "similarity.png",
+        "precision_recall.png",
+        "shard_load.png",
+        "bytes_per_query.png",
+        "loop_closures.csv",
+    ):
         assert (tmp_path / "run" / name).stat().st_size > 0
     assert json.loads((tmp_path / "run" / "summary.json").read_text())["auc"] == summary.auc
 
 
 @pytest.mark.slow
 def test_tum_swarm_of_ten_scores_every_pair_as_the_offline_evaluation(tmp_path: Path, tum_zip: Path) -> None:
-    settings = PlacesSettings(source=DatasetSource(str(tum_zip)), robots=10, out=tmp_path / "run",
-                              progress=False, plots=False, check_offline=False)
+    settings = PlacesSettings(
+        source=DatasetSource(str(tum_zip)),
+        robots=10,
+        out=tmp_path / "run",
+        progress=False,
+        plots=False,
+        check_offline=False,
+        wire_positions="exact",
+    )
     summary = main(settings)
 
     seq = read_constellations(tum_zip, COCO_NAMES)

@@ -12,7 +12,7 @@ from swarmrec.datasets.source import SYNTHETIC, DatasetSource
 from swarmrec.datasets.tum import DEFAULT_MAX_DT
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.settings import BusSettings
-from swarmrec.services.settings import PlaceSettings
+from swarmrec.services.settings import PlaceSettings, WirePositions
 
 __all__ = ["PixelSettings", "PlacesSettings"]
 
@@ -71,8 +71,8 @@ class PlacesSettings:
     #: Compare the pair scores with the offline decentralized evaluation (lock-step only).
     check_offline: bool = True
     pixels: PixelSettings = field(default_factory=PixelSettings)
-    #: How the swarm carries object positions: mm, exact, or "" for the preset's.
-    wire_positions: str = ""
+    #: How the swarm carries object positions: "mm" (compact) or "exact" (the published scores).
+    wire_positions: WirePositions = "mm"
     #: How a local swarm puts services in processes: service, robot or robots:K.
     hosting: str = "service"
 
@@ -156,7 +156,7 @@ class PlacesSettings:
                 swarm=str(record["swarm"]),
                 request_timeout_s=float(record["request_timeout_s"]),
                 pace="lockstep" if record.get("lockstep", True) else "fast",
-                wire_positions=str(record.get("wire_positions", "")),
+                wire_positions=record.get("wire_positions", "mm"),
             )
         except (KeyError, TypeError, ValueError) as e:
             raise ConfigError(f"the swarm file's experiment record is not a places run: {e}") from None
