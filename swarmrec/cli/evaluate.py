@@ -56,18 +56,18 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.quiet,
     )
     summary = evaluate(settings)
-    ds = summary["dataset"]
-    print(f"dataset {ds['name']}: {ds['frames']} frames, {ds['ignored_frames']} with too few objects")
-    for name, result in summary["results"].items():
-        auc = f"AUC {result['auc']:.4f}" if "auc" in result else "AUC n/a (no ground truth)"
-        print(f"  {name:<20} {auc}, {result['positive_pairs']} pairs scored > 0")
-    if "bandwidth" in summary:
-        bw = summary["bandwidth"]
+    ds = summary.dataset
+    print(f"dataset {ds.name}: {ds.frames} frames, {ds.ignored_frames} with too few objects")
+    for name, result in summary.results.items():
+        auc = f"AUC {result.auc:.4f}" if result.auc is not None else "AUC n/a (no ground truth)"
+        print(f"  {name:<20} {auc}, {result.positive_pairs} pairs scored > 0")
+    if summary.bandwidth is not None:
+        bw = summary.bandwidth
         print(
-            f"  byte model: {bw['paper_byte_model_per_query']['total']:.1f} B per query; "
-            f"busiest range holder / mean = {bw['holder_load']['balance_ratio']:.2f}"
+            f"  byte model: {bw.paper_byte_model_per_query['total']:.1f} B per query; "
+            f"busiest range holder / mean = {bw.holder_load['balance_ratio']:.2f}"
         )
-    timings = ", ".join(f"{k[:-2]} {v:.2f} s" for k, v in summary["timings"].items())
+    timings = ", ".join(f"{k[:-2]} {v:.2f} s" for k, v in summary.timings.items())
     print(f"  time: {timings}")
     print(f"  written to {settings.out}/ (summary.json, scores_*.npz, best_matches_*.csv, *.png)")
     return 0

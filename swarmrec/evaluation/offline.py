@@ -30,6 +30,7 @@ from swarmrec.datasets.source import DatasetSource, load_dataset
 from swarmrec.errors import ConfigError
 from swarmrec.evaluation.bandwidth import holder_load, paper_byte_model
 from swarmrec.evaluation.groundtruth import Rules, ground_truth
+from swarmrec.evaluation.plots import plot_holder_load, plot_pr, plot_similarity
 from swarmrec.evaluation.pr import PRCurve, precision_recall
 from swarmrec.evaluation.scoring import (
     ScoreMatrix,
@@ -39,7 +40,7 @@ from swarmrec.evaluation.scoring import (
     split_frames,
 )
 
-__all__ = ["EvaluationSettings", "main"]
+__all__ = ["EvaluationSettings", "EvaluationSummary", "ModeResult", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -106,9 +107,7 @@ def _write_scores(path: Path, matrix: ScoreMatrix, seq: ConstellationSequence, r
     )
 
 
-def _write_best(
-    path: Path, seq: ConstellationSequence, dense: np.ndarray, curve: PRCurve | None
-) -> None:
+def _write_best(path: Path, seq: ConstellationSequence, dense: np.ndarray, curve: PRCurve | None) -> None:
     best = np.argmax(dense, axis=1)
     with path.open("w", newline="", encoding="utf-8") as f:
         out = csv.writer(f)
@@ -118,7 +117,59 @@ def _write_best(
             out.writerow([i, seq.frame_ids[i], j, seq.frame_ids[j], f"{dense[i, j]:.6f}", truth])
 
 
-def main(settings: EvaluationSettings) -> dict[str, Any]:
+@dataclass
+class EvaluatedDataset:
+    name: str
+    source: str
+    frames: int
+    labels: int
+    ignored_frames: int
+    skipped: dict[str, int]
+    groundtruth: bool
+    frames_far_from_a_pose: int | None = None
+    pose_note: str | None = None
+    groundtruth_note: str | None = None
+
+
+@dataclass
+class ModeResult:
+    """One mode's scores (centralized, or decentralized with N robots)."""
+
+    checked_pairs: int
+    positive_pairs: int
+    auc: float | None = None
+    frames_with_true_closure: int | None = None
+
+
+@dataclass
+class Bandwidth:
+    paper_byte_model_per_query: dict[str, Any]
+    holder_load: dict[str, Any]
+
+
+@dataclass
+class EvaluationSummary:
+    """What an evaluation reports; ``summary.json`` holds :meth:`to_dict`."""
+
+    dataset: EvaluatedDataset
+    preset: dict[str, Any]
+    results: dict[str, ModeResult] = field(default_factory=dict)
+    bandwidth: Bandwidth | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready, optional parts absent from the run left out."""
+        out: dict[str, Any] = _drop_none(asdict(self))
+        return out
+
+
+def _drop_none(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _drop_none(v) for k, v in value.items() if v is not None}
+    return value
+
+
+def main(settings: EvaluationSettings) -> EvaluationSummary:
     """Run the evaluation, write its files under ``settings.out``, return the summary."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -137,31 +188,30 @@ def main(settings: EvaluationSettings) -> dict[str, Any]:
     table = build_table(seq.constellations, seq.n_labels)
     timings["prepare_s"] = time.perf_counter() - t0
     counts = label_counts(seq.constellations, seq.n_labels)
-    summary: dict[str, Any] = {
-        "dataset": {
-            "name": seq.name,
-            "source": settings.dataset,
-            "frames": len(seq),
-            "labels": seq.n_labels,
-            "ignored_frames": int(np.count_nonzero(np.diff(table.offsets) < preset.min_objects)),
-            "skipped": dict(seq.skipped),
-            "groundtruth": trajectory is not None,
-        },
-        "preset": asdict(preset),
-        "results": {},
-    }
+    summary = EvaluationSummary(
+        dataset=EvaluatedDataset(
+            name=seq.name,
+            source=settings.dataset,
+            frames=len(seq),
+            labels=seq.n_labels,
+            ignored_frames=int(np.count_nonzero(np.diff(table.offsets) < preset.min_objects)),
+            skipped=dict(seq.skipped),
+            groundtruth=trajectory is not None,
+        ),
+        preset=asdict(preset),
+    )
     gt = None
     if trajectory is not None:
         t0 = time.perf_counter()
         gt = ground_truth(seq, trajectory, exclusion=preset.exclusion, rules=settings.gt_rules)
         timings["groundtruth_s"] = time.perf_counter() - t0
-        summary["dataset"]["frames_far_from_a_pose"] = int(gt.poses.far.size)
+        summary.dataset.frames_far_from_a_pose = int(gt.poses.far.size)
         if gt.poses.far.size:
             note = gt.poses.describe()
-            summary["dataset"]["pose_note"] = note
+            summary.dataset.pose_note = note
             log.warning("ground truth: %s", note)
     else:
-        summary["dataset"]["groundtruth_note"] = (
+        summary.dataset.groundtruth_note = (
             "no trajectory: pair scores are written but precision-recall needs --groundtruth"
         )
     curves: dict[str, PRCurve] = {}
@@ -190,43 +240,32 @@ def main(settings: EvaluationSettings) -> dict[str, Any]:
         timings["decentralized_s"] = time.perf_counter() - t0
         runs.append((f"decentralized_{settings.robots}", run.matrix, settings.robots))
         load = holder_load(run)
-        summary["bandwidth"] = {
-            "paper_byte_model_per_query": paper_byte_model(run, preset.n_fq).to_dict(),
-            "holder_load": load.to_dict(),
-        }
+        summary.bandwidth = Bandwidth(paper_byte_model(run, preset.n_fq).to_dict(), load.to_dict())
         if settings.plots:
-            from swarmrec.evaluation.plots import plot_holder_load
-
             plot_holder_load(load, counts, seq.label_names, out / "holder_load.png")
     for name, matrix, robots in runs:
         dense = matrix.dense()
         keep = matrix.outside_exclusion()
-        result: dict[str, Any] = {
-            "checked_pairs": int(np.count_nonzero(keep)),
-            "positive_pairs": int(np.count_nonzero(matrix.scores[keep] > 0)),
-        }
+        result = ModeResult(
+            checked_pairs=int(np.count_nonzero(keep)),
+            positive_pairs=int(np.count_nonzero(matrix.scores[keep] > 0)),
+        )
         curve = None
         if gt is not None:
             curve = precision_recall(dense, gt.closures)
             curves[name] = curve
-            result.update({"auc": curve.auc, "frames_with_true_closure": curve.relevant})
-        summary["results"][name] = result
+            result.auc, result.frames_with_true_closure = curve.auc, curve.relevant
+        summary.results[name] = result
         _write_scores(out / f"scores_{name}.npz", matrix, seq, robots)
         _write_best(out / f"best_matches_{name}.csv", seq, dense, curve)
         if settings.plots:
-            from swarmrec.evaluation.plots import plot_similarity
-
             plot_similarity(
-                dense,
-                f"{seq.name}: {name.replace('_', ' ')} robots",
-                out / f"similarity_{name}.png",
+                dense, f"{seq.name}: {name.replace('_', ' ')} robots", out / f"similarity_{name}.png"
             )
     if settings.plots and curves:
-        from swarmrec.evaluation.plots import plot_pr
-
         plot_pr(curves, out / "precision_recall.png")
-    summary["timings"] = timings
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default) + "\n")
+    summary.timings = timings
+    (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2, default=_json_default) + "\n")
     return summary
 
 

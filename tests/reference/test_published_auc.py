@@ -28,7 +28,7 @@ def test_the_paper_preset_gives_the_published_aucs_with_the_real_trajectory(
         progress=False,
     )
     summary = main(settings)
-    assert {name: r["auc"] for name, r in summary["results"].items()} == PUBLISHED
+    assert {name: r.auc for name, r in summary.results.items()} == PUBLISHED
     # The first frame precedes the motion capture by 0.067 s: matched to the nearest pose, and said so.
-    assert summary["dataset"]["frames_far_from_a_pose"] == 1
-    assert "worst: frame 0, 0.067 s" in summary["dataset"]["pose_note"]
+    assert summary.dataset.frames_far_from_a_pose == 1
+    assert summary.dataset.pose_note is not None and "worst: frame 0, 0.067 s" in summary.dataset.pose_note
