@@ -1,0 +1,289 @@
+"""Which index shards hold which label groups: placement, replicas, failover, rebalancing.
+
+The descriptor index is cut into **groups** of labels (by default the paper's even
+label ranges, one per robot). A query's partial descriptor goes group by group, and
+a group's partial score depends only on the group, never on which shard computes
+it: so the shards that hold a group can change, a group can have several replicas,
+and a query may ask any one of them, without a single score changing. This module
+decides *where* groups live; nothing here touches a score.
+
+* :func:`place`: each group on ``replicas`` distinct shards, by rendezvous hashing
+  (highest random weight): a deterministic function of the members, with minimal
+  movement when a member joins or leaves (only the groups it held, or will hold, move).
+* :func:`follow_members`: the next placement when members join or leave: every
+  group keeps its live owners and gets new ones by rendezvous order, so a lost
+  shard's groups are served at once by their other replicas.
+* :func:`rebalance`: from observed load (partial queries per group), more replicas
+  for hot groups and moves from the busiest shard, until the worst balance ratio
+  is at most ``target`` (or no move helps). A query is spread over a group's
+  replicas by :func:`serving_owner`, so a group of load ``L`` on ``r`` replicas puts
+  ``L / r`` on each.
+* :func:`serving_owner`: the replica of a group that answers a given query, chosen
+  by a stable hash of (robot, frame, group) among the live owners.
+
+Every placement has a ``version``; a shard answers only requests of its current
+version (a stale sender is told to refresh), so no query is answered from a table
+the shard no longer follows.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+
+from swarmrec.errors import ConfigError
+
+__all__ = [
+    "Placement",
+    "balance_ratio",
+    "follow_members",
+    "group_of_label",
+    "groups_from_bounds",
+    "place",
+    "rebalance",
+    "serving_owner",
+    "shard_loads",
+    "stable_hash",
+]
+
+_MASK = (1 << 64) - 1
+
+
+def stable_hash(*values: int) -> int:
+    """A 64-bit hash of integers that is the same in every process and every run
+    (Python's ``hash`` is salted per process): one splitmix64 step per value, the value
+    mixed into the state first (a single 0 gives splitmix64's first output from seed 0)."""
+    x = 0
+    for v in values:
+        z = ((x ^ (v & _MASK)) + 0x9E3779B97F4A7C15) & _MASK
+        z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & _MASK
+        z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & _MASK
+        x = z ^ (z >> 31)
+    return x
+
+
+def _unit(*values: int) -> float:
+    """A stable pseudo-random number in (0, 1)."""
+    return (stable_hash(*values) + 0.5) / float(1 << 64)
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Groups of labels, and the shards that hold each, primary first.
+
+    ``groups[g]`` is the label range ``[lo, hi)`` of group ``g``; ``owners[g]`` the
+    ids of the shards that store it (all of them store every descriptor of the
+    group; any of them may answer a query for it).
+    """
+
+    version: int
+    groups: tuple[tuple[int, int], ...]
+    owners: tuple[tuple[int, ...], ...]
+    members: tuple[int, ...]
+    replicas: int = 2
+
+    def __post_init__(self) -> None:
+        problems = []
+        if len(self.owners) != len(self.groups):
+            problems.append(f"{len(self.groups)} groups but {len(self.owners)} owner lists")
+        if self.version < 0:
+            problems.append(f"version must be >= 0, got {self.version}")
+        prev = 0
+        for g, (lo, hi) in enumerate(self.groups):
+            if lo != prev or hi <= lo:
+                problems.append(f"group {g} is [{lo}, {hi}); groups must tile the labels in order")
+            prev = hi
+        members = set(self.members)
+        if len(members) != len(self.members):
+            problems.append("a member is listed twice")
+        for g, own in enumerate(self.owners):
+            if not own:
+                problems.append(f"group {g} has no owner")
+            if len(set(own)) != len(own):
+                problems.append(f"group {g} lists an owner twice")
+            if not set(own) <= members:
+                problems.append(f"group {g} is owned by non-members {sorted(set(own) - members)}")
+        if problems:
+            raise ConfigError("invalid placement: " + "; ".join(problems))
+
+    @property
+    def n_labels(self) -> int:
+        return self.groups[-1][1] if self.groups else 0
+
+    def groups_of(self, shard: int) -> list[int]:
+        """The groups ``shard`` holds."""
+        return [g for g, own in enumerate(self.owners) if shard in own]
+
+    def moved(self, other: Placement) -> dict[int, tuple[set[int], set[int]]]:
+        """Per group, the shards that gain it and that lose it going from ``self`` to ``other``."""
+        out = {}
+        for g, (a, b) in enumerate(zip(self.owners, other.owners, strict=True)):
+            gained, lost = set(b) - set(a), set(a) - set(b)
+            if gained or lost:
+                out[g] = (gained, lost)
+        return out
+
+
+def group_of_label(groups: Sequence[tuple[int, int]], label: int) -> int:
+    """The group whose range holds ``label``."""
+    for g, (lo, hi) in enumerate(groups):
+        if lo <= label < hi:
+            return g
+    raise ValueError(f"label {label} is in no group")
+
+
+def _rendezvous(group: int, candidates: Iterable[int], count: int) -> list[int]:
+    """The ``count`` candidates with the highest rendezvous score for ``group``."""
+    ranked = sorted(candidates, key=lambda m: (-_unit(group, m), m))
+    return ranked[:count]
+
+
+def place(
+    groups: Sequence[tuple[int, int]], members: Iterable[int], *, replicas: int = 2, version: int = 0
+) -> Placement:
+    """Each group on ``min(replicas, members)`` shards by rendezvous hashing."""
+    ids = tuple(sorted(set(members)))
+    if not ids:
+        raise ConfigError("a placement needs at least one member")
+    if replicas < 1:
+        raise ConfigError(f"replicas must be >= 1, got {replicas}")
+    r = min(replicas, len(ids))
+    owners = tuple(tuple(_rendezvous(g, ids, r)) for g in range(len(groups)))
+    return Placement(version, tuple(groups), owners, ids, replicas)
+
+
+def follow_members(current: Placement, members: Iterable[int]) -> Placement:
+    """The placement after members joined or left: live owners stay, lost replicas are
+    replaced by the next live members in rendezvous order, and a joining member takes
+    the groups rendezvous gives it (only those move). The version goes up when anything
+    changed."""
+    ids = tuple(sorted(set(members)))
+    if not ids:
+        raise ConfigError("a placement needs at least one member")
+    joined = set(ids) - set(current.members)
+    owners = []
+    for g, own in enumerate(current.owners):
+        want = max(min(current.replicas, len(ids)), min(len(own), len(ids)))
+        kept = [m for m in own if m in ids]
+        # A joining member that rendezvous ranks above a kept owner takes that owner's place.
+        ranked = _rendezvous(g, ids, len(ids))
+        for m in sorted(joined, key=ranked.index):
+            if len(kept) >= want and kept:
+                weakest = max(kept, key=ranked.index)
+                if ranked.index(m) < ranked.index(weakest):
+                    kept.remove(weakest)
+                    kept.append(m)
+            elif m not in kept:
+                kept.append(m)
+        for m in ranked:
+            if len(kept) >= want:
+                break
+            if m not in kept:
+                kept.append(m)
+        owners.append(tuple(kept[:want]))
+    changed = tuple(owners) != current.owners or ids != current.members
+    version = current.version + 1 if changed else current.version
+    return Placement(version, current.groups, tuple(owners), ids, current.replicas)
+
+
+def shard_loads(placement: Placement, group_load: Mapping[int, float]) -> dict[int, float]:
+    """Expected load of each member when a group's queries are spread evenly over its owners."""
+    out = dict.fromkeys(placement.members, 0.0)
+    for g, own in enumerate(placement.owners):
+        share = float(group_load.get(g, 0.0)) / len(own)
+        for m in own:
+            out[m] += share
+    return out
+
+
+def balance_ratio(loads: Mapping[int, float] | Sequence[float]) -> float:
+    """Worst balance ratio: the busiest member's load over the mean (1.0 is perfect; 0 when idle)."""
+    values = list(loads.values()) if isinstance(loads, Mapping) else list(loads)
+    mean = sum(values) / len(values) if values else 0.0
+    return max(values) / mean if mean > 0 else 0.0
+
+
+def rebalance(
+    current: Placement,
+    group_load: Mapping[int, float],
+    *,
+    target: float = 1.5,
+    max_changes: int = 64,
+) -> Placement:
+    """A placement whose worst balance ratio under ``group_load`` is at most ``target``
+    where moves can get it there: the busiest shard's hottest group gets one more
+    replica on the least loaded shard (which spreads its queries), or, when it is
+    already everywhere it can be, a group moves off the busiest shard. At most
+    ``max_changes`` steps; every group keeps at least its ``replicas`` owners.
+    Deterministic: the same placement and loads give the same result."""
+    _check_finite(group_load.values())
+    owners = [list(o) for o in current.owners]
+    members = list(current.members)
+
+    def loads() -> dict[int, float]:
+        out = dict.fromkeys(members, 0.0)
+        for g, own in enumerate(owners):
+            share = float(group_load.get(g, 0.0)) / len(own)
+            for m in own:
+                out[m] += share
+        return out
+
+    for _ in range(max_changes):
+        now = loads()
+        if balance_ratio(now) <= target:
+            break
+        busiest = max(members, key=lambda m: (now[m], -m))
+        idle = min(members, key=lambda m: (now[m], m))
+        held = sorted(
+            (g for g, own in enumerate(owners) if busiest in own),
+            key=lambda g: (-float(group_load.get(g, 0.0)) / len(owners[g]), g),
+        )
+        step = None
+        for g in held:
+            if idle not in owners[g]:
+                trial = owners[g] + [idle]
+                share = float(group_load.get(g, 0.0)) / len(trial)
+                if now[idle] + share < now[busiest]:
+                    step = (g, trial)
+                    break
+        if step is None:
+            # Every hot group is already on the idle shard: move one replica off the busiest.
+            for g in held:
+                others = [m for m in members if m not in owners[g]]
+                if not others:
+                    continue
+                dest = min(others, key=lambda m: (now[m], m))
+                share = float(group_load.get(g, 0.0)) / len(owners[g])
+                if now[dest] + share < now[busiest]:
+                    step = (g, [dest if m == busiest else m for m in owners[g]])
+                    break
+        if step is None:
+            break
+        g, trial = step
+        owners[g] = trial
+    new = tuple(tuple(o) for o in owners)
+    version = current.version + 1 if new != current.owners else current.version
+    return Placement(version, current.groups, new, current.members, current.replicas)
+
+
+def serving_owner(
+    placement: Placement, group: int, robot: int, frame: int, alive: Iterable[int]
+) -> int | None:
+    """The owner of ``group`` that answers the query of ``robot``'s ``frame``: a stable choice
+    among the live owners (None when none is alive)."""
+    live = [m for m in placement.owners[group] if m in set(alive)]
+    if not live:
+        return None
+    return live[stable_hash(robot, frame, group) % len(live)]
+
+
+def groups_from_bounds(bounds: Sequence[int]) -> tuple[tuple[int, int], ...]:
+    """Groups from range boundaries ``[0, b1, ..., n_labels]``."""
+    return tuple((int(bounds[i]), int(bounds[i + 1])) for i in range(len(bounds) - 1))
+
+
+def _check_finite(values: Iterable[float]) -> None:
+    for v in values:
+        if not math.isfinite(v) or v < 0:
+            raise ConfigError(f"a load must be a finite number >= 0, got {v}")

@@ -1,0 +1,125 @@
+"""Where label groups live: rendezvous placement, membership changes, replicas,
+rebalancing from observed load, and the replica that answers a query."""
+
+from __future__ import annotations
+
+import pytest
+
+from swarmrec.core.placement import (
+    Placement,
+    balance_ratio,
+    follow_members,
+    groups_from_bounds,
+    place,
+    rebalance,
+    serving_owner,
+    shard_loads,
+    stable_hash,
+)
+from swarmrec.core.ranges import even_ranges
+from swarmrec.errors import ConfigError
+
+GROUPS = groups_from_bounds(even_ranges(80, 10).tolist())
+MEMBERS = range(10)
+#: Partial queries per group of the TUM sequence with even ranges and 10 robots (the
+#: published figure's load: the busiest holder serves 2.67 times the mean).
+TUM_LOAD = dict(enumerate([164, 2, 0, 22, 1748, 766, 15, 2060, 1046, 1894]))
+
+
+def test_groups_are_the_paper_even_ranges() -> None:
+    assert GROUPS[:3] == ((0, 8), (8, 16), (16, 24)) and GROUPS[-1] == (72, 80)
+
+
+def test_the_stable_hash_is_the_same_in_every_process() -> None:
+    # Fixed values: Python's hash() is salted per process, this one is not.
+    assert stable_hash(1, 2, 3) == stable_hash(1, 2, 3)
+    assert stable_hash(1, 2, 3) != stable_hash(3, 2, 1)
+    assert stable_hash(0) == 0xE220A8397B1DCDAF  # splitmix64's published first output from seed 0
+
+
+def test_every_group_has_its_replicas_on_distinct_members_and_placement_is_deterministic() -> None:
+    a = place(GROUPS, MEMBERS, replicas=2)
+    assert a == place(GROUPS, reversed(list(MEMBERS)), replicas=2)
+    assert all(len(set(own)) == 2 for own in a.owners)
+    assert place(GROUPS, [4], replicas=2).owners == ((4,),) * 10  # never more replicas than members
+
+
+def test_a_member_leaving_moves_only_the_groups_it_held_and_every_group_keeps_two_owners() -> None:
+    a = place(GROUPS, MEMBERS, replicas=2)
+    b = follow_members(a, [m for m in MEMBERS if m != 3])
+    assert b.version == a.version + 1
+    moved = a.moved(b)
+    assert set(moved) == set(a.groups_of(3))
+    for gained, lost in moved.values():
+        assert lost == {3} and len(gained) == 1
+    assert all(len(own) == 2 and 3 not in own for own in b.owners)
+
+
+def test_a_member_joining_takes_only_what_rendezvous_gives_it() -> None:
+    a = place(GROUPS, range(9), replicas=2)
+    b = follow_members(a, range(10))
+    for _g, (gained, lost) in a.moved(b).items():
+        assert gained == {9} and len(lost) == 1
+    # Joining then leaving again comes back to where it started.
+    assert follow_members(b, range(9)).owners == a.owners
+
+
+def test_nothing_changes_when_the_members_do_not() -> None:
+    a = place(GROUPS, MEMBERS)
+    assert follow_members(a, MEMBERS) == a
+
+
+def test_rebalancing_brings_the_tum_load_under_one_and_a_half_without_losing_a_replica() -> None:
+    a = place(GROUPS, MEMBERS, replicas=2)
+    before = balance_ratio(shard_loads(a, TUM_LOAD))
+    b = rebalance(a, TUM_LOAD, target=1.5)
+    after = balance_ratio(shard_loads(b, TUM_LOAD))
+    assert before > 1.5 and after <= 1.5
+    assert b.version == a.version + 1
+    assert all(len(own) >= 2 for own in b.owners)
+    # The mean cannot move: every query goes to one replica of each group it touches.
+    assert sum(shard_loads(b, TUM_LOAD).values()) == pytest.approx(sum(TUM_LOAD.values()))
+    assert rebalance(b, TUM_LOAD, target=1.5) == b  # already balanced: no new version
+
+
+def test_balance_ratio_by_hand() -> None:
+    assert balance_ratio([1, 1, 1, 1]) == 1.0
+    assert balance_ratio([4, 0, 0, 0]) == 4.0
+    assert balance_ratio([0, 0]) == 0.0
+    assert balance_ratio({0: 3.0, 1: 1.0}) == 1.5
+
+
+def test_shard_loads_split_a_group_evenly_over_its_owners() -> None:
+    p = Placement(0, ((0, 2), (2, 4)), ((0, 1), (1,)), (0, 1))
+    assert shard_loads(p, {0: 10.0, 1: 4.0}) == {0: 5.0, 1: 9.0}
+
+
+def test_a_query_is_answered_by_one_live_owner_spread_over_them() -> None:
+    p = place(GROUPS, MEMBERS, replicas=3)
+    chosen = [serving_owner(p, 4, robot=r, frame=f, alive=MEMBERS) for r in range(10) for f in range(100)]
+    counts = {m: chosen.count(m) for m in p.owners[4]}
+    assert set(chosen) == set(p.owners[4]) and min(counts.values()) > 250
+    dead = p.owners[4][0]
+    alive = [m for m in MEMBERS if m != dead]
+    assert all(serving_owner(p, 4, r, f, alive) != dead for r in range(5) for f in range(20))
+    assert serving_owner(p, 4, 0, 0, alive=[]) is None
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"groups": ((0, 4), (5, 8))}, "tile the labels"),
+        ({"owners": ((0,), ())}, "group 1 has no owner"),
+        ({"owners": ((0, 0), (1,))}, "lists an owner twice"),
+        ({"owners": ((0,), (7,))}, "non-members"),
+    ],
+)
+def test_a_placement_that_does_not_make_sense_is_refused(kwargs: dict[str, object], match: str) -> None:
+    base: dict[str, object] = {
+        "version": 1,
+        "groups": ((0, 4), (4, 8)),
+        "owners": ((0,), (1,)),
+        "members": (0, 1),
+    }
+    with pytest.raises(ConfigError, match=match):
+        Placement(**{**base, **kwargs})  # type: ignore[arg-type]
