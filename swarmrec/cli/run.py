@@ -8,6 +8,7 @@ from pathlib import Path
 
 from swarmrec.cli.common import Subparsers, add_dataset_flags, dataset_source
 from swarmrec.deployments.compose import ComposeDeployment
+from swarmrec.deployments.links import LinkSpec
 from swarmrec.experiments.places import PixelSettings, PlacesSettings, PlacesSummary, main
 from swarmrec.experiments.places.report import DetectorFigures
 
@@ -53,6 +54,21 @@ def add(sub: Subparsers) -> None:
         metavar="service|robot|robots:K",
         help="how the local swarm puts services in processes: one per service (default), one per robot "
         "(its services share a session), or K robots per process (a simulation of many robots)",
+    )
+    links = p.add_argument_group(
+        "emulated links",
+        "every robot reaches the swarm through a Toxiproxy proxy of its own (docs/links.md); local runs only",
+    )
+    links.add_argument("--link-rate", type=float, metavar="KBPS", help="each robot's bandwidth, kilobytes/s")
+    links.add_argument("--link-latency", type=float, metavar="MS", help="each robot's latency, each way, ms")
+    links.add_argument(
+        "--link-schedule", type=Path, metavar="CSV", help="when robots are out of range: start,end,robot rows"
+    )
+    links.add_argument(
+        "--schedule-unit",
+        choices=("step", "s"),
+        default="step",
+        help="the schedule's times: lock-step steps or seconds",
     )
     p.add_argument(
         "--wire-positions",
@@ -140,6 +156,9 @@ def run(args: argparse.Namespace) -> int:
             out=args.out,
             wire_positions=args.wire_positions,
             hosting=args.hosting,
+            link=LinkSpec(args.link_rate, args.link_latency),
+            schedule=args.link_schedule,
+            schedule_unit=args.schedule_unit,
             pixels=PixelSettings(
                 from_pixels=args.from_pixels,
                 rgbd=args.rgbd,
@@ -177,6 +196,13 @@ def print_summary(s: PlacesSummary, out: Path) -> None:
             f"(exact positions {pe.auc_offline_exact_positions:.4f}, "
             f"{pe.pair_scores_changed} pair scores changed)"
         )
+    if s.links is not None:
+        lk = s.links
+        print(
+            f"  links: {lk.rate_kbps or 'unlimited'} kB/s, {lk.latency_ms or 0} ms; {len(lk.events)} changes"
+        )
+        for when, event in lk.events[:10]:
+            print(f"    at {when:g} {lk.schedule_unit}: {event}")
     if s.offline_check is not None:
         oc = s.offline_check
         verdict = "identical" if oc.identical else f"DIFFERENT ({oc})"

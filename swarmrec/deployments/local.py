@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from swarmrec.client import SwarmClient
 from swarmrec.deployments.base import SwarmSpec, SwarmStartError, config_flags
+from swarmrec.deployments.links import LinkEmulator, LinkSpec, Schedule
 from swarmrec.deployments.metrics import Scrape, scrape
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.settings import Component, to_flags
@@ -129,11 +130,25 @@ class LocalDeployment:
     """A swarm as processes on this machine (see the module docstring)."""
 
     def __init__(
-        self, *, data_dir: Path, log_dir: Path, router_port: int | None = None, hosting: str = "service"
+        self,
+        *,
+        data_dir: Path,
+        log_dir: Path,
+        router_port: int | None = None,
+        hosting: str = "service",
+        link: LinkSpec | None = None,
+        schedule: Schedule | None = None,
     ) -> None:
         self.data_dir, self.log_dir = data_dir, log_dir
         self.router_port = router_port
         self.robots_per_process = _robots_per_process(hosting)
+        self.link = link or LinkSpec()
+        self.schedule = schedule
+        self.links: LinkEmulator | None = None
+        if (self.link.limited or schedule is not None) and (self.robots_per_process or 1) > 1:
+            raise ConfigError(
+                "emulated links are per robot: use service or robot hosting, not several robots a process"
+            )
         self.hosting = hosting
         self.description = (
             "local processes" if hosting == "service" else f"local processes ({hosting} hosting)"
@@ -193,6 +208,9 @@ class LocalDeployment:
             codes[sp.name] = int(sp.proc.returncode)
         if self.router is not None:
             codes["router"] = self.stop_process(self.router, timeout_s)
+        if self.links is not None:
+            self.links.stop()
+            self.links = None
         for log in self._logs:
             log.close()
         self._logs.clear()
@@ -220,18 +238,43 @@ class LocalDeployment:
             self.router = self._spawn("router", 0, config_flags(config))
             try:
                 self._wait([self.router], timeout_s)
-                return
+                break
             except SwarmStartError:
                 self.router.release()
                 if fixed or attempt == ROUTER_ATTEMPTS:
                     raise
+        if self.link.limited or self.schedule is not None:
+            self._start_links(spec)
+
+    def _start_links(self, spec: SwarmSpec) -> None:
+        """A proxy per robot in front of the router, with the default link, then the
+        schedule's state at time 0."""
+        assert self.router_port is not None
+        self.links = LinkEmulator(log_dir=self.log_dir)
+        self.links.start(free_port())
+        for robot in range(spec.robots):
+            self.links.add_robot(robot, free_port(), self.router_port, self.link)
+        self.apply_links(0.0)
+
+    def robot_endpoint(self, robot: int) -> str:
+        """Where ``robot``'s services connect: its link's proxy, or the router itself."""
+        if self.links is not None and robot in self.links.ports:
+            return f"tcp/127.0.0.1:{self.links.ports[robot]}"
+        return self.endpoint
+
+    def apply_links(self, t: float) -> list[str]:
+        """Put every robot's link in the schedule's state at ``t`` (its unit); what changed."""
+        if self.links is None or self.schedule is None:
+            return []
+        default = dict.fromkeys(self.links.ports, self.link)
+        return self.links.apply(self.schedule.state_at(t), default)
 
     def service_flags(self, kind: str, robot: int) -> list[str]:
         """The flags ``kind`` of ``robot`` is started with."""
         config = self._spec().config_for(
             kind,
             robot,
-            connect=(self.endpoint,),
+            connect=(self.robot_endpoint(robot),),
             data_dir=self.data_dir / f"robot{robot}" / kind,
             metrics_port=0,
         )
@@ -254,7 +297,11 @@ class LocalDeployment:
         parts: dict[type, Component] = {}
         for kind in kinds:
             config = spec.config_for(
-                kind, robots[0], connect=(self.endpoint,), data_dir=self.data_dir, metrics_port=0
+                kind,
+                robots[0],
+                connect=(self.robot_endpoint(robots[0]),),
+                data_dir=self.data_dir,
+                metrics_port=0,
             )
             for part in config.parts:
                 parts.setdefault(type(part), part)

@@ -24,6 +24,7 @@ replaying constellations, and the report scores the constellations they made
 from __future__ import annotations
 
 import shutil
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -42,12 +43,19 @@ from swarmrec.datasets.constellations import write_constellations
 from swarmrec.datasets.source import load_dataset
 from swarmrec.deployments.base import Deployment, SwarmSpec
 from swarmrec.deployments.compose import ComposeSettings, SwarmFile, write_compose
+from swarmrec.deployments.links import read_schedule
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.errors import ConfigError
 from swarmrec.evaluation.scoring import label_frequency_prior
 from swarmrec.experiments.places.pixels import PixelSource, detected_sequence, prepare_pixels, rgbd_settings
 from swarmrec.experiments.places.replay import collect_loop_closures, replay
-from swarmrec.experiments.places.report import DetectorFigures, PlacesSummary, RunRecord, write_report
+from swarmrec.experiments.places.report import (
+    DetectorFigures,
+    LinkReport,
+    PlacesSummary,
+    RunRecord,
+    write_report,
+)
 from swarmrec.experiments.places.settings import PlacesSettings
 from swarmrec.runtime.settings import Component
 from swarmrec.services.registry import WORKLOADS
@@ -136,13 +144,54 @@ def compose(settings: PlacesSettings, compose_settings: ComposeSettings) -> Swar
     return write_compose(spec, compose_settings, experiment=settings.record())
 
 
-def _local(out: Path, hosting: str) -> LocalDeployment:
-    """A fresh local swarm in ``out`` (stores and detections of an earlier run removed)."""
+def _link_schedule(
+    deployment: Deployment, client: SwarmClient, events: list[tuple[float, str]]
+) -> Callable[[int], None] | None:
+    """What puts the links in the schedule's state before each lock-step step (or, for a
+    schedule in seconds, a timer thread); every change is recorded in ``events``. In
+    lock-step, a robot back in range is waited for (its services reconnect in a second
+    or two) before the step goes on, so it misses exactly the steps it was out."""
+    if not isinstance(deployment, LocalDeployment) or deployment.schedule is None:
+        return None
+    schedule = deployment.schedule
+    if schedule.unit == "step":
+
+        def before(t: int) -> None:
+            changed = deployment.apply_links(float(t))
+            events.extend((float(t), e) for e in changed)
+            back = {int(e.split()[1]) for e in changed if e.endswith("back in range")}
+            if back:
+                client.wait_for({s for sp in deployment.procs for s in sp.services if s[1] in back}, 60.0)
+
+        return before
+    start = time.monotonic()
+
+    def follow() -> None:
+        for t in schedule.changes():
+            delay = start + t - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            events.extend((t, e) for e in deployment.apply_links(t))
+
+    threading.Thread(target=follow, name="link-schedule", daemon=True).start()
+    return None
+
+
+def _local(settings: PlacesSettings) -> LocalDeployment:
+    """A fresh local swarm in the run's folder (stores and detections of an earlier run removed)."""
+    out = settings.out
     for old in (out / "data").glob("robot*/*/*.log"):
         old.unlink()
     for old in (out / "data").glob("robot*/detector/constellations/*.txt"):
         old.unlink()
-    return LocalDeployment(data_dir=out / "data", log_dir=out / "logs", hosting=hosting)
+    schedule = read_schedule(settings.schedule, unit=settings.schedule_unit) if settings.schedule else None
+    return LocalDeployment(
+        data_dir=out / "data",
+        log_dir=out / "logs",
+        hosting=settings.hosting,
+        link=settings.link,
+        schedule=schedule,
+    )
 
 
 def main(
@@ -164,8 +213,10 @@ def main(
     spec = prepared.spec
     if prepared.pixels is not None and not isinstance(deployment, LocalDeployment | None):
         raise ConfigError("a run from pixels reads the detectors' constellations from a local deployment")
+    if (settings.link.limited or settings.schedule) and deployment is not None:
+        raise ConfigError("emulated links are set up by the local deployment the run starts itself")
     if deployment is None:
-        deployment = _local(out, settings.hosting)
+        deployment = _local(settings)
         # Compiled once here, the verifier processes load the kernels from numba's cache.
         warm_up()
     timings: dict[str, float] = {"prepare_s": time.perf_counter() - t_start}
@@ -185,7 +236,9 @@ def main(
                 )
             if swarm_hook is not None:
                 swarm_hook(deployment)
-            result = replay(client, prepared.blocks, settings, on_step)
+            link_events: list[tuple[float, str]] = []
+            before_step = _link_schedule(deployment, client, link_events)
+            result = replay(client, prepared.blocks, settings, on_step, before_step)
             timings["replay_s"] = result.wall_s
             t0 = time.perf_counter()
             metrics = deployment.metrics()
@@ -232,5 +285,10 @@ def main(
         deployment=deployment.description,
         loop_closure_min_score=places.loop_closure_min_score,
         detector=detector,
+        links=LinkReport(
+            settings.link.rate_kbps, settings.link.latency_ms, settings.schedule_unit, sorted(link_events)
+        )
+        if settings.link.limited or settings.schedule
+        else None,
     )
     return write_report(settings, record)

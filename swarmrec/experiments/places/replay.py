@@ -39,7 +39,11 @@ class Replay:
 
 
 def replay_lockstep(
-    client: SwarmClient, blocks: list[range], settings: PlacesSettings, on_step: Callable[[int], None] | None
+    client: SwarmClient,
+    blocks: list[range],
+    settings: PlacesSettings,
+    on_step: Callable[[int], None] | None,
+    before_step: Callable[[int], None] | None = None,
 ) -> Replay:
     per = max((len(b) for b in blocks), default=0)
     reports: list[pb.QueryReport] = []
@@ -51,6 +55,8 @@ def replay_lockstep(
     desc = f"swarm x{settings.robots} lock-step"
     with tqdm(total=per, desc=desc, unit="step", disable=not settings.progress, leave=False) as bar:
         for t in range(per):
+            if before_step is not None:
+                before_step(t)
             ts = time.perf_counter()
             answered: set[int] = set()
             for item in client.step(t, step_timeout):
@@ -103,11 +109,15 @@ def replay_free(client: SwarmClient, blocks: list[range], settings: PlacesSettin
 
 
 def replay(
-    client: SwarmClient, blocks: list[range], settings: PlacesSettings, on_step: Callable[[int], None] | None
+    client: SwarmClient,
+    blocks: list[range],
+    settings: PlacesSettings,
+    on_step: Callable[[int], None] | None,
+    before_step: Callable[[int], None] | None = None,
 ) -> Replay:
-    """The replay ``settings.pace`` asks for."""
+    """The replay ``settings.pace`` asks for (``before_step``: lock-step only)."""
     if settings.lockstep:
-        return replay_lockstep(client, blocks, settings, on_step)
+        return replay_lockstep(client, blocks, settings, on_step, before_step)
     return replay_free(client, blocks, settings)
 
 

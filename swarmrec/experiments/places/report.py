@@ -147,6 +147,17 @@ class PositionsEffect:
 
 
 @dataclass
+class LinkReport:
+    """The emulated links of a run (docs/links.md): each robot's link and what changed when."""
+
+    rate_kbps: float | None
+    latency_ms: float | None
+    schedule_unit: str
+    #: (time in the schedule's unit, what happened), in order.
+    events: list[tuple[float, str]]
+
+
+@dataclass
 class DetectorFigures:
     """A run from pixels: how the detectors were set up and what they counted."""
 
@@ -189,6 +200,7 @@ class PlacesSummary:
     auc: float | None = None
     offline_check: OfflineCheck | None = None
     positions_effect: PositionsEffect | None = None
+    links: LinkReport | None = None
     detector: DetectorFigures | None = None
 
     def to_dict(self) -> dict[str, Any]:
@@ -317,6 +329,7 @@ class RunRecord:
     deployment: str
     loop_closure_min_score: float
     detector: DetectorFigures | None = None
+    links: LinkReport | None = None
 
 
 def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
@@ -376,6 +389,7 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
         scrape_failed=metrics.failed,
         exit_codes=run.exit_codes,
         timings=run.timings,
+        links=run.links,
     )
     if run.detector is not None:
         summary.detector = _detector_figures(run.detector, metrics)

@@ -5,11 +5,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from swarmrec.core.presets import get_preset
 from swarmrec.datasets.source import SYNTHETIC, DatasetSource
 from swarmrec.datasets.tum import DEFAULT_MAX_DT
+from swarmrec.deployments.links import LinkSpec
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.settings import BusSettings
 from swarmrec.services.settings import PlaceSettings, WirePositions
@@ -75,6 +76,12 @@ class PlacesSettings:
     wire_positions: WirePositions = "mm"
     #: How a local swarm puts services in processes: service, robot or robots:K.
     hosting: str = "service"
+    #: Every robot's emulated link (bandwidth, latency; docs/links.md); unlimited by default.
+    link: LinkSpec = field(default_factory=LinkSpec)
+    #: When robots go out of range (a CSV, swarmrec.deployments.links.read_schedule).
+    schedule: Path | None = None
+    #: The schedule's time unit: lock-step steps or seconds from the replay's start.
+    schedule_unit: Literal["s", "step"] = "step"
 
     def __post_init__(self) -> None:
         if self.robots < 1:
@@ -94,6 +101,10 @@ class PlacesSettings:
             )
         if self.pixels.rgbd is not None and not self.source.synthetic:
             raise ConfigError("--rgbd DIR replaces --dataset: give one of them")
+        if self.schedule_unit not in ("s", "step"):
+            raise ConfigError(f"schedule_unit must be s or step, got {self.schedule_unit!r}")
+        if self.schedule_unit == "step" and self.schedule is not None and not self.lockstep:
+            raise ConfigError("a schedule in steps needs a lock-step replay; give its times in seconds")
         # The bus checks the swarm name and timeout; the services' settings the preset and positions.
         self.bus()
         self.places(80, ())
