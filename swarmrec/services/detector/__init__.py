@@ -18,14 +18,17 @@ another mode is answered FAILED_PRECONDITION, naming the mode it runs in.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from swarmrec.errors import FailedPrecondition
 from swarmrec.runtime import Endpoint, RequestContext, ServiceBase, ServiceContext
-from swarmrec.services.detector.classifier import ClassifierMode
 from swarmrec.services.detector.frames import FramePlayer, FrameSource
 from swarmrec.services.detector.replay import ReplaySource
-from swarmrec.services.detector.rgbd import RgbdSource
 from swarmrec.services.settings import DetectorSettings, PlaceSettings
 from swarmrec.wire import messages as pb
+
+if TYPE_CHECKING:
+    from swarmrec.services.detector.classifier import ClassifierMode
 
 __all__ = ["Detector"]
 
@@ -38,10 +41,18 @@ class Detector(ServiceBase):
         self.n_labels = ctx.settings(PlaceSettings).n_labels
         self.player: FramePlayer | None = None
         self.classifier: ClassifierMode | None = None
+        # The rgbd and classifier modes are imported when chosen: a replaying detector (and a
+        # robot process hosting one) need not load onnxruntime and OpenCV, a second of start-up.
         if self.mode == "classifier":
+            from swarmrec.services.detector.classifier import ClassifierMode
+
             self.classifier = ClassifierMode(ctx)
+        elif self.mode == "rgbd":
+            from swarmrec.services.detector.rgbd import RgbdSource
+
+            self.player = FramePlayer(ctx, RgbdSource(ctx))
         else:
-            source: FrameSource = ReplaySource(ctx) if self.mode == "replay" else RgbdSource(ctx)
+            source: FrameSource = ReplaySource(ctx)
             self.player = FramePlayer(ctx, source)
 
     def member_info(self) -> pb.MemberInfo:

@@ -1,0 +1,169 @@
+"""Scale benchmark: swarms of 10 to 100 robots of the synthetic world on this machine.
+
+    python bench/bench_scale.py --out bench/results/scale.json --plot docs/figures/scale.png
+
+Each swarm replays the synthetic office (50 frames per robot, so 100 robots play 5000
+frames) in lock-step, many robots per process (``--hosting robots:K``: every robot
+keeps its own services, endpoints, liveliness and metrics; they share a zenoh session
+and an interpreter), and checks its pair scores against the offline evaluation. For
+each size it writes the wall time (start, replay), the memory of the processes (their
+resident sets at the last step, in total and per robot), bytes per query measured on
+the wire, the worst shard balance and whether the scores are identical.
+
+Baseline, in the same run: the 10-robot swarm with one process per service (41
+processes), the deployment the project started from: the ratio of its memory per
+robot and wall time to the hosted swarm's of the same size.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from swarmrec.datasets.source import DatasetSource
+from swarmrec.deployments.base import Deployment
+from swarmrec.deployments.local import LocalDeployment
+from swarmrec.experiments.places import PlacesSettings, main
+
+REPO = Path(__file__).resolve().parents[1]
+FRAMES_PER_ROBOT = 50
+
+
+def rss_mb(pid: int) -> float:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return 0.0
+
+
+def run(robots: int, hosting: str, work: Path) -> dict[str, Any]:
+    held: list[LocalDeployment] = []
+    memory: dict[str, float] = {}
+    steps = FRAMES_PER_ROBOT
+
+    def hook(d: Deployment) -> None:
+        assert isinstance(d, LocalDeployment)
+        held.append(d)
+
+    def on_step(t: int) -> None:
+        if t == steps - 1:  # the last step: every process holds all it will hold
+            d = held[0]
+            procs = [sp for sp in d.procs if sp.proc.poll() is None]
+            memory["services_mb"] = sum(rss_mb(sp.proc.pid) for sp in procs)
+            memory["router_mb"] = rss_mb(d.router.proc.pid) if d.router else 0.0
+            memory["processes"] = len(procs) + 1
+
+    name = f"{robots}-{hosting.replace(':', '-')}"
+    settings = PlacesSettings(
+        source=DatasetSource(frames=FRAMES_PER_ROBOT * robots),
+        robots=robots,
+        out=work / name,
+        swarm=f"scale-{name}",
+        hosting=hosting,
+        request_timeout_s=30.0,
+        progress=False,
+        plots=False,
+    )
+    t0 = time.perf_counter()
+    s = main(settings, swarm_hook=hook, on_step=on_step)
+    wall = time.perf_counter() - t0
+    total = memory.get("services_mb", 0.0) + memory.get("router_mb", 0.0)
+    return {
+        "robots": robots,
+        "hosting": hosting,
+        "frames": s.dataset.frames,
+        "processes": memory.get("processes"),
+        "wall_s": wall,
+        "start_s": s.timings.get("start_s"),
+        "replay_s": s.timings.get("replay_s"),
+        "memory_total_mb": total,
+        "memory_per_robot_mb": total / robots,
+        "bytes_per_query": s.bytes.per_query,
+        "balance_ratio": s.shard_load.balance_ratio,
+        "query_p50_ms": s.queries.latency_ms.get("p50"),
+        "missing_slots": s.queries.missing_slots,
+        "identical_to_offline": s.offline_check.identical if s.offline_check else None,
+    }
+
+
+def plot(results: list[dict[str, Any]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    robots = [r["robots"] for r in results]
+    fig, axes = plt.subplots(1, 4, figsize=(15, 3.4))
+    panels = [
+        ("wall_s", "wall time of the run (s)"),
+        ("memory_per_robot_mb", "memory per robot (MB)"),
+        ("bytes_per_query", "bytes between robots per query"),
+        ("balance_ratio", "busiest shard / mean"),
+    ]
+    for ax, (key, title) in zip(axes, panels, strict=True):
+        ax.plot(robots, [r[key] for r in results], "o-")
+        ax.set_xlabel("robots")
+        ax.set_title(title, fontsize=10)
+        ax.grid(alpha=0.3)
+    fig.suptitle(
+        f"synthetic world, {FRAMES_PER_ROBOT} frames per robot, lock-step, robots hosted many to a process"
+    )
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main_bench() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "scale.json")
+    ap.add_argument("--plot", type=Path, default=REPO / "docs" / "figures" / "scale.png")
+    ap.add_argument("--robots", default="10,25,50,100", help="swarm sizes (default 10,25,50,100)")
+    ap.add_argument(
+        "--processes", type=int, default=2, help="host processes per swarm (default 2: the cores)"
+    )
+    args = ap.parse_args()
+    sizes = [int(x) for x in args.robots.split(",")]
+    result: dict[str, Any] = {"machine": {"python": platform.python_version(), "cpus": os.cpu_count()}}
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        print("baseline: 10 robots, one process per service ...", flush=True)
+        base = run(10, "service", work)
+        result["baseline_process_per_service"] = base
+        runs = []
+        for n in sizes:
+            per = max(1, -(-n // args.processes))
+            print(f"{n} robots, {per} robots a process ...", flush=True)
+            runs.append(run(n, f"robots:{per}", work))
+        result["hosted"] = runs
+    ten = next((r for r in runs if r["robots"] == 10), None)
+    if ten is not None:
+        result["ratios_10_robots"] = {
+            "memory_per_robot_hosted_over_process_per_service": ten["memory_per_robot_mb"]
+            / base["memory_per_robot_mb"],
+            "wall_hosted_over_process_per_service": ten["wall_s"] / base["wall_s"],
+        }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    plot(runs, args.plot)
+    for r in [base, *runs]:
+        print(
+            f"{r['robots']:>4} robots ({r['hosting']:<10}) {r['processes']} processes: "
+            f"wall {r['wall_s']:.1f} s, "
+            f"{r['memory_per_robot_mb']:.0f} MB a robot ({r['memory_total_mb']:.0f} MB), "
+            f"{r['bytes_per_query']:.0f} B/query, balance {r['balance_ratio']:.2f}, "
+            f"identical {r['identical_to_offline']}"
+        )
+
+
+if __name__ == "__main__":
+    main_bench()
