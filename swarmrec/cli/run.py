@@ -48,6 +48,12 @@ def add(sub: Subparsers) -> None:
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument(
+        "--insecure",
+        action="store_true",
+        help="plaintext, unauthenticated zenoh links (debugging; logged by every process); "
+        "default: mutual TLS with a PKI made for the run and the router's access control",
+    )
+    p.add_argument(
         "--hosting",
         default="service",
         metavar="service|robot|robots:K",
@@ -140,6 +146,7 @@ def run(args: argparse.Namespace) -> int:
             out=args.out,
             wire_positions=args.wire_positions,
             hosting=args.hosting,
+            security="insecure" if args.insecure else "mtls",
             pixels=PixelSettings(
                 from_pixels=args.from_pixels,
                 rgbd=args.rgbd,

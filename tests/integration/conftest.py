@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from swarmrec.client import SwarmClient
+from swarmrec.client import ZenohClient
 from swarmrec.deployments.base import SwarmSpec
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.runtime.settings import BusSettings, Component
@@ -64,6 +64,6 @@ def local_swarm(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Loca
 
 
 @pytest.fixture
-def client(local_swarm: LocalDeployment) -> Iterator[SwarmClient]:
-    with SwarmClient([local_swarm.endpoint], local_swarm.spec_swarm, timeout_s=2.0) as c:
+def client(local_swarm: LocalDeployment) -> Iterator[ZenohClient]:
+    with local_swarm.client(2.0) as c:
         yield c

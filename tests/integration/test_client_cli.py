@@ -17,7 +17,6 @@ from pathlib import Path
 
 import pytest
 
-from swarmrec.client import SwarmClient
 from swarmrec.core.descriptor import semantic_descriptor
 from swarmrec.core.presets import get_preset
 from swarmrec.core.split import split_frames
@@ -46,7 +45,7 @@ def running(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
     parts = (PlaceSettings(lockstep=True), DetectorSettings(dataset=str(dataset)))
     with running_swarm(tmp, "cli-swarm", *parts, robots=N_ROBOTS) as swarm:
         reports: list[pb.QueryReport] = []
-        with SwarmClient([swarm.endpoint], swarm.spec_swarm) as client:
+        with swarm.client() as client:
             for t in range(STEPS):
                 replies = client.step(t, timeout_s=10)
                 assert all(isinstance(r, pb.StepReply) for r in replies), replies
@@ -151,7 +150,7 @@ def test_loop_closures_of_a_robot_exits_zero_with_what_the_library_returns(runni
     assert done.returncode == none.returncode == table.returncode == 0, (
         done.stderr + none.stderr + table.stderr
     )
-    with SwarmClient([running.swarm.endpoint], running.swarm.spec_swarm) as client:
+    with running.swarm.client() as client:
         expected = client.loop_closures(0)
     assert json.loads(done.stdout) == [
         {

@@ -164,6 +164,7 @@ def test_pki_init_creates_one_pair_per_identity_in_the_documented_layout(pki: Pa
     expected = {"ca.pem", "ca.key", "router.lab.pem", "router.lab.key"}
     expected |= {f"client.cli.lab.{x}" for x in ("pem", "key")}
     expected |= {f"operator.job.lab.{x}" for x in ("pem", "key")}
+    expected |= {f"client.gateway.lab.{x}" for x in ("pem", "key")} | {"acl.json"}
     expected |= {f"r{r}.{k}.lab.{x}" for r in range(2) for k in SERVICE_KINDS for x in ("pem", "key")}
     assert {p.name for p in pki.iterdir()} == expected
 

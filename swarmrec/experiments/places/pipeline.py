@@ -32,7 +32,6 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from swarmrec.client import SwarmClient
 from swarmrec.core.association import build_table, warm_up
 from swarmrec.core.presets import Preset, get_preset
 from swarmrec.core.ranges import label_bounds
@@ -42,6 +41,7 @@ from swarmrec.datasets.constellations import write_constellations
 from swarmrec.datasets.source import load_dataset
 from swarmrec.deployments.base import Deployment, SwarmSpec
 from swarmrec.deployments.compose import ComposeSettings, SwarmFile, write_compose
+from swarmrec.deployments.identities import Security
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.errors import ConfigError
 from swarmrec.evaluation.scoring import label_frequency_prior
@@ -136,13 +136,14 @@ def compose(settings: PlacesSettings, compose_settings: ComposeSettings) -> Swar
     return write_compose(spec, compose_settings, experiment=settings.record())
 
 
-def _local(out: Path, hosting: str) -> LocalDeployment:
+def _local(out: Path, hosting: str, security: str) -> LocalDeployment:
     """A fresh local swarm in ``out`` (stores and detections of an earlier run removed)."""
     for old in (out / "data").glob("robot*/*/*.log"):
         old.unlink()
     for old in (out / "data").glob("robot*/detector/constellations/*.txt"):
         old.unlink()
-    return LocalDeployment(data_dir=out / "data", log_dir=out / "logs", hosting=hosting)
+    mode: Security = "insecure" if security == "insecure" else "mtls"
+    return LocalDeployment(data_dir=out / "data", log_dir=out / "logs", hosting=hosting, security=mode)
 
 
 def main(
@@ -165,7 +166,7 @@ def main(
     if prepared.pixels is not None and not isinstance(deployment, LocalDeployment | None):
         raise ConfigError("a run from pixels reads the detectors' constellations from a local deployment")
     if deployment is None:
-        deployment = _local(out, settings.hosting)
+        deployment = _local(out, settings.hosting, settings.security)
         # Compiled once here, the verifier processes load the kernels from numba's cache.
         warm_up()
     timings: dict[str, float] = {"prepare_s": time.perf_counter() - t_start}
@@ -175,7 +176,8 @@ def main(
         deployment.start(spec, progress=settings.progress)
         deployment.wait_ready()
         timings["start_s"] = time.perf_counter() - t0
-        with SwarmClient([deployment.endpoint], spec.swarm, timeout_s=settings.request_timeout_s) as client:
+        # The operator identity: it drives the replay (detector step/replay).
+        with deployment.client(settings.request_timeout_s) as client:
             holding = {f"{m.kind}-{m.robot}": m.stored_items for m in client.members() if m.stored_items}
             if holding:
                 # Frames of an earlier replay would be found as loop closures of this one.
