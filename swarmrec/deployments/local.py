@@ -151,7 +151,6 @@ class LocalDeployment:
         self.router_port = router_port
         self.security: Security = security
         self.pki_dir: Path | None = None
-        self.gateway_port: int | None = None
         self.swarm_procs: list[ServiceProcess] = []
         self.robots_per_process = _robots_per_process(hosting)
         if self.robots_per_process is not None and security == "mtls":
@@ -180,9 +179,12 @@ class LocalDeployment:
 
     @property
     def gateway_address(self) -> str:
-        if self.gateway_port is None:
-            raise ConfigError("the gateway has not been started")
-        return f"grpc://127.0.0.1:{self.gateway_port}"
+        """The gateway's address from its readiness line (it listens on a port the OS chose)."""
+        for sp in self.swarm_procs:
+            address = sp.info.get("grpc")
+            if sp.kind == "gateway" and isinstance(address, str):
+                return address
+        raise ConfigError("the gateway has not been started, or is not ready yet")
 
     def client(self, timeout_s: float = 5.0, *, role: str = "operator") -> ZenohClient:
         spec = self._spec()
@@ -285,8 +287,8 @@ class LocalDeployment:
         for kind in spec.swarm_kinds:
             config = spec.config_for(kind, 0, connect=(self.endpoint,), metrics_port=0)
             if config.has(GatewaySettings):
-                self.gateway_port = free_port()
-                config = config.replace(config.get(GatewaySettings).with_(grpc_port=self.gateway_port))
+                # Port 0: the OS picks it while binding; the readiness line says which.
+                config = config.replace(config.get(GatewaySettings).with_(grpc_port=0))
             sp = self._spawn(kind, 0, config_flags(self._secured(config, kind)))
             self.procs.append(sp)
             self.swarm_procs.append(sp)

@@ -61,6 +61,8 @@ def cli(running: Running, *args: str, swarm: str | None = None) -> subprocess.Co
             sys.executable, "-m", "swarmrec", *args,
             "--connect", running.swarm.endpoint,
             "--swarm", swarm or running.swarm.spec_swarm,
+            "--pki-dir", str(running.swarm.pki_dir),
+            "--identity", f"client.cli.{running.swarm.spec_swarm}",
         ],
         capture_output=True,
         text=True,
@@ -75,12 +77,12 @@ def test_members_lists_every_service_and_the_shard_ranges_cover_the_label_list(r
     assert done.returncode == 0, done.stderr
     members = json.loads(done.stdout)
     assert sorted((m["kind"], m["robot"]) for m in members) == sorted(
-        [("router", 0)] + [(k, r) for k in KINDS for r in range(N_ROBOTS)]
+        [("router", 0), ("gateway", 0)] + [(k, r) for k in KINDS for r in range(N_ROBOTS)]
     )
     ranges = sorted(tuple(m["label_range"]) for m in members if m["kind"] == "index-shard")
     assert ranges == [(0, 40), (40, 80)]
     assert all(m["label_range"] is None for m in members if m["kind"] != "index-shard")
-    assert {m["n_labels"] for m in members if m["kind"] != "router"} == {80}
+    assert {m["n_labels"] for m in members if m["kind"] not in ("router", "gateway")} == {80}
     assert all(m["metrics_url"].startswith("http://127.0.0.1:") for m in members)
 
 
@@ -90,7 +92,7 @@ def test_members_prints_a_table_by_default(running: Running) -> None:
     assert done.returncode == 0, done.stderr
     lines = done.stdout.splitlines()
     assert lines[0].split() == ["service", "robot", "labels", "stored", "version", "metrics"]
-    assert len(lines) == 1 + 4 * N_ROBOTS + 1  # and the router
+    assert len(lines) == 1 + 4 * N_ROBOTS + 2  # and the router and the gateway
     assert any(line.split()[:3] == ["index-shard", "1", "40-80"] for line in lines)
     # Each verifier holds its own robot's replayed frames, one a step.
     verifiers = [line.split() for line in lines if line.startswith("verifier")]
