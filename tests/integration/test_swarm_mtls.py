@@ -46,7 +46,9 @@ def swarm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LocalDeployment]
 
 def _as(swarm: LocalDeployment, cn: str) -> ZenohClient:
     assert swarm.pki_dir is not None
-    return ZenohClient([swarm.endpoint], swarm.spec_swarm, timeout_s=3.0, tls=TlsFiles.in_dir(swarm.pki_dir, cn))
+    return ZenohClient(
+        [swarm.endpoint], swarm.spec_swarm, timeout_s=3.0, tls=TlsFiles.in_dir(swarm.pki_dir, cn)
+    )
 
 
 def _stored(swarm: LocalDeployment) -> dict[tuple[str, int], int]:
@@ -66,7 +68,9 @@ def test_every_service_process_runs_with_its_own_certificate_and_the_router_with
     assert acl["default_permission"] == "deny"
     logs = {p.stem: p.read_text() for p in swarm.log_dir.glob("*.log")}
     assert "INSECURE" not in "".join(logs.values())
-    assert set(_stored(swarm)) == {("router", 0)} | {(k, r) for k in ("index-shard", "verifier") for r in range(ROBOTS)}
+    assert set(_stored(swarm)) == {("router", 0)} | {
+        (k, r) for k in ("index-shard", "verifier") for r in range(ROBOTS)
+    }
 
 
 def test_a_client_with_a_valid_certificate_is_served(swarm: LocalDeployment) -> None:
@@ -101,7 +105,9 @@ def test_a_certificate_of_another_ca_is_refused_at_connection(swarm: LocalDeploy
             zenoh.open(conf)
 
 
-def test_robot_3_cannot_store_into_robot_2s_verifier_and_the_store_is_unchanged(swarm: LocalDeployment) -> None:
+def test_robot_3_cannot_store_into_robot_2s_verifier_and_the_store_is_unchanged(
+    swarm: LocalDeployment,
+) -> None:
     before = _stored(swarm)
     s = swarm.spec_swarm
     with _as(swarm, f"r3.descriptor.{s}") as robot3:
@@ -120,13 +126,23 @@ def test_robot_3_cannot_put_on_robot_2s_keys(swarm: LocalDeployment) -> None:
     s = swarm.spec_swarm
     seen: list[str] = []
     with swarm.client(role="client") as watcher, _as(swarm, f"r3.verifier.{s}") as robot3:
-        sub = watcher.session.declare_subscriber(keys.event(s, "loop_closure", "*"), lambda x: seen.append(str(x.key_expr)))
+        sub = watcher.session.declare_subscriber(
+            keys.event(s, "loop_closure", "*"), lambda x: seen.append(str(x.key_expr))
+        )
         try:
             pub = robot3.session.declare_publisher(keys.event(s, "loop_closure", 3))
             wait_until(lambda: pub.matching_status.matching, 10, "the watcher's subscriber known to robot 3")
             enc = protobuf(schema_name(pb.LoopClosure))
-            robot3.session.put(keys.event(s, "loop_closure", 2), pb.LoopClosure(query_robot_id=2).SerializeToString(), encoding=enc)
-            robot3.session.put(keys.event(s, "loop_closure", 3), pb.LoopClosure(query_robot_id=3).SerializeToString(), encoding=enc)
+            robot3.session.put(
+                keys.event(s, "loop_closure", 2),
+                pb.LoopClosure(query_robot_id=2).SerializeToString(),
+                encoding=enc,
+            )
+            robot3.session.put(
+                keys.event(s, "loop_closure", 3),
+                pb.LoopClosure(query_robot_id=3).SerializeToString(),
+                encoding=enc,
+            )
             wait_until(lambda: keys.event(s, "loop_closure", 3) in seen, 10, "robot 3's own event")
         finally:
             sub.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
@@ -138,10 +154,14 @@ def test_a_client_may_look_up_but_never_store_into_a_shard(swarm: LocalDeploymen
     s = swarm.spec_swarm
     with _as(swarm, f"client.cli.{s}") as client:
         caller = Caller(client.session, None, 3.0)
-        desc = pb.PartialDescriptor(robot_id=1, frame_index=0, label_lo=0, label_hi=20, label_offsets=[1], counts=[2])
+        desc = pb.PartialDescriptor(
+            robot_id=1, frame_index=0, label_lo=0, label_hi=20, label_offsets=[1], counts=[2]
+        )
         storing = pb.PartialQuery(descriptor=desc, read_only=False)
         with pytest.raises(NoReply):  # the router lets clients call lookup, not query
-            caller.call(keys.endpoint(s, "index-shard", 0, "query"), storing, pb.CandidatesReply, target_robot=0)
+            caller.call(
+                keys.endpoint(s, "index-shard", 0, "query"), storing, pb.CandidatesReply, target_robot=0
+            )
         looked = pb.PartialQuery(descriptor=desc, read_only=True)
         caller.call(keys.endpoint(s, "index-shard", 0, "lookup"), looked, pb.CandidatesReply, target_robot=0)
     assert _stored(swarm) == before
