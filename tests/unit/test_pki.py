@@ -246,7 +246,8 @@ def test_init_creates_only_what_is_missing(pki: Path) -> None:
     assert created == {f"r2.{k}.lab" for k in SERVICE_KINDS} | {"client.viewer.lab"}
     after = snapshot(pki)
     # Every certificate and key stays byte for byte; acl.json (derived, not secret) grows.
-    assert {k: after[k] for k in before if k != "acl.json"} == {k: v for k, v in before.items() if k != "acl.json"}
+    kept = {k: v for k, v in before.items() if k != "acl.json"}
+    assert {k: after[k] for k in kept} == kept
     assert b"r2.verifier.lab" in after["acl.json"] and b"client.viewer.lab" in after["acl.json"]
 
 
