@@ -1,4 +1,4 @@
-"""Regenerate the committed Python protobuf code from proto/.
+"""Regenerate the committed Python protobuf (and gRPC) code from proto/.
 
     python proto/generate.py          # rewrite swarmrec/wire/gen/
     python proto/generate.py --check  # exit 1 if the committed code is stale
@@ -13,6 +13,9 @@ also replaces the module name protoc passes to the message builder
 (``'swarmrec.v1.x_pb2'``) by ``__name__``, so that the classes' ``__module__``
 is importable and messages pickle (multiprocessing needs that). The rewrites
 are part of generation, so ``--check`` compares against the same output.
+
+A schema that declares a ``service`` (gateway.proto) also gets its gRPC stubs,
+``x_pb2_grpc.py`` (grpcio-tools' plugin), with the same import rewrite.
 
 The output depends on the protoc version bundled with grpcio-tools, so every
 developer and CI must use the same grpcio-tools version.
@@ -68,6 +71,14 @@ def proto_files() -> list[Path]:
     return [f.relative_to(PROTO_ROOT) for f in files]
 
 
+_SERVICE = re.compile(r"^service \w+", re.MULTILINE)
+
+
+def service_files() -> list[Path]:
+    """The schemas that declare a gRPC service (they get ``*_pb2_grpc.py`` too)."""
+    return [f for f in proto_files() if _SERVICE.search((PROTO_ROOT / f).read_text(encoding="utf-8"))]
+
+
 def generate_into(out: Path) -> None:
     """Run protoc into ``out`` (an empty folder) and finish the package there."""
     cmd = [
@@ -83,6 +94,22 @@ def generate_into(out: Path) -> None:
     done = subprocess.run(cmd, cwd=PROTO_ROOT, capture_output=True, text=True, check=False)
     if done.returncode != 0:
         raise SystemExit(f"protoc failed ({done.returncode}):\n{done.stderr}{done.stdout}")
+    services = service_files()
+    if services:
+        cmd = [sys.executable, "-m", "grpc_tools.protoc", f"-I{PROTO_ROOT}", f"--grpc_python_out={out}"]
+        done = subprocess.run(
+            [*cmd, *(str(f) for f in services)], cwd=PROTO_ROOT, capture_output=True, text=True, check=False
+        )
+        if done.returncode != 0:
+            raise SystemExit(f"protoc (grpc) failed ({done.returncode}):\n{done.stderr}{done.stdout}")
+    for path in sorted(out.rglob("*_pb2_grpc.py")):
+        text, n = _ABSOLUTE_IMPORT.subn("from . import ", path.read_text(encoding="utf-8"))
+        if n == 0:
+            raise SystemExit(
+                f"protoc's gRPC output for {path.name} no longer matches the import rewrite in"
+                f" {Path(__file__).name}; update it for {_grpc_tools_version()}"
+            )
+        path.write_text(text, encoding="utf-8")
 
     for path in sorted(out.rglob("*_pb2.py*")):
         text = path.read_text(encoding="utf-8")

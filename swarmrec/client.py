@@ -1,12 +1,23 @@
-"""A typed client for a running swarm: request/response stubs over zenoh queries.
+"""Clients of a running swarm, one interface over two transports.
 
-    from swarmrec.client import SwarmClient
+    from swarmrec.client import connect
 
-    with SwarmClient(["tcp/127.0.0.1:7447"], swarm="lab") as swarm:
+    with connect("tls/127.0.0.1:7447", swarm="lab", tls=files) as swarm:      # zenoh, mutual TLS
+        ...
+    with connect("grpc://127.0.0.1:50051", swarm="lab", tls=files) as swarm:  # the gRPC gateway
         for m in swarm.members():
             print(m.kind, m.robot, m.label_range, m.metrics_url)
         result = swarm.query(constellation)          # ranked matches, nothing stored
         closures = swarm.loop_closures(robot=3)
+
+:class:`SwarmClient` is the interface; :class:`ZenohClient` speaks zenoh to
+the router (and also drives replays: ``step``, ``replay``, raw ``call``s), and
+:class:`GatewayClient` speaks gRPC to the swarm's gateway
+(:mod:`swarmrec.services.gateway`), the one port a client outside the swarm
+needs. ``files`` (:class:`~swarmrec.runtime.tls.TlsFiles`) is the client's
+identity from the swarm's PKI: over zenoh its certificate, checked by the
+router's access control; over gRPC the same certificate, and the CA that the
+gateway's certificate must be signed by.
 
 Every call raises :class:`~swarmrec.errors.CallError` (``NoReply``,
 ``ReplyTimeout``, ``RemoteError``) when the swarm does not answer as asked;
@@ -15,13 +26,16 @@ a query that reached only part of the swarm says which robots failed.
 
 from __future__ import annotations
 
+import abc
 import json
+import logging
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import TracebackType
-from typing import TypeVar
+from typing import Any, TypeVar
 
+import grpc
 import numpy as np
 import zenoh
 
@@ -30,17 +44,46 @@ from google.protobuf.message import Message  # type: ignore[import-untyped, unus
 
 from swarmrec.core.presets import get_preset
 from swarmrec.core.types import Constellation
-from swarmrec.errors import NoReply, SwarmrecError
+from swarmrec.errors import (
+    CallError,
+    ConfigError,
+    ErrorCode,
+    NoReply,
+    RemoteError,
+    ReplyTimeout,
+    SecurityError,
+    SwarmrecError,
+)
 from swarmrec.runtime import keys
 from swarmrec.runtime.rpc import Caller
+from swarmrec.runtime.tls import TlsFiles, configure_client_tls, configure_insecure
 from swarmrec.services.protocol import QueryPlan, two_step_query
 from swarmrec.services.registry import kind_of_wire
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import constellation_to_proto
+from swarmrec.wire.gen.swarmrec.v1 import gateway_pb2, gateway_pb2_grpc
 
-__all__ = ["Member", "QueryResult", "SwarmClient"]
+__all__ = [
+    "ERROR_CODE_METADATA",
+    "GRPC_SCHEME",
+    "GatewayClient",
+    "Member",
+    "QueryResult",
+    "SwarmClient",
+    "ZenohClient",
+    "connect",
+    "member_of",
+]
 
 M = TypeVar("M", bound=Message)
+_C = TypeVar("_C", bound="SwarmClient")
+
+#: Addresses of the gRPC gateway start with this; anything else is a zenoh endpoint.
+GRPC_SCHEME = "grpc://"
+#: Trailing metadata of a failed gateway call: the swarm's ErrorCode name (ERROR_CODE_...).
+ERROR_CODE_METADATA = "swarmrec-error-code"
+
+_log = logging.getLogger("swarmrec.client")
 
 
 @dataclass(frozen=True)
@@ -55,6 +98,20 @@ class Member:
     metrics_url: str
     #: Partial descriptors (index shard) or constellations (verifier) held; 0 otherwise.
     stored_items: int = 0
+
+
+def member_of(info: pb.MemberInfo) -> Member:
+    """What a service's MemberInfo says, as a :class:`Member`."""
+    shard = info.kind == pb.ServiceKind.SERVICE_KIND_INDEX_SHARD
+    return Member(
+        kind=kind_of_wire(info.kind),
+        robot=info.robot_id,
+        label_range=(info.label_lo, info.label_hi) if shard else None,
+        n_labels=info.n_labels,
+        version=info.version,
+        metrics_url=info.metrics_url,
+        stored_items=info.stored_items,
+    )
 
 
 @dataclass(frozen=True)
@@ -74,41 +131,158 @@ class QueryResult:
         return not (self.failed_shards or self.failed_verifiers)
 
 
-class SwarmClient:
-    """A zenoh client session bound to one swarm."""
+class SwarmClient(abc.ABC):
+    """What a client can ask a running swarm, whatever the transport; a context manager."""
 
-    def __init__(self, connect: Sequence[str], swarm: str = "default", *, timeout_s: float = 5.0) -> None:
-        self.swarm = keys.validate_swarm_name(swarm)
-        self.timeout_s = timeout_s
-        conf = zenoh.Config()
-        conf.insert_json5("mode", '"client"')
-        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        self._conf = conf
-        self._session: zenoh.Session | None = None
-        self.caller: Caller | None = None
+    swarm: str
+    timeout_s: float
 
-    def __enter__(self) -> SwarmClient:
-        self._session = zenoh.open(self._conf)
-        self.caller = Caller(self._session, None, self.timeout_s)
+    @abc.abstractmethod
+    def open(self) -> None:
+        """Connect (``with`` does it)."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Disconnect (``with`` does it)."""
+
+    def __enter__(self: _C) -> _C:
+        self.open()
         return self
 
     def __exit__(
         self, t: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None
     ) -> None:
-        if self._session is not None:
+        self.close()
+
+    @abc.abstractmethod
+    def members(self) -> list[Member]:
+        """Every live service with what it says about itself, by kind and robot."""
+
+    @abc.abstractmethod
+    def query(self, constellation: Constellation, *, preset: str = "paper") -> QueryResult:
+        """Ask the swarm where ``constellation`` was seen; nothing is stored."""
+
+    @abc.abstractmethod
+    def loop_closures(self, robot: int, min_score: float = 0.0) -> list[pb.LoopClosure]:
+        """The loop closures robot ``robot`` has found, oldest first."""
+
+    def alive(self) -> set[tuple[str, int]]:
+        """(kind, robot) of every live service."""
+        return {(m.kind, m.robot) for m in self.members()}
+
+    def wait_for(self, expected: set[tuple[str, int]], timeout_s: float = 30.0) -> None:
+        """Block until every ``(kind, robot)`` in ``expected`` is alive."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                missing = expected - self.alive()
+            except CallError:
+                missing = expected
+            if not missing:
+                return
+            if time.monotonic() > deadline:
+                raise NoReply(f"swarm {self.swarm}", f"not alive after {timeout_s:g} s: {sorted(missing)}")
+            time.sleep(0.1)
+
+
+def connect(
+    address: str | Sequence[str],
+    swarm: str = "default",
+    *,
+    timeout_s: float = 5.0,
+    tls: TlsFiles | None = None,
+    insecure_reason: str = "",
+) -> SwarmClient:
+    """The client for ``address``: ``grpc://host:port`` is the gateway, anything else
+    (``tls/host:port``, several comma-separated for failover) the router over zenoh."""
+    parts = [address] if isinstance(address, str) else list(address)
+    endpoints = [e.strip() for p in parts for e in p.split(",") if e.strip()]
+    grpc_ones = [e for e in endpoints if e.startswith(GRPC_SCHEME)]
+    if grpc_ones:
+        if len(endpoints) != 1:
+            raise ConfigError(f"one gateway address at a time, got {endpoints}")
+        return GatewayClient(grpc_ones[0], swarm, timeout_s=timeout_s, tls=tls)
+    return ZenohClient(endpoints, swarm, timeout_s=timeout_s, tls=tls, insecure_reason=insecure_reason)
+
+
+# --- zenoh ---------------------------------------------------------------------------
+
+
+class ZenohClient(SwarmClient):
+    """A zenoh client session bound to one swarm.
+
+    With ``tls`` the session is mutual TLS as that identity (``tls/`` endpoints only);
+    without it the endpoints must be plaintext ``tcp/`` and the insecure mode is
+    logged as such. :meth:`attached` wraps a session someone else owns (the gateway's).
+    """
+
+    def __init__(
+        self,
+        connect: Sequence[str],
+        swarm: str = "default",
+        *,
+        timeout_s: float = 5.0,
+        tls: TlsFiles | None = None,
+        insecure_reason: str = "",
+    ) -> None:
+        self.swarm = keys.validate_swarm_name(swarm)
+        self.timeout_s = timeout_s
+        if not connect:
+            raise ConfigError("no router endpoint to connect to")
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"client"')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        if tls is not None:
+            configure_client_tls(conf, tls, list(connect))
+        else:
+            secure = [e for e in connect if e.startswith("tls/")]
+            if secure:
+                raise SecurityError(
+                    f"{secure}: a tls/ endpoint needs this client's certificate "
+                    "(--pki-dir and --identity, or a deployment's client())"
+                )
+            conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+            configure_insecure(
+                conf,
+                _log,
+                who="client",
+                reason=insecure_reason or f"plaintext endpoints {list(connect)} given",
+            )
+        self._conf: zenoh.Config | None = conf
+        self._session: zenoh.Session | None = None
+        self._owned = True
+        self.caller: Caller | None = None
+
+    @classmethod
+    def attached(
+        cls, session: zenoh.Session, swarm: str, caller: Caller, *, timeout_s: float = 5.0
+    ) -> ZenohClient:
+        """A client over an open ``session`` it does not close (a service's own)."""
+        self = cls.__new__(cls)
+        self.swarm = keys.validate_swarm_name(swarm)
+        self.timeout_s = timeout_s
+        self._conf, self._session, self._owned, self.caller = None, session, False, caller
+        return self
+
+    def open(self) -> None:
+        if self._conf is not None and self._session is None:
+            self._session = zenoh.open(self._conf)
+            self.caller = Caller(self._session, None, self.timeout_s)
+
+    def close(self) -> None:
+        if self._owned and self._session is not None:
             self._session.close()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
             self._session = None
 
     @property
     def session(self) -> zenoh.Session:
         if self._session is None:
-            raise SwarmrecError("use SwarmClient in a with block")
+            raise SwarmrecError("use the client in a with block")
         return self._session
 
     def _caller(self) -> Caller:
         if self.caller is None:
-            raise SwarmrecError("use SwarmClient in a with block")
+            raise SwarmrecError("use the client in a with block")
         return self.caller
 
     # --- membership ---------------------------------------------------------
@@ -123,50 +297,25 @@ class SwarmClient:
                     out.add(parsed)
         return out
 
-    def wait_for(self, expected: set[tuple[str, int]], timeout_s: float = 30.0) -> None:
-        """Block until every ``(kind, robot)`` in ``expected`` is alive."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            missing = expected - self.alive()
-            if not missing:
-                return
-            if time.monotonic() > deadline:
-                raise NoReply(
-                    keys.alive_all(self.swarm), f"not alive after {timeout_s:g} s: {sorted(missing)}"
-                )
-            time.sleep(0.1)
-
-    def members(self) -> list[Member]:
-        """Every live service with what it says about itself, by kind and robot."""
+    def member_infos(self, timeout_s: float | None = None) -> list[pb.MemberInfo]:
+        """What every live service says about itself (its ``info`` endpoint), by kind and robot."""
         key = f"{keys.PREFIX}/{self.swarm}/*/*/info"
         replies = self.session.get(
             key,
             target=zenoh.QueryTarget.ALL,
             consolidation=zenoh.ConsolidationMode.NONE,
-            timeout=self.timeout_s,
+            timeout=self.timeout_s if timeout_s is None else timeout_s,
         )
-        out = []
-        for rep in replies:
-            if rep.ok is None:
-                continue
-            info = pb.MemberInfo.FromString(rep.ok.payload.to_bytes())
-            shard = info.kind == pb.ServiceKind.SERVICE_KIND_INDEX_SHARD
-            out.append(
-                Member(
-                    kind=kind_of_wire(info.kind),
-                    robot=info.robot_id,
-                    label_range=(info.label_lo, info.label_hi) if shard else None,
-                    n_labels=info.n_labels,
-                    version=info.version,
-                    metrics_url=info.metrics_url,
-                    stored_items=info.stored_items,
-                )
-            )
-        return sorted(out, key=lambda m: (m.kind, m.robot))
+        out = [pb.MemberInfo.FromString(rep.ok.payload.to_bytes()) for rep in replies if rep.ok is not None]
+        return sorted(out, key=lambda m: (kind_of_wire(m.kind), m.robot_id))
 
-    def plan(self, preset: str = "paper") -> QueryPlan:
+    def members(self, timeout_s: float | None = None) -> list[Member]:
+        """Every live service with what it says about itself, by kind and robot."""
+        return [member_of(info) for info in self.member_infos(timeout_s)]
+
+    def plan(self, preset: str = "paper", *, timeout_s: float | None = None) -> QueryPlan:
         """What a query needs to know, from the live shards' label ranges."""
-        shards = [m for m in self.members() if m.kind == "index-shard"]
+        shards = [m for m in self.members(timeout_s) if m.kind == "index-shard"]
         if not shards:
             raise NoReply(f"{keys.PREFIX}/{self.swarm}", "no index shard is alive")
         n_robots = max(m.robot for m in shards) + 1
@@ -179,15 +328,22 @@ class SwarmClient:
     # --- requests -----------------------------------------------------------
 
     def query(
-        self, constellation: Constellation, *, preset: str = "paper", plan: QueryPlan | None = None
+        self,
+        constellation: Constellation,
+        *,
+        preset: str = "paper",
+        plan: QueryPlan | None = None,
+        caller: Caller | None = None,
     ) -> QueryResult:
-        """Ask the swarm where ``constellation`` was seen; nothing is stored."""
+        """Ask the swarm where ``constellation`` was seen; nothing is stored (the shards'
+        ``lookup``). ``caller`` sends the requests instead of the client's own (a
+        deadline's)."""
         plan = plan or self.plan(preset)
         # The verifiers read either form; a read-only lookup's last micrometres do not matter.
         wire = constellation_to_proto(constellation, 0, 0)
         t0 = time.perf_counter()
         report = two_step_query(
-            self._caller(),
+            caller or self._caller(),
             plan,
             constellation,
             wire,
@@ -211,11 +367,17 @@ class SwarmClient:
         """One request to one service (``keys.endpoint(...)``) and its reply; raises CallError."""
         return self._caller().call(key, request, reply_cls, target_robot=target_robot, endpoint=endpoint)
 
-    def loop_closures(self, robot: int, min_score: float = 0.0) -> list[pb.LoopClosure]:
+    def loop_closures(
+        self, robot: int, min_score: float = 0.0, *, timeout_s: float | None = None
+    ) -> list[pb.LoopClosure]:
         """The loop closures robot ``robot`` has found, oldest first."""
         key = keys.endpoint(self.swarm, "descriptor", robot, "loop_closures")
         reply = self._caller().call(
-            key, pb.LoopClosuresRequest(min_score=min_score), pb.LoopClosureList, target_robot=robot
+            key,
+            pb.LoopClosuresRequest(min_score=min_score),
+            pb.LoopClosureList,
+            target_robot=robot,
+            timeout_s=timeout_s,
         )
         return list(reply.loop_closures)
 
@@ -234,3 +396,121 @@ class SwarmClient:
             key, pb.ReplayRequest(rate_hz=rate_hz), target_robot=None, scatter=True
         )
         return [o.reply if o.reply is not None else o.error for o in pending.gather(pb.ReplayReply)]  # type: ignore[misc]
+
+
+# --- the gRPC gateway -------------------------------------------------------------------
+
+
+def grpc_error(e: grpc.RpcError, what: str) -> CallError:
+    """A failed gateway call as the CallError a zenoh call would have raised."""
+    code = e.code() if isinstance(e, grpc.Call) else None
+    details = (e.details() if isinstance(e, grpc.Call) else None) or str(e)
+    trailing = dict(e.trailing_metadata() or ()) if isinstance(e, grpc.Call) else {}
+    swarm_code = str(trailing.get(ERROR_CODE_METADATA, ""))
+    if code == grpc.StatusCode.DEADLINE_EXCEEDED:
+        return ReplyTimeout(what, details)
+    if code == grpc.StatusCode.UNAVAILABLE and not swarm_code:
+        return NoReply(what, details)
+    known = {name for name, _ in pb.ErrorCode.items()}
+    value = pb.ErrorCode.Value(swarm_code) if swarm_code in known else 0
+    if code == grpc.StatusCode.UNAVAILABLE and value in (0, ErrorCode.UNAVAILABLE):
+        return NoReply(what, details)
+    return RemoteError(what, value or _CODE_OF_STATUS.get(code, ErrorCode.UNSPECIFIED), details)
+
+
+_CODE_OF_STATUS: dict[Any, ErrorCode] = {
+    grpc.StatusCode.INVALID_ARGUMENT: ErrorCode.INVALID_ARGUMENT,
+    grpc.StatusCode.NOT_FOUND: ErrorCode.NOT_FOUND,
+    grpc.StatusCode.RESOURCE_EXHAUSTED: ErrorCode.TOO_LARGE,
+    grpc.StatusCode.FAILED_PRECONDITION: ErrorCode.FAILED_PRECONDITION,
+    grpc.StatusCode.INTERNAL: ErrorCode.INTERNAL,
+}
+
+
+def grpc_target(address: str) -> str:
+    """``host:port`` of a ``grpc://host:port`` address."""
+    target = address.removeprefix(GRPC_SCHEME).rstrip("/")
+    host, _, port = target.rpartition(":")
+    if not host or not port.isdigit():
+        raise ConfigError(f"a gateway address is grpc://host:port, got {address!r}")
+    return target
+
+
+def channel_credentials(tls: TlsFiles) -> grpc.ChannelCredentials:
+    """Verify the gateway against the swarm CA and present this client's certificate."""
+    tls.check()
+    return grpc.ssl_channel_credentials(
+        root_certificates=tls.root_ca.read_bytes(),
+        private_key=tls.key.read_bytes(),
+        certificate_chain=tls.cert.read_bytes(),
+    )
+
+
+class GatewayClient(SwarmClient):
+    """The swarm through its gRPC gateway. With ``tls`` the channel is TLS (the gateway's
+    certificate checked against the swarm CA, this client's presented); without it,
+    plaintext (a gateway run with ``--security insecure``)."""
+
+    def __init__(
+        self, address: str, swarm: str = "default", *, timeout_s: float = 5.0, tls: TlsFiles | None = None
+    ) -> None:
+        self.swarm = keys.validate_swarm_name(swarm)
+        self.timeout_s = timeout_s
+        self.address = address
+        self.target = grpc_target(address)
+        self.tls = tls
+        self._channel: grpc.Channel | None = None
+        self._stub: Any = None
+
+    def open(self) -> None:
+        if self._channel is None:
+            if self.tls is not None:
+                self._channel = grpc.secure_channel(self.target, channel_credentials(self.tls))
+            else:
+                self._channel = grpc.insecure_channel(self.target)
+            self._stub = gateway_pb2_grpc.SwarmGatewayStub(self._channel)  # type: ignore[no-untyped-call]  # generated, untyped
+
+    def close(self) -> None:
+        if self._channel is not None:
+            self._channel.close()
+            self._channel = None
+            self._stub = None
+
+    @property
+    def stub(self) -> Any:
+        """The generated ``SwarmGatewayStub`` (streams: ``stub.WatchLoopClosures(...)``)."""
+        if self._stub is None:
+            raise SwarmrecError("use the client in a with block")
+        return self._stub
+
+    def _call(self, method: str, request: Message, timeout_s: float | None = None) -> Any:
+        try:
+            return getattr(self.stub, method)(request, timeout=timeout_s or self.timeout_s)
+        except grpc.RpcError as e:
+            raise grpc_error(e, f"{self.address} {method}") from None
+
+    def members(self) -> list[Member]:
+        reply = self._call("Members", gateway_pb2.MembersRequest())
+        return sorted((member_of(m) for m in reply.members), key=lambda m: (m.kind, m.robot))
+
+    def status(self) -> Any:
+        """The gateway's StatusReply."""
+        return self._call("Status", gateway_pb2.StatusRequest())
+
+    def query(self, constellation: Constellation, *, preset: str = "paper") -> QueryResult:
+        # Exact doubles: the gateway puts the positions on the swarm's wire as its preset says.
+        wire = constellation_to_proto(constellation, 0, 0, exact=True)
+        t0 = time.perf_counter()
+        reply = self._call("Query", gateway_pb2.QueryRequest(constellation=wire, preset=preset))
+        return QueryResult(
+            matches=list(reply.matches),
+            n_candidates=reply.n_candidates,
+            verified_robots=list(reply.verified_robot_ids),
+            failed_shards=list(reply.failed_shard_robot_ids),
+            failed_verifiers=list(reply.failed_verifier_robot_ids),
+            duration_ms=(time.perf_counter() - t0) * 1e3,
+        )
+
+    def loop_closures(self, robot: int, min_score: float = 0.0) -> list[pb.LoopClosure]:
+        request = gateway_pb2.RobotLoopClosuresRequest(robot_id=robot, min_score=min_score)
+        return list(self._call("LoopClosures", request).loop_closures)

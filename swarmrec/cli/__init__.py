@@ -34,6 +34,7 @@ COMMANDS: dict[str, str] = {
     "query": "swarmrec.cli.clients",
     "members": "swarmrec.cli.clients",
     "loop-closures": "swarmrec.cli.clients",
+    "pki": "swarmrec.cli.pki",
 }
 
 

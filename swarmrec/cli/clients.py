@@ -1,19 +1,22 @@
 """``swarmrec query``, ``members`` and ``loop-closures``: ask a running swarm, from any host
-that reaches its router."""
+that reaches its router (``--connect tls/host:7447``) or its gRPC gateway
+(``--connect grpc://host:50051``), as the identity ``--identity`` of the PKI in ``--pki-dir``."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
 from swarmrec.cli.common import Subparsers
-from swarmrec.client import SwarmClient
+from swarmrec.client import GRPC_SCHEME, SwarmClient, connect
 from swarmrec.core.presets import PRESETS
 from swarmrec.datasets.constellations import parse_constellation
 from swarmrec.datasets.labels import LabelMap, label_names
 from swarmrec.errors import ConfigError
+from swarmrec.runtime.tls import TlsFiles
 
 __all__ = ["add"]
 
@@ -22,10 +25,23 @@ def add(sub: Subparsers) -> None:
     def common(p: argparse.ArgumentParser) -> None:
         p.add_argument(
             "--connect",
-            default="tcp/127.0.0.1:7447",
-            help="router endpoint(s), comma-separated (default tcp/127.0.0.1:7447)",
+            default="tls/127.0.0.1:7447",
+            help="router endpoint(s), comma-separated (default tls/127.0.0.1:7447), or the gRPC "
+            "gateway as grpc://host:port; a tcp/ endpoint is the insecure mode",
         )
         p.add_argument("--swarm", default="local", help="swarm name (default local)")
+        p.add_argument(
+            "--pki-dir",
+            type=Path,
+            default=os.environ.get("SWARMREC_PKI_DIR") or None,
+            help="the swarm's PKI folder (ca.pem and this client's pair; env SWARMREC_PKI_DIR)",
+        )
+        p.add_argument(
+            "--identity",
+            default=os.environ.get("SWARMREC_IDENTITY", ""),
+            help="common name of this client's certificate (default client.cli.<swarm>; "
+            "env SWARMREC_IDENTITY)",
+        )
         p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for answers (default 5)")
         p.add_argument("--json", action="store_true", help="print JSON instead of a table")
 
@@ -49,8 +65,18 @@ def add(sub: Subparsers) -> None:
 
 
 def _client(args: argparse.Namespace) -> SwarmClient:
-    return SwarmClient(
-        [e.strip() for e in args.connect.split(",") if e.strip()], args.swarm, timeout_s=args.timeout
+    plaintext = args.connect.startswith("tcp/") or (
+        args.connect.startswith(GRPC_SCHEME) and args.pki_dir is None
+    )
+    tls = None
+    if args.pki_dir is not None:
+        tls = TlsFiles.in_dir(Path(args.pki_dir), args.identity or f"client.cli.{args.swarm}")
+    elif not plaintext:
+        raise ConfigError(
+            f"{args.connect} is mutual TLS: give the swarm's PKI folder (--pki-dir or SWARMREC_PKI_DIR)"
+        )
+    return connect(
+        args.connect, args.swarm, timeout_s=args.timeout, tls=tls, insecure_reason="--connect tcp/..."
     )
 
 

@@ -45,6 +45,14 @@ def add(sub: Subparsers) -> None:
         "--prometheus-port", type=int, default=9090, help="Prometheus port on 127.0.0.1 (default 9090)"
     )
     p.add_argument(
+        "--gateway-port", type=int, default=50051, help="gRPC gateway port on 127.0.0.1 (default 50051)"
+    )
+    p.add_argument(
+        "--insecure",
+        action="store_true",
+        help="plaintext zenoh links and gRPC port (debugging); default: mutual TLS, a PKI in OUT/pki",
+    )
+    p.add_argument(
         "--free", action="store_true", help="compose for free replay (--pace fast or a rate), not lock-step"
     )
     p.add_argument("--timeout", type=float, default=5.0, help="seconds a service waits for a peer")
@@ -83,15 +91,23 @@ def run(args: argparse.Namespace) -> int:
         print("" if args.keep_volumes else ", volumes removed")
         return 0
     settings = compose.ComposeSettings(
-        project=args.project, out=args.out, router_port=args.router_port, prometheus_port=args.prometheus_port
+        project=args.project,
+        out=args.out,
+        router_port=args.router_port,
+        prometheus_port=args.prometheus_port,
+        gateway_port=args.gateway_port,
+        security="insecure" if args.insecure else "mtls",
     )
     info, spec = write(args, settings)
-    containers = len(spec.kinds) * spec.robots + 2
+    containers = len(spec.kinds) * spec.robots + 2 + len(spec.swarm_kinds)
     print(f"wrote {info.compose_file} ({spec.robots} robots, {args.workload}, {containers} containers)")
     if args.action == "up":
         print("starting containers; waiting until every one is healthy ...", flush=True)
         seconds = compose.up(info)
-        print(f"swarm up in {seconds:.1f} s: router {info.router_endpoint}, Prometheus {info.prometheus_url}")
+        print(
+            f"swarm up in {seconds:.1f} s: gateway {info.gateway_address}, router {info.router_endpoint}, "
+            f"Prometheus {info.prometheus_url}"
+        )
         if args.workload == "landmarks":
             print(f"simulate the street through it: swarmrec landmarks --attach {args.out}")
         else:

@@ -49,6 +49,12 @@ def add(sub: Subparsers) -> None:
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument(
+        "--insecure",
+        action="store_true",
+        help="plaintext, unauthenticated zenoh links (debugging; logged by every process); "
+        "default: mutual TLS with a PKI made for the run and the router's access control",
+    )
+    p.add_argument(
         "--hosting",
         default="service",
         metavar="service|robot|robots:K",
@@ -159,6 +165,7 @@ def run(args: argparse.Namespace) -> int:
             link=LinkSpec(args.link_rate, args.link_latency),
             schedule=args.link_schedule,
             schedule_unit=args.schedule_unit,
+            security="insecure" if args.insecure else "mtls",
             pixels=PixelSettings(
                 from_pixels=args.from_pixels,
                 rgbd=args.rgbd,

@@ -308,9 +308,7 @@ def associate(
     same_label_only: bool = False,
 ) -> IntArray:
     """The matched (index in a, index in b) object pairs of Eq. 4."""
-    return full_score(
-        a, b, n_labels, d=d, min_common=min_common, same_label_only=same_label_only
-    ).matches
+    return full_score(a, b, n_labels, d=d, min_common=min_common, same_label_only=same_label_only).matches
 
 
 def warm_up() -> None:

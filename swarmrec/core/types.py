@@ -35,9 +35,7 @@ class Constellation:
         labels = np.ascontiguousarray(self.labels, dtype=np.int64).reshape(-1)
         positions = np.ascontiguousarray(self.positions, dtype=np.float64).reshape(-1, 3)
         if labels.shape[0] != positions.shape[0]:
-            raise ValueError(
-                f"constellation has {labels.shape[0]} labels but {positions.shape[0]} positions"
-            )
+            raise ValueError(f"constellation has {labels.shape[0]} labels but {positions.shape[0]} positions")
         object.__setattr__(self, "labels", labels)
         object.__setattr__(self, "positions", positions)
 

@@ -54,9 +54,7 @@ def parse_constellation(text: str, labels: LabelMap, source: str) -> Constellati
                 source, f"coordinates are not numbers: {' '.join(tokens[-3:])!r}", line=number
             ) from None
         if not all(math.isfinite(v) for v in xyz):
-            raise MalformedLineError(
-                source, f"non-finite coordinate in {raw.strip()!r}", line=number
-            )
+            raise MalformedLineError(source, f"non-finite coordinate in {raw.strip()!r}", line=number)
         index = labels.index(name)
         if index is None:
             raise UnknownLabelError(source, f"label {name!r} is not in the label list", line=number)
@@ -151,9 +149,7 @@ def write_constellations(seq: ConstellationSequence, folder: str | Path) -> Path
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     for frame_id, c in zip(seq.frame_ids, seq.constellations, strict=True):
-        (folder / f"{frame_id}.txt").write_text(
-            format_constellation(c, seq.label_names), encoding="utf-8"
-        )
+        (folder / f"{frame_id}.txt").write_text(format_constellation(c, seq.label_names), encoding="utf-8")
     return folder
 
 

@@ -35,9 +35,7 @@ def _validate_names(lines: list[str], source: str) -> tuple[str, ...]:
         if not name:
             raise DatasetError(source, "blank line inside the label list", line=number)
         if name in seen:
-            raise DatasetError(
-                source, f"label {name!r} repeats the one on line {seen[name]}", line=number
-            )
+            raise DatasetError(source, f"label {name!r} repeats the one on line {seen[name]}", line=number)
         seen[name] = number
     return tuple(lines)
 

@@ -9,6 +9,8 @@ compose project, a Kubernetes namespace) behind five calls::
     deployment.start(spec)        # or check that the swarm already running is this spec
     deployment.wait_ready()       # every service's liveliness token is up
     deployment.endpoint           # the router endpoint a client connects to
+    deployment.client()           # a zenoh client of the swarm, as the operator (drives replays)
+    deployment.gateway_address    # grpc://host:port of the swarm's gRPC gateway
     deployment.metrics()          # the services' counters of this run
     deployment.stop()             # exit codes of what it started
 
@@ -22,6 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
+from swarmrec.client import GatewayClient, ZenohClient
 from swarmrec.deployments.metrics import Scrape
 from swarmrec.errors import ConfigError, SwarmrecError
 from swarmrec.runtime.settings import BusSettings, Component, Config, StorageSettings, to_env, to_flags
@@ -40,7 +43,8 @@ class SwarmStartError(DeploymentError):
 
 @dataclass(frozen=True)
 class SwarmSpec:
-    """A swarm to deploy: a router, and on each of ``bus.n_robots`` robots the ``kinds``."""
+    """A swarm to deploy: a router, the per-swarm ``swarm_kinds`` (the gRPC gateway), and on
+    each of ``bus.n_robots`` robots the ``kinds``."""
 
     bus: BusSettings
     kinds: tuple[str, ...]
@@ -51,11 +55,16 @@ class SwarmSpec:
     workload: str = ""
     #: Per-service overrides: ``{(kind, robot): (components...)}`` (a test's one odd robot).
     overrides: dict[tuple[str, int], tuple[Component, ...]] = field(default_factory=dict)
+    #: Kinds that run once for the swarm beside the router.
+    swarm_kinds: tuple[str, ...] = ("gateway",)
 
     def __post_init__(self) -> None:
         for kind in self.kinds:
             if registry.spec(kind).scope != "robot":
                 raise ConfigError(f"{kind} runs once per swarm, not on each robot")
+        for kind in self.swarm_kinds:
+            if registry.spec(kind).scope != "swarm" or kind == "router":
+                raise ConfigError(f"{kind} is not a per-swarm kind besides the router")
         kinds = [type(c) for c in self.components]
         if len(set(kinds)) != len(kinds):
             raise ConfigError("a settings component appears twice in the swarm spec")
@@ -69,8 +78,8 @@ class SwarmSpec:
         return self.bus.swarm
 
     def expected(self) -> set[tuple[str, int]]:
-        """Every (kind, robot) the swarm runs besides the router."""
-        return {(k, r) for r in range(self.robots) for k in self.kinds}
+        """Every (kind, robot) the swarm runs besides the router (a per-swarm kind on robot 0)."""
+        return {(k, r) for r in range(self.robots) for k in self.kinds} | {(k, 0) for k in self.swarm_kinds}
 
     def component(self, kind: type[Component]) -> Component | None:
         return next((c for c in self.components if type(c) is kind), None)
@@ -136,6 +145,20 @@ class Deployment(Protocol):
     @property
     def endpoint(self) -> str:
         """The router endpoint a client on this machine connects to."""
+        ...
+
+    @property
+    def gateway_address(self) -> str:
+        """``grpc://host:port`` of the swarm's gRPC gateway, from this machine."""
+        ...
+
+    def client(self, timeout_s: float = 5.0, *, role: str = "operator") -> ZenohClient:
+        """A zenoh client of the swarm with the identity of ``role`` (operator: may drive replays;
+        client: reads only), not yet opened."""
+        ...
+
+    def gateway_client(self, timeout_s: float = 5.0) -> GatewayClient:
+        """A client of the swarm's gRPC gateway with a client identity, not yet opened."""
         ...
 
     def wait_ready(self, timeout_s: float = 60.0) -> None:

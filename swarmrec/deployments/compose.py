@@ -8,8 +8,12 @@ into files under ``settings.out``:
   ``docker compose`` v2. Each service's environment is its whole configuration
   (``SWARMREC_*``, generated from its settings components); a stateful kind (the
   registry says which) keeps its data in a named volume; a detector's dataset
-  folder is mounted read-only at ``/data/dataset``. Only the router and
-  Prometheus are published, on loopback.
+  folder is mounted read-only at ``/data/dataset``. The router, the gRPC
+  gateway (the one port a client needs) and Prometheus are published, on loopback.
+* ``pki/``: the run's PKI (mutual TLS on every zenoh link, by default), and
+  ``secrets/<service>/``: what each container mounts at ``/run/swarmrec/pki``:
+  ``ca.pem`` and its own certificate and key only (the router also ``acl.json``;
+  no container ever sees ``ca.key``), keys owned by the image's user.
 * ``prometheus.yml``: a scrape target per service, labelled with its
   ``service`` and ``robot``.
 * ``swarm.json``: what a client on the host needs to reach the swarm and to
@@ -25,6 +29,7 @@ remove them; deploy/engine.sh installs a compose tool when none is).
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import time
@@ -33,13 +38,15 @@ from pathlib import Path
 from typing import Any
 
 import swarmrec
-from swarmrec.client import SwarmClient
+from swarmrec.client import GatewayClient, ZenohClient
 from swarmrec.deployments.base import DeploymentError, SwarmSpec, config_env
+from swarmrec.deployments.identities import Security, client_tls, security_for, swarm_pki
 from swarmrec.deployments.metrics import Scrape, scrape_prometheus
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.settings import BusSettings
+from swarmrec.runtime.tls import ACL_FILE, tls_endpoint
 from swarmrec.services import registry
-from swarmrec.services.settings import DetectorSettings
+from swarmrec.services.settings import DetectorSettings, GatewaySettings
 
 __all__ = [
     "MAX_ROBOTS",
@@ -63,6 +70,11 @@ __all__ = [
 MAX_ROBOTS = 16
 METRICS_PORT = 9464  # every container serves its metrics here (its own network namespace)
 ROUTER_PORT = 7447
+GATEWAY_PORT = 50051
+#: Where a container finds its certificate, its key and the CA (a read-only mount).
+PKI_MOUNT = Path("/run/swarmrec/pki")
+#: The image's user (deploy/Dockerfile): it must be able to read its key (mode 0600).
+CONTAINER_UID = 10001
 DATA_DIR = Path("/var/lib/swarmrec")
 DATASET_MOUNT = "/data/dataset"
 LABELS_MOUNT = "/data/labels.txt"
@@ -84,7 +96,10 @@ class ComposeSettings:
     #: Host ports, published on 127.0.0.1 only.
     router_port: int = ROUTER_PORT
     prometheus_port: int = 9090
+    gateway_port: int = GATEWAY_PORT
     scrape_interval_s: int = 2
+    #: The zenoh links: mtls (default) or insecure (debugging, logged by every container).
+    security: Security = "mtls"
 
     def __post_init__(self) -> None:
         problems = []
@@ -92,12 +107,14 @@ class ComposeSettings:
             problems.append(f"project must be letters, digits, - and _, got {self.project!r}")
         elif self.project != self.project.lower():
             problems.append(f"project must be lower case (compose lowers it), got {self.project!r}")
-        for name in ("router_port", "prometheus_port"):
+        for name in ("router_port", "prometheus_port", "gateway_port"):
             port = getattr(self, name)
             if not 1 <= port <= 65535:
                 problems.append(f"{name} must be 1 .. 65535, got {port}")
-        if self.router_port == self.prometheus_port:
-            problems.append("router_port and prometheus_port must differ")
+        if len({self.router_port, self.prometheus_port, self.gateway_port}) != 3:
+            problems.append("router_port, prometheus_port and gateway_port must differ")
+        if self.security not in ("mtls", "insecure"):
+            problems.append(f"security must be mtls or insecure, got {self.security!r}")
         if self.scrape_interval_s < 1:
             problems.append(f"scrape_interval_s must be >= 1, got {self.scrape_interval_s}")
         if problems:
@@ -120,6 +137,11 @@ class SwarmFile:
     experiment: dict[str, Any] = field(default_factory=dict)
     #: The environment every robot's services share (what the spec says), to check a run against.
     shared_env: dict[str, str] = field(default_factory=dict)
+    #: ``grpc://127.0.0.1:<port>`` of the swarm's gRPC gateway.
+    gateway_address: str = ""
+    #: mtls or insecure; with mtls, the PKI on the host (the client's and operator's identities).
+    security: str = "mtls"
+    pki_dir: str = ""
 
 
 def service_name(kind: str, robot: int) -> str:
@@ -137,21 +159,33 @@ def _container_spec(spec: SwarmSpec) -> SwarmSpec:
         dataset=DATASET_MOUNT, labels_file=Path(LABELS_MOUNT) if detector.labels_file is not None else None
     )
     parts = tuple(mounted if type(c) is DetectorSettings else c for c in spec.components)
-    return SwarmSpec(spec.bus, spec.kinds, parts, spec.workload, dict(spec.overrides))
+    return SwarmSpec(spec.bus, spec.kinds, parts, spec.workload, dict(spec.overrides), spec.swarm_kinds)
 
 
-def _environment(spec: SwarmSpec, kind: str, robot: int) -> dict[str, str]:
+def _environment(spec: SwarmSpec, kind: str, robot: int, security: Security = "mtls") -> dict[str, str]:
     entry = registry.spec(kind)
+    scheme = "tcp" if security == "insecure" else "tls"
     config = spec.config_for(
         kind,
         robot,
-        connect=(f"tcp/router:{ROUTER_PORT}",),
-        listen=(f"tcp/0.0.0.0:{ROUTER_PORT}",) if kind == "router" else (),
+        # The router's certificate names "router" (its host name on the swarm's network).
+        connect=(f"{scheme}/router:{ROUTER_PORT}",),
+        listen=(f"{scheme}/0.0.0.0:{ROUTER_PORT}",) if kind == "router" else (),
         data_dir=DATA_DIR if entry.stateful else None,
         metrics_port=METRICS_PORT,
         metrics_host="0.0.0.0",
     )
+    config = config.replace(security_for(security, PKI_MOUNT, service_name(kind, robot)))
+    if config.has(GatewaySettings):
+        config = config.replace(
+            config.get(GatewaySettings).with_(grpc_host="0.0.0.0", grpc_port=GATEWAY_PORT)
+        )
     return config_env(config)
+
+
+def _swarm_service_name(kind: str) -> str:
+    """A per-swarm kind's compose service and host name: its kind (``gateway``)."""
+    return kind
 
 
 def _robot_service(spec: SwarmSpec, s: ComposeSettings, kind: str, robot: int) -> dict[str, Any]:
@@ -160,13 +194,13 @@ def _robot_service(spec: SwarmSpec, s: ComposeSettings, kind: str, robot: int) -
         "image": s.image,
         "hostname": name,
         "command": [kind],
-        "environment": _environment(spec, kind, robot),
+        "environment": _environment(spec, kind, robot, s.security),
         "depends_on": {"router": {"condition": "service_healthy"}},
         "restart": "unless-stopped",
         "stop_grace_period": "15s",
         "labels": {"org.swarmrec.service": kind, "org.swarmrec.robot": str(robot)},
     }
-    volumes = []
+    volumes = [] if s.security == "insecure" else [f"./secrets/{name}:{PKI_MOUNT}:ro"]
     if registry.spec(kind).stateful:
         volumes.append(f"{name}-data:{DATA_DIR}")
     detector = spec.component(DetectorSettings)
@@ -187,13 +221,31 @@ def compose_document(spec: SwarmSpec, s: ComposeSettings) -> dict[str, Any]:
             "image": s.image,
             "hostname": "router",
             "command": ["router"],
-            "environment": _environment(spec, "router", 0),
+            "environment": _environment(spec, "router", 0, s.security),
             "ports": [f"127.0.0.1:{s.router_port}:{ROUTER_PORT}"],
             "restart": "unless-stopped",
             "stop_grace_period": "15s",
             "labels": {"org.swarmrec.service": "router", "org.swarmrec.robot": "0"},
         }
     }
+    if s.security != "insecure":
+        services["router"]["volumes"] = [f"./secrets/router:{PKI_MOUNT}:ro"]
+    for kind in spec.swarm_kinds:
+        name = _swarm_service_name(kind)
+        services[name] = {
+            "image": s.image,
+            "hostname": name,
+            "command": [kind],
+            "environment": _environment(spec, kind, 0, s.security),
+            "depends_on": {"router": {"condition": "service_healthy"}},
+            "restart": "unless-stopped",
+            "stop_grace_period": "15s",
+            "labels": {"org.swarmrec.service": kind, "org.swarmrec.robot": "0"},
+        }
+        if kind == "gateway":
+            services[name]["ports"] = [f"127.0.0.1:{s.gateway_port}:{GATEWAY_PORT}"]
+        if s.security != "insecure":
+            services[name]["volumes"] = [f"./secrets/{name}:{PKI_MOUNT}:ro"]
     volumes: dict[str, Any] = {}
     for robot in range(spec.robots):
         for kind in spec.kinds:
@@ -218,6 +270,13 @@ def prometheus_document(spec: SwarmSpec, s: ComposeSettings) -> dict[str, Any]:
     groups: list[dict[str, Any]] = [
         {"targets": [f"router:{METRICS_PORT}"], "labels": {"service": "router", "robot": "0"}}
     ]
+    for kind in spec.swarm_kinds:
+        groups.append(
+            {
+                "targets": [f"{_swarm_service_name(kind)}:{METRICS_PORT}"],
+                "labels": {"service": kind, "robot": "0"},
+            }
+        )
     for robot in range(spec.robots):
         for kind in spec.kinds:
             groups.append(
@@ -301,6 +360,9 @@ def write_compose(
         _copy_dataset(Path(detector.dataset), out / "dataset")
         if detector.labels_file is not None:
             shutil.copy2(detector.labels_file, out / "labels.txt")
+    pki = ""
+    if s.security == "mtls":
+        pki = str(_write_secrets(spec, out))
     compose_file = out / "compose.yml"
     header = (
         f"# Generated by `swarmrec compose` (swarmrec {swarmrec.__version__}): {spec.robots} robots, "
@@ -315,14 +377,45 @@ def write_compose(
         robots=spec.robots,
         workload=spec.workload,
         kinds=list(spec.kinds),
-        router_endpoint=f"tcp/127.0.0.1:{s.router_port}",
+        router_endpoint=(
+            f"tcp/127.0.0.1:{s.router_port}"
+            if s.security == "insecure"
+            else tls_endpoint("127.0.0.1", s.router_port)
+        ),
         prometheus_url=f"http://127.0.0.1:{s.prometheus_port}",
         compose_file=str(compose_file),
         experiment=dict(experiment or {}),
         shared_env=_shared_env(_container_spec(spec)),
+        gateway_address=f"grpc://127.0.0.1:{s.gateway_port}" if "gateway" in spec.swarm_kinds else "",
+        security=s.security,
+        pki_dir=pki,
     )
     (out / "swarm.json").write_text(json.dumps(asdict(info), indent=2) + "\n")
     return info
+
+
+def _write_secrets(spec: SwarmSpec, out: Path) -> Path:
+    """The run's PKI in ``out/pki`` and, per container, ``out/secrets/<service>/`` with the CA
+    certificate and that container's own pair only (the router: and the access control)."""
+    pki = swarm_pki(out / "pki", spec.swarm, spec.robots, router_names=("router",))
+    secrets = out / "secrets"
+    shutil.rmtree(secrets, ignore_errors=True)
+    who = [("router", "router", 0)] + [(_swarm_service_name(k), k, 0) for k in spec.swarm_kinds]
+    who += [(service_name(k, r), k, r) for r in range(spec.robots) for k in spec.kinds]
+    for name, kind, robot in who:
+        folder = secrets / name
+        folder.mkdir(parents=True, mode=0o755)
+        cn = registry.spec(kind).common_name(spec.swarm, robot)
+        files = [("ca.pem", "ca.pem"), (f"{cn}.pem", f"{cn}.pem"), (f"{cn}.key", f"{cn}.key")]
+        if kind == "router":
+            files.append((ACL_FILE, ACL_FILE))
+        for src, dst in files:
+            shutil.copy2(pki / src, folder / dst)
+        key = folder / f"{cn}.key"
+        os.chmod(key, 0o600)
+        if os.geteuid() == 0:  # the container's user must read its key; only root can give it
+            os.chown(key, CONTAINER_UID, CONTAINER_UID)
+    return pki
 
 
 def _copy_dataset(source: Path, target: Path) -> None:
@@ -369,6 +462,31 @@ class ComposeDeployment:
     def endpoint(self) -> str:
         return self.info.router_endpoint
 
+    @property
+    def gateway_address(self) -> str:
+        if not self.info.gateway_address:
+            raise ConfigError(f"the swarm in {self.folder} runs no gateway")
+        return self.info.gateway_address
+
+    def _tls(self, role: str) -> Any:
+        if self.info.security == "insecure" or not self.info.pki_dir:
+            return None
+        return client_tls(
+            Path(self.info.pki_dir), self.info.swarm, "client" if role == "client" else "operator"
+        )
+
+    def client(self, timeout_s: float = 5.0, *, role: str = "operator") -> ZenohClient:
+        tls = self._tls(role)
+        reason = "" if tls is not None else "the compose swarm was written with security insecure"
+        return ZenohClient(
+            [self.endpoint], self.info.swarm, timeout_s=timeout_s, tls=tls, insecure_reason=reason
+        )
+
+    def gateway_client(self, timeout_s: float = 5.0) -> GatewayClient:
+        return GatewayClient(
+            self.gateway_address, self.info.swarm, timeout_s=timeout_s, tls=self._tls("client")
+        )
+
     def start(self, spec: SwarmSpec, *, progress: bool = False) -> None:
         """Check that the running swarm is ``spec`` and take the counters' baseline."""
         info, problems = self.info, []
@@ -399,7 +517,7 @@ class ComposeDeployment:
         spec = self._spec
         if spec is None:
             raise ConfigError("start (check) the spec first")
-        with SwarmClient([self.endpoint], spec.swarm, timeout_s=5.0) as client:
+        with self.client(5.0) as client:
             client.wait_for(spec.expected(), timeout_s if timeout_s is not None else self.wait_s)
 
     def metrics(self) -> Scrape:

@@ -15,6 +15,13 @@ follows its predecessor's). A stateful service keeps its data under
 ``<data_dir>/robot<r>/<kind>`` whatever the hosting. Stopping sends SIGTERM to the
 services, then the router, and escalates to SIGKILL for any process that does not
 exit in time.
+
+Every link is mutual TLS by default: the deployment creates the run's PKI in
+``<data_dir>/pki`` (:mod:`swarmrec.deployments.identities`), each process presents
+its own kind's certificate, the router enforces the access control, and
+:meth:`LocalDeployment.client` connects as the operator. ``security="insecure"``
+is the explicit, logged debugging mode. The per-swarm kinds (the gRPC gateway)
+start after the router, on free ports: :attr:`LocalDeployment.gateway_address`.
 """
 
 from __future__ import annotations
@@ -34,12 +41,15 @@ from typing import IO
 
 from tqdm import tqdm
 
-from swarmrec.client import SwarmClient
+from swarmrec.client import GatewayClient, ZenohClient
 from swarmrec.deployments.base import SwarmSpec, SwarmStartError, config_flags
+from swarmrec.deployments.identities import Security, client_tls, security_for, swarm_pki
 from swarmrec.deployments.links import LinkEmulator, LinkSpec, Schedule
 from swarmrec.deployments.metrics import Scrape, scrape
 from swarmrec.errors import ConfigError
-from swarmrec.runtime.settings import Component, to_flags
+from swarmrec.runtime.settings import Component, Config, to_flags
+from swarmrec.runtime.tls import tls_endpoint
+from swarmrec.services.settings import GatewaySettings
 
 __all__ = ["LocalDeployment", "ServiceProcess", "free_port"]
 
@@ -138,9 +148,13 @@ class LocalDeployment:
         hosting: str = "service",
         link: LinkSpec | None = None,
         schedule: Schedule | None = None,
+        security: Security = "mtls",
     ) -> None:
         self.data_dir, self.log_dir = data_dir, log_dir
         self.router_port = router_port
+        self.security: Security = security
+        self.pki_dir: Path | None = None
+        self.swarm_procs: list[ServiceProcess] = []
         self.robots_per_process = _robots_per_process(hosting)
         self.link = link or LinkSpec()
         self.schedule = schedule
@@ -148,6 +162,11 @@ class LocalDeployment:
         if (self.link.limited or schedule is not None) and (self.robots_per_process or 1) > 1:
             raise ConfigError(
                 "emulated links are per robot: use service or robot hosting, not several robots a process"
+            )
+        if self.robots_per_process is not None and security == "mtls":
+            raise ConfigError(
+                f"{hosting} hosting puts several services on one zenoh session, and the access control "
+                "grants a certificate one service's keys: use service hosting, or security insecure"
             )
         self.hosting = hosting
         self.description = (
@@ -164,12 +183,37 @@ class LocalDeployment:
     def endpoint(self) -> str:
         if self.router_port is None:
             raise ConfigError("the router has not been started")
-        return f"tcp/127.0.0.1:{self.router_port}"
+        if self.security == "insecure":
+            return f"tcp/127.0.0.1:{self.router_port}"
+        return tls_endpoint("127.0.0.1", self.router_port)
+
+    @property
+    def gateway_address(self) -> str:
+        """The gateway's address from its readiness line (it listens on a port the OS chose)."""
+        for sp in self.swarm_procs:
+            address = sp.info.get("grpc")
+            if sp.kind == "gateway" and isinstance(address, str):
+                return address
+        raise ConfigError("the gateway has not been started, or is not ready yet")
+
+    def client(self, timeout_s: float = 5.0, *, role: str = "operator") -> ZenohClient:
+        spec = self._spec()
+        if self.pki_dir is None:
+            return ZenohClient(
+                [self.endpoint], spec.swarm, timeout_s=timeout_s, insecure_reason="insecure deployment"
+            )
+        tls = client_tls(self.pki_dir, spec.swarm, "client" if role == "client" else "operator")
+        return ZenohClient([self.endpoint], spec.swarm, timeout_s=timeout_s, tls=tls)
+
+    def gateway_client(self, timeout_s: float = 5.0) -> GatewayClient:
+        spec = self._spec()
+        tls = client_tls(self.pki_dir, spec.swarm, "client") if self.pki_dir is not None else None
+        return GatewayClient(self.gateway_address, spec.swarm, timeout_s=timeout_s, tls=tls)
 
     def start(self, spec: SwarmSpec, *, progress: bool = False, timeout_s: float = 120.0) -> None:
-        """Router first, then every robot's services; returns when all are ready."""
+        """Router first, the per-swarm kinds, then every robot's services; returns when all are ready."""
         self.start_router(spec)
-        started: list[ServiceProcess] = []
+        started: list[ServiceProcess] = self.start_swarm_kinds()
         if self.robots_per_process is None:
             for r in range(spec.robots):
                 started += self.start_robot(r)
@@ -182,8 +226,7 @@ class LocalDeployment:
     def wait_ready(self, timeout_s: float = 60.0) -> None:
         """Every started service printed its readiness line and has been routed to."""
         self._wait(self.procs, timeout_s)
-        spec = self._spec()
-        with SwarmClient([self.endpoint], spec.swarm, timeout_s=5.0) as client:
+        with self.client(5.0) as client:
             running = {s for sp in self.procs if sp.proc.poll() is None for s in sp.services}
             client.wait_for(running, timeout_s)
 
@@ -228,14 +271,20 @@ class LocalDeployment:
             raise ConfigError("start the router first (it takes the swarm spec)")
         return self.spec
 
+    def _secured(self, config: Config, who: str) -> Config:
+        return config.replace(security_for(self.security, self.pki_dir, who))
+
     def start_router(self, spec: SwarmSpec, timeout_s: float = 30.0) -> None:
-        """The router on a free port (another one if that port was taken meanwhile)."""
+        """The run's PKI (mutual TLS), then the router on a free port (another one if that
+        port was taken meanwhile)."""
         self.spec = spec
+        if self.security == "mtls":
+            self.pki_dir = swarm_pki(self.data_dir / "pki", spec.swarm, spec.robots)
         fixed = self.router_port
         for attempt in range(1, ROUTER_ATTEMPTS + 1):
             self.router_port = fixed or free_port()
             config = spec.config_for("router", 0, listen=(self.endpoint,), metrics_port=0)
-            self.router = self._spawn("router", 0, config_flags(config))
+            self.router = self._spawn("router", 0, config_flags(self._secured(config, "router")))
             try:
                 self._wait([self.router], timeout_s)
                 break
@@ -259,7 +308,9 @@ class LocalDeployment:
     def robot_endpoint(self, robot: int) -> str:
         """Where ``robot``'s services connect: its link's proxy, or the router itself."""
         if self.links is not None and robot in self.links.ports:
-            return f"tcp/127.0.0.1:{self.links.ports[robot]}"
+            port = self.links.ports[robot]
+            # The proxy forwards bytes: TLS goes through it end to end, to the router.
+            return f"tcp/127.0.0.1:{port}" if self.security == "insecure" else tls_endpoint("127.0.0.1", port)
         return self.endpoint
 
     def apply_links(self, t: float) -> list[str]:
@@ -268,6 +319,21 @@ class LocalDeployment:
             return []
         default = dict.fromkeys(self.links.ports, self.link)
         return self.links.apply(self.schedule.state_at(t), default)
+
+    def start_swarm_kinds(self) -> list[ServiceProcess]:
+        """The spec's per-swarm kinds (the gateway, on a free gRPC port); does not wait."""
+        spec = self._spec()
+        started = []
+        for kind in spec.swarm_kinds:
+            config = spec.config_for(kind, 0, connect=(self.endpoint,), metrics_port=0)
+            if config.has(GatewaySettings):
+                # Port 0: the OS picks it while binding; the readiness line says which.
+                config = config.replace(config.get(GatewaySettings).with_(grpc_port=0))
+            sp = self._spawn(kind, 0, config_flags(self._secured(config, kind)))
+            self.procs.append(sp)
+            self.swarm_procs.append(sp)
+            started.append(sp)
+        return started
 
     def service_flags(self, kind: str, robot: int) -> list[str]:
         """The flags ``kind`` of ``robot`` is started with."""
@@ -278,7 +344,7 @@ class LocalDeployment:
             data_dir=self.data_dir / f"robot{robot}" / kind,
             metrics_port=0,
         )
-        return config_flags(config)
+        return config_flags(self._secured(config, f"{kind}-{robot}"))
 
     def start_robot(self, robot: int, kinds: Sequence[str] | None = None) -> list[ServiceProcess]:
         """Start ``kinds`` (default: the spec's) of ``robot``, a process each or (``robot``
@@ -303,6 +369,7 @@ class LocalDeployment:
                 data_dir=self.data_dir,
                 metrics_port=0,
             )
+            config = self._secured(config, f"host of robots {robots}")
             for part in config.parts:
                 parts.setdefault(type(part), part)
         flags = [flag for part in parts.values() for flag in to_flags(part, only_changed=True)]

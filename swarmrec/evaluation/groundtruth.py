@@ -54,9 +54,7 @@ def _tum_fr3_office_filter(cam: FloatArray, scene: FloatArray, dist: FloatArray)
     """
     cy, cx = cam[:, 1], cam[:, 0]
     out = dist.copy()
-    opposite = ((cy[:, None] > 0.3) & (cy[None, :] < -0.3)) | (
-        (cy[None, :] > 0.3) & (cy[:, None] < -0.3)
-    )
+    opposite = ((cy[:, None] > 0.3) & (cy[None, :] < -0.3)) | ((cy[None, :] > 0.3) & (cy[:, None] < -0.3))
     dx = np.abs(scene[:, None, 0] - scene[None, :, 0]) > 0.3
     middle_1 = (np.abs(cy)[:, None] < 0.25) & ((cx[None, :] > -1.8) & (cx[None, :] < 0.5))
     middle_2 = (np.abs(cy)[None, :] < 0.25) & ((cx[:, None] > -1.8) & (cx[None, :] < 0.5))
@@ -89,9 +87,7 @@ def ground_truth(
     ``associated.describe()`` says which frames were far from every pose)."""
     associated = associate_poses(trajectory, seq.timestamps, max_dt=max_dt)
     idx = associated.index
-    poses = Trajectory(
-        trajectory.timestamps[idx], trajectory.positions[idx], trajectory.quaternions[idx]
-    )
+    poses = Trajectory(trajectory.timestamps[idx], trajectory.positions[idx], trajectory.quaternions[idx])
     scene = scene_points(seq, poses)
     diff = scene[:, None, :] - scene[None, :, :]
     dist = np.sqrt((diff * diff).sum(-1))

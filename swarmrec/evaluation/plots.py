@@ -24,15 +24,11 @@ def plot_similarity(
     """Scores as an image (negative sentinels shown as 0), with each frame's
     best match above ``best_threshold`` marked, as in the paper's Fig. 4."""
     fig, ax = plt.subplots(figsize=(5.5, 5))
-    img = ax.imshow(
-        np.clip(dense, 0.0, 1.0), cmap="viridis", vmin=0, vmax=1, interpolation="nearest"
-    )
+    img = ax.imshow(np.clip(dense, 0.0, 1.0), cmap="viridis", vmin=0, vmax=1, interpolation="nearest")
     best = np.argmax(dense, axis=1)
     score = dense[np.arange(dense.shape[0]), best]
     keep = score > best_threshold
-    ax.scatter(
-        best[keep], np.flatnonzero(keep), s=2, c="red", label=f"best match > {best_threshold}"
-    )
+    ax.scatter(best[keep], np.flatnonzero(keep), s=2, c="red", label=f"best match > {best_threshold}")
     ax.set_xlabel("frame")
     ax.set_ylabel("frame")
     ax.set_title(title)
@@ -82,9 +78,7 @@ def plot_holder_load(
         color=[colors(h % colors.N) for h in range(n_holders)],
     )
     mean = float(np.mean(load.partial_queries))
-    right.axhline(
-        mean, color="k", ls="--", lw=1, label=f"mean; busiest/mean = {load.balance_ratio:.2f}"
-    )
+    right.axhline(mean, color="k", ls="--", lw=1, label=f"mean; busiest/mean = {load.balance_ratio:.2f}")
     right.set_xlabel("range holder")
     right.set_ylabel("partial queries received")
     right.legend(fontsize=7)

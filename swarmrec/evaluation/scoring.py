@@ -50,7 +50,6 @@ FloatArray = npt.NDArray[np.float64]
 Progress = Callable[[int], None]
 
 
-
 @dataclass(frozen=True, eq=False)
 class ScoreMatrix:
     """Scores of every checked pair of an N-frame sequence."""

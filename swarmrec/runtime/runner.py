@@ -64,8 +64,9 @@ from swarmrec.errors import (
 from swarmrec.runtime import keys
 from swarmrec.runtime.metrics import MetricSet, MetricsServer, ServiceMetrics, scope_between
 from swarmrec.runtime.rpc import Caller, caller_robot, encoding_for, schema_of
-from swarmrec.runtime.settings import BusSettings, Component, Config, StorageSettings
+from swarmrec.runtime.settings import BusSettings, Component, Config, SecuritySettings, StorageSettings
 from swarmrec.runtime.storage import RecordLog
+from swarmrec.runtime.tls import apply_security
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import decode, encode, error_reply, schema_name
 
@@ -144,6 +145,15 @@ class ServiceBase:
         range, what it stores); the runner fills in the rest."""
         return pb.MemberInfo()
 
+    def announce(self) -> dict[str, Any]:
+        """Fields added to the service's readiness line (the gateway's gRPC address)."""
+        return {}
+
+    def serving(self, ready: bool) -> None:
+        """Called with True once the service serves (its liveliness token is declared) and
+        with False first thing when it stops (a service with its own listener, the gRPC
+        gateway, tells its clients)."""
+
     def close(self) -> None:
         """Release what the service holds; its record logs are closed by the runner."""
 
@@ -160,6 +170,8 @@ class ServiceContext:
     stop: threading.Event
     log: logging.Logger
     kind_metrics: MetricSet | None = None
+    #: The common name of the certificate the session presents (mutual TLS).
+    identity: str = ""
     _logs: list[RecordLog] = field(default_factory=list)
 
     @property
@@ -240,9 +252,18 @@ def service_logger(kind: str, robot: int, level: str) -> logging.Logger:
     return log
 
 
-def zenoh_config(bus: BusSettings) -> zenoh.Config:
+def zenoh_config(
+    bus: BusSettings,
+    security: SecuritySettings | None = None,
+    *,
+    identity: str = "",
+    log: logging.Logger | None = None,
+) -> zenoh.Config:
     """A zenoh config from the bus settings: explicit endpoints, no multicast scouting
-    (containers have no multicast), clients retry until the router is up."""
+    (containers have no multicast), clients retry until the router is up; secured as
+    ``security`` says (mutual TLS as ``identity``, a router with its access control;
+    :func:`~swarmrec.runtime.tls.apply_security`). ``security`` None leaves it bare (tests
+    of the plumbing itself)."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(bus.mode))
     if bus.connect and bus.mode != "router":
@@ -252,6 +273,8 @@ def zenoh_config(bus: BusSettings) -> zenoh.Config:
     if bus.listen:
         conf.insert_json5("listen/endpoints", json.dumps(list(bus.listen)))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    if security is not None:
+        apply_security(conf, bus, security, identity=identity, log=log or logging.getLogger("swarmrec"))
     return conf
 
 
@@ -411,10 +434,17 @@ class Hosted:
     wire_kind: int
     factory: Callable[[ServiceContext], ServiceBase]
     metric_set: type[MetricSet] | None = None
+    #: The common name of the service's own certificate when its settings name none.
+    identity: str = ""
 
     @property
     def name(self) -> str:
         return f"{self.kind}-{self.config.bus.robot}"
+
+    @property
+    def security(self) -> SecuritySettings:
+        c = self.config
+        return c.get(SecuritySettings) if c.has(SecuritySettings) else SecuritySettings()
 
 
 def _session_bus(hosted: Sequence[Hosted]) -> BusSettings:
@@ -429,11 +459,25 @@ def _session_bus(hosted: Sequence[Hosted]) -> BusSettings:
             first.connect,
             first.listen,
         )
-        if not same:
+        if not same or h.security != hosted[0].security:
             raise ConfigError(
                 f"{h.name} is on another session than {hosted[0].name}: one process, one session"
             )
     return first
+
+
+def _session_identity(hosted: Sequence[Hosted]) -> str:
+    """The common name the shared session presents: its settings' or the one service's own.
+    Several services share one certificate only when it is named (the access control
+    grants each certificate one service's keys)."""
+    security = hosted[0].security
+    if security.security == "insecure" or security.identity or len(hosted) == 1:
+        return hosted[0].identity
+    raise ConfigError(
+        f"{len(hosted)} services share one mutual-TLS session: name its certificate (--identity) "
+        "or run them in processes of their own (the access control grants a certificate one "
+        "service's keys)"
+    )
 
 
 @dataclass
@@ -475,11 +519,14 @@ def _start(r: _Running) -> None:
     # Last: once the token is up, peers may route to this service.
     r.token = session.liveliness().declare_token(keys.alive(bus.swarm, h.kind, bus.robot))
     ctx.metrics.ready.set(1)
+    service.serving(True)
 
 
 def _stop(r: _Running) -> None:
     """Token first, then queryables and subscribers, workers, the service, its logs."""
     r.ctx.metrics.ready.set(0)
+    if r.service is not None:
+        r.service.serving(False)
     if r.token is not None:
         r.token.undeclare()
     for d in r.declared:
@@ -531,7 +578,8 @@ def run_services(
             host_ready.set(0)
             server.add("/metrics", host_registry)
     running: list[_Running] = []
-    with zenoh.open(zenoh_config(bus)) as session:
+    conf = zenoh_config(bus, hosted[0].security, identity=_session_identity(hosted), log=host_log)
+    with zenoh.open(conf) as session:
         try:
             for h in hosted:
                 b = h.config.bus
@@ -543,7 +591,8 @@ def run_services(
                 caller = Caller(session, b.robot, b.request_timeout_s, metrics, b.max_message_bytes)
                 own = h.metric_set.create(metrics.registry) if h.metric_set is not None else None
                 log = host_log if single else service_logger(h.kind, b.robot, b.log_level)
-                ctx = ServiceContext(h.config, h.kind, session, metrics, caller, stop, log, own)
+                cn = h.security.identity or h.identity
+                ctx = ServiceContext(h.config, h.kind, session, metrics, caller, stop, log, own, cn)
                 r = _Running(h, ctx)
                 running.append(r)
                 _start(r)
@@ -551,6 +600,7 @@ def run_services(
                 host_ready.set(1)
             services = [
                 {"service": r.hosted.kind, "robot": r.ctx.bus.robot, "metrics_url": r.ctx.metrics.url}
+                | (r.service.announce() if r.service is not None else {})
                 for r in running
             ]
             ready: dict[str, Any] = (

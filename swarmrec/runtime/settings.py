@@ -16,7 +16,8 @@ from that one declaration:
       swarm = "lab"
       robot = 3
       n_robots = 10
-      connect = ["tcp/10.0.0.1:7447", "tcp/10.0.0.2:7447"]
+      connect = ["tls/10.0.0.1:7447", "tls/10.0.0.2:7447"]
+      pki_dir = "/etc/swarmrec/pki"
       data_dir = "/var/lib/swarmrec"
 
       SWARMREC_ROBOT=3 swarmrec serve index-shard --config robot3.toml --n-robots 10
@@ -51,6 +52,7 @@ __all__ = [
     "BusSettings",
     "Component",
     "Config",
+    "SecuritySettings",
     "SettingInfo",
     "StorageSettings",
     "add_flags",
@@ -149,7 +151,7 @@ class BusSettings(Component):
     n_robots: int = setting(1, "robots in the swarm")
     mode: ZenohMode = setting("client", "zenoh mode of the session: client, peer or router")
     connect: tuple[str, ...] = setting(
-        ("tcp/127.0.0.1:7447",), "router endpoints to connect to (several give failover)"
+        ("tls/127.0.0.1:7447",), "router endpoints to connect to (several give failover)"
     )
     listen: tuple[str, ...] = setting((), "endpoints to listen on (a router)")
     metrics_port: int = setting(0, "Prometheus endpoint port (0: a free one, -1: none)")
@@ -201,6 +203,46 @@ class StorageSettings(Component):
         None, "folder of the service's stored data; unset: memory only (lost on restart)"
     )
     fsync: bool = setting(False, "fsync every stored record (survives power loss, costs ~1 ms a record)")
+
+
+SecurityMode = Literal["mtls", "insecure"]
+
+
+@dataclass(frozen=True)
+class SecuritySettings(Component):
+    """How this process's zenoh links are secured: mutual TLS (the default) or, for
+    debugging only, plaintext (docs/security.md)."""
+
+    title: ClassVar[str] = "security"
+
+    security: SecurityMode = setting(
+        "mtls",
+        "mtls: every zenoh link is mutual TLS with this process's certificate (a router also "
+        "enforces the swarm's access control); insecure: plaintext, unauthenticated, loudly logged",
+    )
+    pki_dir: Path | None = setting(
+        None,
+        "folder with the swarm CA (ca.pem), this process's <identity>.pem and .key, and for a "
+        "router acl.json (`swarmrec pki init` writes them)",
+    )
+    identity: str = setting(
+        "",
+        "common name of this process's certificate; empty: its kind's own "
+        "(r<robot>.<kind>.<swarm>, router.<swarm>, client.gateway.<swarm>)",
+    )
+    insecure_reason: str = setting(
+        "", "why the links are plaintext (insecure mode; written in the warning it logs)"
+    )
+
+    def problems(self) -> list[str]:
+        problems = []
+        if self.security not in ("mtls", "insecure"):
+            problems.append(f"security must be mtls or insecure, got {self.security!r}")
+        if self.identity and not all(c.isalnum() or c in ".-_" for c in self.identity):
+            problems.append(
+                f"identity must be a certificate common name (a-z 0-9 . - _), got {self.identity!r}"
+            )
+        return problems
 
 
 # --- a service's whole configuration ----------------------------------------------

@@ -16,28 +16,29 @@ What is allowed is derived from the protocol (docs/security.md has the table):
   declare, and it must see the others' declarations or zenoh's writer-side
   filtering drops its own puts and queries before they leave.
 
-Limits (measured or by construction, see docs/security.md): the ACL sees key
-expressions, not payloads, so an index-shard ``query`` that stores (its
-``read_only`` flag unset) looks like one that does not; clients therefore
-query the shard endpoint named by ``shard_read_endpoint``, to be moved to a
-read-only endpoint of its own.
+The ACL sees key expressions, not payloads: an index-shard ``query`` that
+stores looks like one that does not, so clients read shards through their
+read-only ``lookup`` endpoint (``shard_read_endpoint``) and only descriptors may
+call ``query``. A gateway (``gateways``) is a client that also declares its own
+``info`` queryable and liveliness token under ``gateway/0``.
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
 import zenoh
 
-from swarmrec.errors import ConfigError
+from swarmrec.errors import ConfigError, SecurityError
 from swarmrec.runtime import keys
+from swarmrec.runtime.tls import insert_access_control
 from swarmrec.security.identity import SERVICE_KINDS, Identity
 
 __all__ = [
     "ACL_MESSAGES",
+    "SHARD_READ_ENDPOINT",
     "Grant",
     "access_control",
     "configure_access_control",
@@ -104,8 +105,19 @@ def _robot(spec: str, own: int) -> int | str:
     return own if spec == "self" else spec
 
 
-def grants(identity: Identity, robots: Sequence[int], *, shard_read_endpoint: str = "query") -> list[Grant]:
-    """What ``identity`` may do in a swarm of ``robots``; everything else is denied."""
+#: The shard endpoint clients read through (never stores; see the module docstring).
+SHARD_READ_ENDPOINT = "lookup"
+
+
+def grants(
+    identity: Identity,
+    robots: Sequence[int],
+    *,
+    shard_read_endpoint: str = SHARD_READ_ENDPOINT,
+    gateway: bool = False,
+) -> list[Grant]:
+    """What ``identity`` may do in a swarm of ``robots``; everything else is denied.
+    ``gateway``: the identity (a client) hosts the swarm's gRPC gateway."""
     s, p = identity.swarm, _prefix(identity.swarm)
     out = [Grant("egress", _EGRESS, (f"{p}/**",))]
     if identity.role == "service":
@@ -135,6 +147,11 @@ def grants(identity: Identity, robots: Sequence[int], *, shard_read_endpoint: st
             Grant("ingress", ("declare_subscriber",), (f"{p}/events/**",)),
             Grant("ingress", ("liveliness_query", "declare_liveliness_subscriber"), (keys.alive_all(s),)),
         ]
+        if gateway:
+            out += [
+                Grant("ingress", ("declare_queryable", "reply"), (keys.endpoint(s, "gateway", 0, "*"),)),
+                Grant("ingress", ("liveliness_token",), (keys.alive(s, "gateway", 0),)),
+            ]
     else:
         # A router dialling this one (several routers) is not a client: no rules
         # yet, so default deny applies until router-to-router links are designed.
@@ -171,11 +188,13 @@ def access_control(
     kinds: Sequence[str] = SERVICE_KINDS,
     clients: Sequence[str] = (),
     operators: Sequence[str] = (),
-    shard_read_endpoint: str = "query",
+    gateways: Sequence[str] = (),
+    shard_read_endpoint: str = SHARD_READ_ENDPOINT,
 ) -> dict[str, Any]:
     """The ``access_control`` section of the router's zenoh config.
 
-    ``robots`` is a count (ids 0..n-1) or the ids. Each identity becomes a
+    ``robots`` is a count (ids 0..n-1) or the ids; ``gateways`` are client names that
+    host the gRPC gateway (clients too, listed or not in ``clients``). Each identity becomes a
     subject matched on its certificate CN, with one policy holding its rules;
     a certificate whose CN is not listed, or a connection without one, gets
     the default: deny.
@@ -185,10 +204,14 @@ def access_control(
     rules: list[dict[str, Any]] = []
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
-    for ident in swarm_identities(swarm, ids, kinds=kinds, clients=clients, operators=operators):
+    every_client = [*clients, *(g for g in gateways if g not in clients)]
+    for ident in swarm_identities(swarm, ids, kinds=kinds, clients=every_client, operators=operators):
         cn = ident.common_name
         rule_ids = []
-        for n, g in enumerate(grants(ident, ids, shard_read_endpoint=shard_read_endpoint)):
+        hosts_gateway = ident.role == "client" and ident.name in gateways
+        for n, g in enumerate(
+            grants(ident, ids, shard_read_endpoint=shard_read_endpoint, gateway=hosts_gateway)
+        ):
             rule_ids.append(f"{cn}/{n}")
             rules.append(
                 {
@@ -217,6 +240,7 @@ def configure_access_control(conf: zenoh.Config, acl: Mapping[str, Any]) -> None
     raises) and its consistency (unknown rule or subject ids, duplicate ids)
     only at ``zenoh.open``.
     """
-    if acl.get("default_permission") != "deny" or acl.get("enabled") is not True:
-        raise ConfigError("the swarm's access control is enabled and denies by default; got otherwise")
-    conf.insert_json5("access_control", json.dumps(acl))
+    try:
+        insert_access_control(conf, acl)
+    except SecurityError as e:
+        raise ConfigError(str(e)) from None

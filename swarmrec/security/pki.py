@@ -5,6 +5,7 @@ On disk, one folder per swarm::
     <dir>/ca.pem              the swarm CA's certificate (every node trusts it)
     <dir>/ca.key              the CA's private key (0600; only needed to issue)
     <dir>/<cn>.pem / <cn>.key one pair per identity, named by its common name
+    <dir>/acl.json            the router's access control (not secret; rewritten from the settings)
 
 Creation is idempotent: what is missing is created, what is there and right
 is kept, and anything there that is not what was asked (another CA, another
@@ -21,18 +22,21 @@ themselves are built in ``swarmrec.security.certs``.
 from __future__ import annotations
 
 import datetime as dt
+import json
 import os
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, TextIO
+from typing import Any, Literal, TextIO
 
 from cryptography import x509
 from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives import serialization
 
 from swarmrec.errors import ConfigError, PkiConflictError, SecurityError
+from swarmrec.runtime.tls import ACL_FILE
+from swarmrec.security.acl import access_control
 from swarmrec.security.certs import (
     KeyType,
     PrivateKey,
@@ -54,12 +58,14 @@ __all__ = [
     "CertPaths",
     "Issued",
     "PkiSettings",
+    "acl_document",
     "ca_paths",
     "ensure_ca",
     "ensure_identity",
     "identity_paths",
     "init_pki",
     "main",
+    "write_acl",
 ]
 
 Status = Literal["created", "kept", "replaced"]
@@ -274,8 +280,12 @@ class PkiSettings:
     kinds: tuple[str, ...] = SERVICE_KINDS
     clients: tuple[str, ...] = ("cli",)
     operators: tuple[str, ...] = ("job",)
+    #: Clients that host the gRPC gateway: their certificate also serves its gRPC port.
+    gateways: tuple[str, ...] = ("gateway",)
     #: DNS names and IPs the router is dialled at (container or k8s service names too).
     router_names: tuple[str, ...] = DEFAULT_ROUTER_NAMES
+    #: DNS names and IPs a gateway's gRPC port is dialled at.
+    gateway_names: tuple[str, ...] = (*DEFAULT_ROUTER_NAMES, "gateway")
     key_type: KeyType = "p256"
     ca_days: int = 3650
     cert_days: int = 365
@@ -292,6 +302,8 @@ class PkiSettings:
             raise ConfigError(f"kinds must be a non-empty list without repeats, got {self.kinds}")
         if len(set(self.clients)) != len(self.clients) or len(set(self.operators)) != len(self.operators):
             raise ConfigError("client and operator names must not repeat")
+        if set(self.gateways) & set(self.clients):
+            raise ConfigError("a gateway is a client of its own: do not list it among the clients too")
         if self.key_type not in ("p256", "ed25519"):
             raise ConfigError(f"key type must be p256 or ed25519, got {self.key_type!r}")
         if not 1 <= self.cert_days <= self.ca_days <= 36_500:
@@ -303,10 +315,11 @@ class PkiSettings:
         if not self.router_names:
             raise ConfigError("the router needs at least one name to be dialled at")
         subject_alt_names(self.router_names)  # raises ConfigError for a bad name
+        subject_alt_names(self.gateway_names)
         # Identity validates the swarm name, every kind and every client name.
         ids = [Identity.router(self.swarm)]
         ids += [Identity.service(self.swarm, k, r) for r in range(self.robots) for k in self.kinds]
-        ids += [Identity.client(self.swarm, n) for n in self.clients]
+        ids += [Identity.client(self.swarm, n) for n in (*self.clients, *self.gateways)]
         ids += [Identity.operator(self.swarm, n) for n in self.operators]
         object.__setattr__(self, "identities", tuple(ids))
 
@@ -317,11 +330,16 @@ def init_pki(settings: PkiSettings, *, now: dt.datetime | None = None) -> list[I
     now = now or now_utc()
     out = [ensure_ca(s.out, s.swarm, key_type=s.key_type, days=s.ca_days, replace=s.replace, now=now)]
     for ident in s.identities:
+        sans: tuple[str, ...] = ()
+        if ident.role == "router":
+            sans = s.router_names
+        elif ident.role == "client" and ident.name in s.gateways:
+            sans = s.gateway_names
         out.append(
             ensure_identity(
                 s.out,
                 ident,
-                sans=s.router_names if ident.role == "router" else (),
+                sans=sans,
                 key_type=s.key_type,
                 days=s.cert_days,
                 renew_within=dt.timedelta(days=s.renew_days),
@@ -329,7 +347,28 @@ def init_pki(settings: PkiSettings, *, now: dt.datetime | None = None) -> list[I
                 now=now,
             )
         )
+    write_acl(s)
     return out
+
+
+def acl_document(settings: PkiSettings) -> dict[str, Any]:
+    """The router's access control for the identities of ``settings``."""
+    s = settings
+    return access_control(
+        s.swarm, s.robots, kinds=s.kinds, clients=s.clients, operators=s.operators, gateways=s.gateways
+    )
+
+
+def write_acl(settings: PkiSettings) -> Path:
+    """``<out>/acl.json``: derived from the settings, not secret, rewritten (atomically) when it
+    differs, so a PKI grown by a robot gives the router the robot's rules too."""
+    path = settings.out / ACL_FILE
+    text = json.dumps(acl_document(settings), indent=1) + "\n"
+    if not path.exists() or path.read_text(encoding="utf-8") != text:
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, path)
+    return path
 
 
 def main(settings: PkiSettings, stdout: TextIO = sys.stdout, *, now: dt.datetime | None = None) -> int:

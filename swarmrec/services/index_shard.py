@@ -3,8 +3,10 @@
 Robot k's shard owns label range k. Endpoint ``query`` takes a
 :class:`PartialQuery`, answers with the ``n_ret`` best stored frames
 (:class:`CandidatesReply`) and, unless the query is read-only, stores the
-query's slice. Stored slices are appended to its record log
-(``<data_dir>/index-shard.log``) before the answer goes out, and replayed on start.
+query's slice; ``lookup`` is the same search that never stores (clients and
+the gateway use it, so the router's access control can keep them from storing).
+Stored slices are appended to its record log (``<data_dir>/index-shard.log``)
+before the answer goes out, and replayed on start.
 """
 
 from __future__ import annotations
@@ -94,6 +96,11 @@ class IndexShard(ServiceBase):
             include_scores=req.include_scores,
         )
 
+    def lookup(self, req: pb.PartialQuery, ctx: RequestContext) -> pb.CandidatesReply:
+        if not req.read_only:
+            raise InvalidArgument("lookup never stores: send read_only = true (descriptors use query)")
+        return self.query(req, ctx)
+
     ENDPOINTS = (
         Endpoint(
             "query",
@@ -101,5 +108,12 @@ class IndexShard(ServiceBase):
             pb.CandidatesReply,
             query,
             "candidates for a descriptor slice; stored unless read_only",
+        ),
+        Endpoint(
+            "lookup",
+            pb.PartialQuery,
+            pb.CandidatesReply,
+            lookup,
+            "candidates for a descriptor slice, never stored (read_only must be set): clients' endpoint",
         ),
     )

@@ -17,7 +17,14 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
 from swarmrec.runtime.metrics import LATENCY_BUCKETS, MetricSet
 
-__all__ = ["DescriptorMetrics", "DetectorMetrics", "FusionMetrics", "ShardMetrics", "VerifierMetrics"]
+__all__ = [
+    "DescriptorMetrics",
+    "DetectorMetrics",
+    "FusionMetrics",
+    "GatewayMetrics",
+    "ShardMetrics",
+    "VerifierMetrics",
+]
 
 # The detector's stages take 0.1 ms (object points) to 100 ms (a model on a busy core).
 _STAGE_BUCKETS = (0.0001, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.03, 0.05, 0.1, 0.2, 0.5, 2.0)
@@ -155,6 +162,41 @@ class DetectorMetrics(MetricSet):
                 "Time of one frame in each detector stage (decode, detect, points)",
                 ("stage",),
                 buckets=_STAGE_BUCKETS,
+                registry=registry,
+            ),
+        )
+
+
+@dataclass
+class GatewayMetrics(MetricSet):
+    title: ClassVar[str] = "gateway"
+
+    calls: Counter
+    call_seconds: Histogram
+    streams_open: Gauge
+    events_sent: Counter
+
+    @classmethod
+    def create(cls, registry: CollectorRegistry) -> GatewayMetrics:
+        return cls(
+            calls=Counter(
+                "swarmrec_gateway_calls",
+                "gRPC calls answered, by method and gRPC status code",
+                ["method", "code"],
+                registry=registry,
+            ),
+            call_seconds=Histogram(
+                "swarmrec_gateway_call_seconds",
+                "Time to answer a unary gRPC call",
+                ["method"],
+                buckets=LATENCY_BUCKETS,
+                registry=registry,
+            ),
+            streams_open=Gauge("swarmrec_gateway_streams_open", "Event streams open now", registry=registry),
+            events_sent=Counter(
+                "swarmrec_gateway_events_sent",
+                "Events sent on streams, by stream",
+                ["stream"],
                 registry=registry,
             ),
         )

@@ -85,7 +85,8 @@ def two_step_query(
             read_only=read_only,
             include_scores=include_scores,
         )
-        key = keys.endpoint(plan.swarm, "index-shard", k, "query")
+        # A read-only query goes to the shards' lookup, which the router lets clients call.
+        key = keys.endpoint(plan.swarm, "index-shard", k, "lookup" if read_only else "query")
         asked.append((k, caller.start(key, request, target_robot=k, endpoint="shard_query")))
     cand_robot: list[int] = []
     cand_frame: list[int] = []

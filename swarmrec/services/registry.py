@@ -29,11 +29,12 @@ from typing import Literal, cast
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.metrics import MetricSet
 from swarmrec.runtime.runner import Hosted, ServiceBase, ServiceContext, run_services
-from swarmrec.runtime.settings import BusSettings, Component, Config, StorageSettings
+from swarmrec.runtime.settings import BusSettings, Component, Config, SecuritySettings, StorageSettings
 from swarmrec.services.metrics import (
     DescriptorMetrics,
     DetectorMetrics,
     FusionMetrics,
+    GatewayMetrics,
     ShardMetrics,
     VerifierMetrics,
 )
@@ -41,6 +42,7 @@ from swarmrec.services.settings import (
     ClassifierSettings,
     DetectorSettings,
     FusionSettings,
+    GatewaySettings,
     LandmarkSettings,
     PlaceSettings,
     RgbdSettings,
@@ -78,7 +80,7 @@ class ServiceSpec:
     factory: str
     #: One line for ``--help`` and the contract page.
     summary: str
-    #: ``robot``: one per robot; ``swarm``: one for the whole swarm (the router).
+    #: ``robot``: one per robot; ``swarm``: one for the whole swarm (the router, the gateway).
     scope: Scope = "robot"
     #: Keeps what it stores in record logs under its data_dir (a volume in containers).
     stateful: bool = False
@@ -88,12 +90,19 @@ class ServiceSpec:
     metrics: type[MetricSet] | None = None
     #: A zenoh mode forced on its session (the router's), else the settings' own.
     zenoh_mode: str | None = None
+    #: Common name of its certificate (``swarmrec.security.identity``'s scheme), with
+    #: ``{robot}``, ``{kind}`` and ``{swarm}`` filled in; the ``identity`` setting overrides it.
+    identity: str = "r{robot}.{kind}.{swarm}"
 
     @property
     def all_components(self) -> tuple[type[Component], ...]:
         """Every component the kind reads, bus first (what its flags and variables cover)."""
         extra = (StorageSettings,) if self.stateful and StorageSettings not in self.components else ()
-        return (BusSettings, *extra, *self.components)
+        return (BusSettings, SecuritySettings, *extra, *self.components)
+
+    def common_name(self, swarm: str, robot: int) -> str:
+        """The common name of this kind's certificate on ``robot`` of ``swarm``."""
+        return self.identity.format(robot=robot, kind=self.kind, swarm=swarm)
 
     def load(self) -> type[ServiceBase]:
         """The service class (imported now)."""
@@ -127,6 +136,7 @@ for _entry in (
         "a zenoh router: routes the swarm's traffic, holds nothing",
         scope="swarm",
         zenoh_mode="router",
+        identity="router.{swarm}",
     ),
     ServiceSpec(
         "detector",
@@ -177,6 +187,16 @@ for _entry in (
         "floods classifier outputs to its radio neighbours and fuses what it hears (weighted naive Bayes)",
         components=(LandmarkSettings, FusionSettings),
         metrics=FusionMetrics,
+    ),
+    ServiceSpec(
+        "gateway",
+        pb.ServiceKind.SERVICE_KIND_GATEWAY,
+        "swarmrec.services.gateway:Gateway",
+        "the swarm for gRPC clients in any language: members, queries, loop closures, live events",
+        scope="swarm",
+        components=(GatewaySettings,),
+        metrics=GatewayMetrics,
+        identity="client.gateway.{swarm}",
     ),
 ):
     register(_entry)
@@ -247,7 +267,8 @@ def hosted(kind: str, config: Config) -> Hosted:
     if entry.zenoh_mode is not None and config.bus.mode != entry.zenoh_mode:
         config = config.replace(config.bus.with_(mode=entry.zenoh_mode))
     factory = cast(Callable[[ServiceContext], ServiceBase], entry.load())
-    return Hosted(config, entry.kind, entry.wire, factory, entry.metrics)
+    cn = entry.common_name(config.bus.swarm, config.bus.robot)
+    return Hosted(config, entry.kind, entry.wire, factory, entry.metrics, cn)
 
 
 def serve(

@@ -32,6 +32,7 @@ __all__ = [
     "ClassifierSettings",
     "DetectorSettings",
     "FusionSettings",
+    "GatewaySettings",
     "LandmarkSettings",
     "PlaceSettings",
     "RgbdSettings",
@@ -244,4 +245,43 @@ class FusionSettings(Component):
             problems.append(f"fusion_r_max must be >= 0 (0: no limit), got {self.fusion_r_max}")
         if self.fusion_early_messages < 0:
             problems.append(f"fusion_early_messages must be >= 0, got {self.fusion_early_messages}")
+        return problems
+
+
+@dataclass(frozen=True)
+class GatewaySettings(Component):
+    """The gRPC gateway: where clients in any language reach the swarm (docs/gateway.md)."""
+
+    title: ClassVar[str] = "gateway"
+
+    grpc_host: str = setting("127.0.0.1", "address the gRPC port listens on (0.0.0.0 in a container)")
+    grpc_port: int = setting(50051, "the gRPC port (0: a free one, printed in the ready line)")
+    grpc_cert: Path | None = setting(
+        None, "server certificate of the gRPC port (PEM); unset: this process's own from pki_dir"
+    )
+    grpc_key: Path | None = setting(None, "its private key; unset: this process's own from pki_dir")
+    grpc_client_auth: bool = setting(
+        True, "require a client certificate signed by the swarm CA on the gRPC port (mtls)"
+    )
+    grpc_workers: int = setting(16, "threads serving gRPC calls (each open stream holds one)")
+    grpc_max_streams: int = setting(8, "event streams open at once; more are refused RESOURCE_EXHAUSTED")
+    grpc_stream_buffer: int = setting(
+        4096, "events queued for a slow stream reader; past it the stream ends RESOURCE_EXHAUSTED"
+    )
+
+    def problems(self) -> list[str]:
+        problems = []
+        if not 0 <= self.grpc_port <= 65535:
+            problems.append(f"grpc_port must be 0 .. 65535, got {self.grpc_port}")
+        if (self.grpc_cert is None) != (self.grpc_key is None):
+            problems.append("grpc_cert and grpc_key go together")
+        if self.grpc_workers < 2:
+            problems.append(f"grpc_workers must be >= 2, got {self.grpc_workers}")
+        if not 1 <= self.grpc_max_streams < self.grpc_workers:
+            problems.append(
+                f"grpc_max_streams must be 1 .. grpc_workers - 1 ({self.grpc_workers - 1}), "
+                f"got {self.grpc_max_streams}"
+            )
+        if self.grpc_stream_buffer < 1:
+            problems.append(f"grpc_stream_buffer must be >= 1, got {self.grpc_stream_buffer}")
         return problems

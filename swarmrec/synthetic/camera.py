@@ -150,7 +150,8 @@ def orbit_path(config: OfficeConfig, rng: np.random.Generator) -> tuple[FloatArr
     cycles = rng.integers(2, 3 + int(2 * config.n_loops), 3)
     phases = rng.uniform(0.0, 2 * np.pi, 3)
     warp = x + (
-        amps[None, :] / (2 * np.pi * cycles[None, :])
+        amps[None, :]
+        / (2 * np.pi * cycles[None, :])
         * np.sin(2 * np.pi * cycles[None, :] * x[:, None] + phases[None, :])
     ).sum(axis=1)
     warp = (warp - warp[0]) / (warp[-1] - warp[0])

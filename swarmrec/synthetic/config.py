@@ -125,9 +125,7 @@ class OfficeConfig:
         _check_int(self, "start_time_s", low=0)
         _check_int(self, "n_desks", low=2)
         if self.n_desks % 2:
-            raise ConfigError(
-                f"n_desks must be even (two back-to-back rows), got {self.n_desks}"
-            )
+            raise ConfigError(f"n_desks must be even (two back-to-back rows), got {self.n_desks}")
         _check_int(self, "min_detections", low=0)
         _check_range(self, "rate_hz", 0.1, 1000.0)
         _check_range(self, "alias_jitter_m", 0.0, 0.5)
@@ -160,9 +158,7 @@ class OfficeConfig:
         _check_range(self, "false_positives_per_frame", 0.0, 50.0)
         _check_range(self, "duplicate_rate", 0.0, 1.0)
         if self.depth_range_m[0] >= self.depth_range_m[1]:
-            raise ConfigError(
-                f"depth_range_m must be (near, far) with near < far, got {self.depth_range_m}"
-            )
+            raise ConfigError(f"depth_range_m must be (near, far) with near < far, got {self.depth_range_m}")
         clearance = self.orbit_radius_m - sum(self.block_half_extent_m) / 2
         if clearance < MIN_CLEARANCE_M:
             raise ConfigError(

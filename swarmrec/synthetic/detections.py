@@ -210,9 +210,7 @@ def camera_points(
     return np.asarray(np.einsum("fji,fnj->fni", cam_rotations, rel))
 
 
-def visible_mask(
-    p_cam: FloatArray, camera: PinholeCamera, depth_range_m: tuple[float, float]
-) -> BoolArray:
+def visible_mask(p_cam: FloatArray, camera: PinholeCamera, depth_range_m: tuple[float, float]) -> BoolArray:
     """Which points (``... x 3``, camera frame) are in the image and the depth range."""
     z = p_cam[..., 2]
     in_depth = (z >= depth_range_m[0]) & (z <= depth_range_m[1])
@@ -246,9 +244,10 @@ def detection_probability(
     u = camera.fx * p_cam[..., 0] / z + camera.cx
     v = camera.fy * p_cam[..., 1] / z + camera.cy
 
-    recall = np.array(
-        [CLASS_RECALL.get(name, _DEFAULT_RECALL) for name in world.label_names]
-    ) ** config.class_recall_exponent
+    recall = (
+        np.array([CLASS_RECALL.get(name, _DEFAULT_RECALL) for name in world.label_names])
+        ** config.class_recall_exponent
+    )
     p = config.detection_prob * recall[world.labels][None, :] * np.ones_like(z)
 
     depth_term = 1.0 / (1.0 + np.exp((z - config.half_detection_depth_m) / _DEPTH_SOFTNESS_M))
@@ -291,11 +290,7 @@ def _occluded(
     zo, uo, vo = z[:, occ, None], u[:, occ, None], v[:, occ, None]
     radius_px = camera.fx * world.occluder_radius[occ][None, :, None] / zo
     dist_px = np.hypot(u[:, None, :] - uo, v[:, None, :] - vo)
-    hides = (
-        visible[:, occ, None]
-        & (zo < z[:, None, :] - _OCCLUSION_GAP_M)
-        & (dist_px < radius_px)
-    )
+    hides = visible[:, occ, None] & (zo < z[:, None, :] - _OCCLUSION_GAP_M) & (dist_px < radius_px)
     hides[:, np.arange(occ.size), occ] = False
     return np.asarray(hides.any(axis=1))
 
@@ -372,9 +367,7 @@ def detect(
     """Simulate the detector on every frame (``p_cam``: ``frames x objects x 3``)."""
     n_frames, n_objects = p_cam.shape[:2]
     visible = visible_mask(p_cam, camera, config.depth_range_m)
-    prob = detection_probability(
-        config, world, p_cam, cam_positions, cam_rotations, camera, visible
-    )
+    prob = detection_probability(config, world, p_cam, cam_positions, cam_rotations, camera, visible)
     hard = _hard_objects(world.labels, config.hard_object_share, rng)
     prob = prob * np.where(hard, config.hard_object_factor, 1.0)[None, :]
 
@@ -436,9 +429,7 @@ def detect(
 
     # False positives: random label, random pixel, random depth.
     n_true = np.bincount(frame, minlength=n_frames)
-    n_fp = np.maximum(
-        rng.poisson(config.false_positives_per_frame, n_frames), config.min_detections - n_true
-    )
+    n_fp = np.maximum(rng.poisson(config.false_positives_per_frame, n_frames), config.min_detections - n_true)
     fp_frame = np.repeat(np.arange(n_frames), n_fp)
     weights = np.array([FALSE_POSITIVE_WEIGHTS.get(name, 0.0) for name in world.label_names])
     fp_labels = rng.choice(len(weights), size=fp_frame.size, p=weights / weights.sum())

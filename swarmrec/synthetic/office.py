@@ -81,9 +81,7 @@ def frame_ids(config: OfficeConfig) -> tuple[tuple[str, ...], FloatArray]:
     Built from integer microseconds so the ids are exact and unique.
     """
     micros = np.round(np.arange(config.n_frames) * (1e6 / config.rate_hz)).astype(np.int64)
-    ids = tuple(
-        f"{config.start_time_s + int(us) // 1_000_000}.{int(us) % 1_000_000:06d}" for us in micros
-    )
+    ids = tuple(f"{config.start_time_s + int(us) // 1_000_000}.{int(us) % 1_000_000:06d}" for us in micros)
     return ids, np.array([float(i) for i in ids])
 
 
@@ -198,8 +196,7 @@ def write_dataset(ds: SyntheticDataset, folder: Path, *, overwrite: bool = False
 
 def _readme(ds: SyntheticDataset) -> str:
     settings = "\n".join(
-        f"| `{f.name}` | `{getattr(ds.config, f.name)!r}` |"
-        for f in dataclasses.fields(ds.config)
+        f"| `{f.name}` | `{getattr(ds.config, f.name)!r}` |" for f in dataclasses.fields(ds.config)
     )
     n_objects = sum(len(c) for c in ds.sequence.constellations)
     return (

@@ -70,16 +70,8 @@ def sequence_stats(seq: ConstellationSequence) -> SequenceStats:
     """Objects per frame, label frequencies and depths of ``seq``."""
     counts = np.array([len(c) for c in seq.constellations], dtype=np.int64)
     n_frames = len(seq)
-    labels = (
-        np.concatenate([c.labels for c in seq.constellations])
-        if n_frames
-        else np.zeros(0, np.int64)
-    )
-    depths = (
-        np.concatenate([c.positions[:, 2] for c in seq.constellations])
-        if n_frames
-        else np.zeros(0)
-    )
+    labels = np.concatenate([c.labels for c in seq.constellations]) if n_frames else np.zeros(0, np.int64)
+    depths = np.concatenate([c.positions[:, 2] for c in seq.constellations]) if n_frames else np.zeros(0)
     n_objects = int(labels.size)
     per_label = np.bincount(labels, minlength=seq.n_labels) if n_objects else np.zeros(0, np.int64)
     order = sorted(np.flatnonzero(per_label), key=lambda i: (-int(per_label[i]), int(i)))
@@ -95,9 +87,7 @@ def sequence_stats(seq: ConstellationSequence) -> SequenceStats:
         objects_per_frame_histogram={k: int(v) for k, v in enumerate(hist) if v},
         frames_below_3_pct=100.0 * float((counts < 3).mean()) if n_frames else 0.0,
         n_distinct_labels=len(order),
-        label_frequency_pct=[
-            (seq.label_names[i], 100.0 * int(per_label[i]) / n_objects) for i in order
-        ],
+        label_frequency_pct=[(seq.label_names[i], 100.0 * int(per_label[i]) / n_objects) for i in order],
         depth_median_m=float(quant[1]),
         depth_p05_m=float(quant[0]),
         depth_p95_m=float(quant[2]),
@@ -117,19 +107,14 @@ def stats_markdown(stats: Sequence[SequenceStats], names: Sequence[str], top: in
     out.append(row("frames", [str(s["n_frames"]) for s in stats]))
     out.append(row("objects", [str(s["n_objects"]) for s in stats]))
     out.append(row("objects per frame, mean", [f"{s['objects_per_frame_mean']:.2f}" for s in stats]))
-    out.append(
-        row("objects per frame, median", [f"{s['objects_per_frame_median']:.1f}" for s in stats])
-    )
+    out.append(row("objects per frame, median", [f"{s['objects_per_frame_median']:.1f}" for s in stats]))
     out.append(row("objects per frame, max", [str(s["objects_per_frame_max"]) for s in stats]))
     out.append(row("frames with < 3 objects", [f"{s['frames_below_3_pct']:.1f} %" for s in stats]))
     out.append(row("distinct labels", [str(s["n_distinct_labels"]) for s in stats]))
     out.append(
         row(
             "depth z, median (5-95 %)",
-            [
-                f"{s['depth_median_m']:.2f} m ({s['depth_p05_m']:.2f}-{s['depth_p95_m']:.2f})"
-                for s in stats
-            ],
+            [f"{s['depth_median_m']:.2f} m ({s['depth_p05_m']:.2f}-{s['depth_p95_m']:.2f})" for s in stats],
         )
     )
 
@@ -137,8 +122,7 @@ def stats_markdown(stats: Sequence[SequenceStats], names: Sequence[str], top: in
     largest = max((s["objects_per_frame_max"] for s in stats), default=0)
     for k in range(largest + 1):
         cells = [
-            f"{100.0 * s['objects_per_frame_histogram'].get(k, 0) / max(s['n_frames'], 1):.1f}"
-            for s in stats
+            f"{100.0 * s['objects_per_frame_histogram'].get(k, 0) / max(s['n_frames'], 1):.1f}" for s in stats
         ]
         out.append(row(str(k), cells))
 

@@ -137,9 +137,7 @@ def build_world(config: OfficeConfig, rng: np.random.Generator) -> OfficeWorld:
 
     # One random variation per layout, shared by all its copies: the copies
     # then differ only by alias_jitter_m (perceptual aliasing).
-    variation = {
-        name: rng.normal(0.0, 0.03, (len(layout), 2)) for name, layout in DESK_LAYOUTS.items()
-    }
+    variation = {name: rng.normal(0.0, 0.03, (len(layout), 2)) for name, layout in DESK_LAYOUTS.items()}
     n_cols = config.n_desks // 2
     for k in range(config.n_desks):
         col, row = k // 2, k % 2
@@ -187,9 +185,7 @@ def build_world(config: OfficeConfig, rng: np.random.Generator) -> OfficeWorld:
     )
 
 
-def _room(
-    config: OfficeConfig, rng: np.random.Generator
-) -> list[tuple[str, FloatArray, str, FloatArray]]:
+def _room(config: OfficeConfig, rng: np.random.Generator) -> list[tuple[str, FloatArray, str, FloatArray]]:
     """Furniture just outside the camera's orbit, all around it.
 
     The camera sees these over the desk block from afar (rarely detected) or

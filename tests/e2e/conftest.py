@@ -63,7 +63,13 @@ def start_swarm(tmp: Path, project: str, robots: int, frames: int) -> SwarmFile:
         request_timeout_s=2.0,
         out=tmp,
     )
-    settings = ComposeSettings(project=project, out=tmp, router_port=free_port(), prometheus_port=free_port())
+    settings = ComposeSettings(
+        project=project,
+        out=tmp,
+        router_port=free_port(),
+        prometheus_port=free_port(),
+        gateway_port=free_port(),
+    )
     info = compose(run, settings)
     try:
         up(info, timeout_s=300.0)

@@ -1,7 +1,9 @@
 """A 4-robot swarm of containers (docker compose), driven from the host.
 
-One swarm for the module: it replays 800 frames of the synthetic world in
-lock-step through the router's published loopback port. Its loop closures
+One swarm for the module, mutual TLS on every zenoh link (the default): it
+replays 800 frames of the synthetic world in lock-step, the job driving it as
+the operator through the router's published loopback port; the host's client
+checks go through the gRPC gateway's port only. Its loop closures
 must be those of the local process swarm on the same input, its Prometheus
 must scrape every service, and ``compose down`` must leave nothing behind.
 The last test takes the swarm down, so the tests run in file order.
@@ -25,7 +27,7 @@ import docker
 import pytest
 
 from swarmrec.datasets.source import DatasetSource
-from swarmrec.deployments.compose import SwarmFile, down
+from swarmrec.deployments.compose import ComposeDeployment, SwarmFile, down
 from swarmrec.experiments.places import PlacesSettings, main
 from tests.e2e.conftest import project_leftovers, run_attached, start_swarm
 
@@ -89,7 +91,7 @@ def test_prometheus_scrapes_every_service_and_sees_bytes_and_shard_load(swarm: d
     info: SwarmFile = swarm["info"]
     targets = _prometheus(info, "/api/v1/targets", state="active")["activeTargets"]
     seen = {(t["labels"]["service"], t["labels"]["robot"]): t["health"] for t in targets}
-    expected = {("router", "0")} | {(k, str(r)) for r in range(ROBOTS) for k in KINDS}
+    expected = {("router", "0"), ("gateway", "0")} | {(k, str(r)) for r in range(ROBOTS) for k in KINDS}
     assert seen == dict.fromkeys(expected, "up")
 
     sent = _prometheus(
@@ -116,17 +118,27 @@ def test_a_user_on_the_host_lists_the_swarm_with_the_cli_and_opens_prometheus_we
     swarm: dict[str, Any],
 ) -> None:
     info: SwarmFile = swarm["info"]
+    assert info.security == "mtls" and info.gateway_address.startswith("grpc://127.0.0.1:")
     cli = Path(sys.executable).with_name("swarmrec")
     out = subprocess.run(
-        [str(cli), "members", "--connect", info.router_endpoint, "--swarm", info.swarm],
+        [
+            str(cli), "members", "--connect", info.gateway_address, "--swarm", info.swarm,
+            "--pki-dir", info.pki_dir,
+        ],
         capture_output=True,
         text=True,
         timeout=60,
         check=True,
-    ).stdout
+    ).stdout  # fmt: skip
     for r in range(ROBOTS):
         for kind in KINDS:
             assert re.search(rf"^{kind}\s+{r}\b", out, re.MULTILINE), (kind, r, out)
+    # Through the gateway: the loop closures the job collected over zenoh, and a query.
+    deployment = ComposeDeployment(Path(info.compose_file).parent)
+    with deployment.gateway_client(10.0) as gw:
+        closures = [c for r in range(ROBOTS) for c in gw.loop_closures(r)]
+        assert len(closures) == swarm["summary"].loop_closures.count
+        assert gw.status().zenoh_security == "mtls"
     with urllib.request.urlopen(f"{info.prometheus_url}/", timeout=10) as resp:
         page = resp.read().decode()
         assert resp.status == 200
@@ -139,7 +151,7 @@ def test_containers_are_healthy_unprivileged_and_published_on_loopback_only(
 ) -> None:
     info: SwarmFile = swarm["info"]
     containers = engine.containers.list(filters={"label": f"com.docker.compose.project={info.project}"})
-    assert len(containers) == 4 * ROBOTS + 2
+    assert len(containers) == 4 * ROBOTS + 3
     published: dict[str, list[str]] = {}
     for c in containers:
         state = c.attrs["State"]
@@ -152,10 +164,20 @@ def test_containers_are_healthy_unprivileged_and_published_on_loopback_only(
                 published.setdefault(service, []).append(f"{b['HostIp']}:{b['HostPort']}")
     router_port = info.router_endpoint.rsplit(":", 1)[1]
     prometheus_port = info.prometheus_url.rsplit(":", 1)[1]
+    gateway_port = info.gateway_address.rsplit(":", 1)[1]
     assert published == {
         "router": [f"127.0.0.1:{router_port}"],
+        "gateway": [f"127.0.0.1:{gateway_port}"],
         "prometheus": [f"127.0.0.1:{prometheus_port}"],
     }
+    # Each container sees the CA certificate and its own pair only, never ca.key.
+    for c in containers:
+        mounts = [m for m in c.attrs["Mounts"] if m["Destination"] == "/run/swarmrec/pki"]
+        if c.labels["com.docker.compose.service"] == "prometheus":
+            assert mounts == []
+            continue
+        listed = sorted(p.name for p in Path(mounts[0]["Source"]).iterdir())
+        assert "ca.key" not in listed and "ca.pem" in listed and len(listed) in (3, 4), listed
 
 
 @pytest.mark.slow
@@ -164,7 +186,7 @@ def test_compose_down_leaves_no_containers_networks_or_volumes(
 ) -> None:
     info: SwarmFile = swarm["info"]
     before = project_leftovers(engine, info.project)
-    assert len(before["containers"]) == 4 * ROBOTS + 2
+    assert len(before["containers"]) == 4 * ROBOTS + 3
     assert len(before["volumes"]) == 3 * ROBOTS + 1  # shard, verifier, descriptor per robot; Prometheus
     down(info)
     assert project_leftovers(engine, info.project) == {"containers": [], "networks": [], "volumes": []}

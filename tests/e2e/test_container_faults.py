@@ -16,9 +16,8 @@ from pathlib import Path
 import docker
 import pytest
 
-from swarmrec.client import SwarmClient
 from swarmrec.datasets.constellations import read_constellations
-from swarmrec.deployments.compose import down, service_name
+from swarmrec.deployments.compose import ComposeDeployment, down, service_name
 from tests.e2e.conftest import project_leftovers, run_attached, start_swarm
 from tests.integration.support import wait_until
 
@@ -51,7 +50,7 @@ def test_a_stopped_robot_is_reported_missing_its_volumes_keep_its_data_and_the_r
             assert len(found) == 1, (name, found)
             return found[0]
 
-        client = SwarmClient([info.router_endpoint], info.swarm, timeout_s=5.0)
+        client = ComposeDeployment(Path(info.compose_file).parent).client(5.0)
         stored_at_stop: dict[str, int] = {}
 
         def on_step(t: int) -> None:

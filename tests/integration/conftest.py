@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from swarmrec.client import SwarmClient
+from swarmrec.client import ZenohClient
 from swarmrec.deployments.base import SwarmSpec
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.runtime.settings import BusSettings, Component
@@ -37,12 +37,13 @@ def running_swarm(
     request_timeout_s: float = 2.0,
     start: bool = True,
     timeout_s: float = 90.0,
+    swarm_kinds: Sequence[str] = ("gateway",),
     **bus: object,
 ) -> Iterator[LocalDeployment]:
     """A local swarm of ``robots`` robots running ``kinds`` with ``components``; with
     ``start`` False only its router runs (the test starts what it needs)."""
     settings = BusSettings(swarm=swarm, n_robots=robots, request_timeout_s=request_timeout_s, **bus)  # type: ignore[arg-type]
-    spec = SwarmSpec(settings, tuple(kinds), components)
+    spec = SwarmSpec(settings, tuple(kinds), components, swarm_kinds=tuple(swarm_kinds))
     deployment = LocalDeployment(data_dir=tmp / "data", log_dir=tmp / "logs")
     try:
         if start:
@@ -64,6 +65,6 @@ def local_swarm(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Loca
 
 
 @pytest.fixture
-def client(local_swarm: LocalDeployment) -> Iterator[SwarmClient]:
-    with SwarmClient([local_swarm.endpoint], local_swarm.spec_swarm, timeout_s=2.0) as c:
+def client(local_swarm: LocalDeployment) -> Iterator[ZenohClient]:
+    with local_swarm.client(2.0) as c:
         yield c

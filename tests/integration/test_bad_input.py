@@ -36,7 +36,7 @@ import zenoh
 # protobuf ships no type stubs (see swarmrec/runtime/rpc.py for the two codes).
 from google.protobuf.message import DecodeError, Message  # type: ignore[import-untyped, unused-ignore]
 
-from swarmrec.client import SwarmClient
+from swarmrec.client import ZenohClient
 from swarmrec.core.split import split_frames
 from swarmrec.datasets.constellations import read_constellations
 from swarmrec.deployments.base import SwarmStartError
@@ -71,7 +71,7 @@ class Swarm:
     """The module's running swarm and what the cases need to know about it."""
 
     local: LocalDeployment
-    client: SwarmClient
+    client: ZenohClient
     frames: dict[int, pb.Constellation]  # robot -> wire form of its PROBE_STEP frame
 
     @property
@@ -92,7 +92,7 @@ def swarm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Swarm]:
     parts = (PlaceSettings(lockstep=True), DetectorSettings(dataset=str(dataset)))
     with (
         running_swarm(tmp, "bad-input", *parts, robots=N_ROBOTS, max_message_bytes=LIMIT) as local,
-        SwarmClient([local.endpoint], local.spec_swarm, timeout_s=5.0) as client,
+        local.client(5.0) as client,
     ):
         for t in range(SEEDED_STEPS):
             replies = client.step(t, timeout_s=10)

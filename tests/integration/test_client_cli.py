@@ -17,7 +17,6 @@ from pathlib import Path
 
 import pytest
 
-from swarmrec.client import SwarmClient
 from swarmrec.core.descriptor import semantic_descriptor
 from swarmrec.core.presets import get_preset
 from swarmrec.core.split import split_frames
@@ -46,7 +45,7 @@ def running(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
     parts = (PlaceSettings(lockstep=True), DetectorSettings(dataset=str(dataset)))
     with running_swarm(tmp, "cli-swarm", *parts, robots=N_ROBOTS) as swarm:
         reports: list[pb.QueryReport] = []
-        with SwarmClient([swarm.endpoint], swarm.spec_swarm) as client:
+        with swarm.client() as client:
             for t in range(STEPS):
                 replies = client.step(t, timeout_s=10)
                 assert all(isinstance(r, pb.StepReply) for r in replies), replies
@@ -62,6 +61,8 @@ def cli(running: Running, *args: str, swarm: str | None = None) -> subprocess.Co
             sys.executable, "-m", "swarmrec", *args,
             "--connect", running.swarm.endpoint,
             "--swarm", swarm or running.swarm.spec_swarm,
+            "--pki-dir", str(running.swarm.pki_dir),
+            "--identity", f"client.cli.{running.swarm.spec_swarm}",
         ],
         capture_output=True,
         text=True,
@@ -76,12 +77,12 @@ def test_members_lists_every_service_and_the_shard_ranges_cover_the_label_list(r
     assert done.returncode == 0, done.stderr
     members = json.loads(done.stdout)
     assert sorted((m["kind"], m["robot"]) for m in members) == sorted(
-        [("router", 0)] + [(k, r) for k in KINDS for r in range(N_ROBOTS)]
+        [("router", 0), ("gateway", 0)] + [(k, r) for k in KINDS for r in range(N_ROBOTS)]
     )
     ranges = sorted(tuple(m["label_range"]) for m in members if m["kind"] == "index-shard")
     assert ranges == [(0, 40), (40, 80)]
     assert all(m["label_range"] is None for m in members if m["kind"] != "index-shard")
-    assert {m["n_labels"] for m in members if m["kind"] != "router"} == {80}
+    assert {m["n_labels"] for m in members if m["kind"] not in ("router", "gateway")} == {80}
     assert all(m["metrics_url"].startswith("http://127.0.0.1:") for m in members)
 
 
@@ -91,7 +92,7 @@ def test_members_prints_a_table_by_default(running: Running) -> None:
     assert done.returncode == 0, done.stderr
     lines = done.stdout.splitlines()
     assert lines[0].split() == ["service", "robot", "labels", "stored", "version", "metrics"]
-    assert len(lines) == 1 + 4 * N_ROBOTS + 1  # and the router
+    assert len(lines) == 1 + 4 * N_ROBOTS + 2  # and the router and the gateway
     assert any(line.split()[:3] == ["index-shard", "1", "40-80"] for line in lines)
     # Each verifier holds its own robot's replayed frames, one a step.
     verifiers = [line.split() for line in lines if line.startswith("verifier")]
@@ -151,7 +152,7 @@ def test_loop_closures_of_a_robot_exits_zero_with_what_the_library_returns(runni
     assert done.returncode == none.returncode == table.returncode == 0, (
         done.stderr + none.stderr + table.stderr
     )
-    with SwarmClient([running.swarm.endpoint], running.swarm.spec_swarm) as client:
+    with running.swarm.client() as client:
         expected = client.loop_closures(0)
     assert json.loads(done.stdout) == [
         {

@@ -18,7 +18,6 @@ import cv2
 import numpy as np
 import pytest
 
-from swarmrec.client import SwarmClient
 from swarmrec.datasets.source import DatasetSource
 from swarmrec.datasets.tum_rgbd import read_tum_rgbd
 from swarmrec.deployments.base import SwarmStartError
@@ -72,7 +71,7 @@ def test_rgbd_detectors_feed_place_recognition_and_skip_bad_frames(rgbd_swarm: L
     per_robot = N_FRAMES // N_ROBOTS
     reports: dict[int, pb.QueryReport] = {}
     errors: dict[int, tuple[str, str]] = {}
-    with SwarmClient([rgbd_swarm.endpoint], rgbd_swarm.spec_swarm, timeout_s=5.0) as client:
+    with rgbd_swarm.client(5.0) as client:
         for t in range(per_robot):
             for r in range(N_ROBOTS):
                 key = endpoint_key(rgbd_swarm, "detector", r, "step")

@@ -28,7 +28,6 @@ import numpy as np
 import pytest
 import zenoh
 
-from swarmrec.client import SwarmClient
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.fusion import FusionState, make_weight_law
 from swarmrec.runtime import keys
@@ -109,7 +108,7 @@ def test_five_robots_on_a_line_flood_to_neighbours_only_and_fuse_as_the_core_doe
     swarm = fusion_swarm.spec_swarm
     urls = [metrics_url(fusion_swarm.find("fusion", r)) for r in range(N)]
     events: queue.Queue[pb.FusionUpdate] = queue.Queue()
-    with SwarmClient([fusion_swarm.endpoint], swarm, timeout_s=5.0) as client:
+    with fusion_swarm.client(5.0) as client:
         session = client.session
         # The token is declared after the inbox subscriber: once the router shows it,
         # puts to that inbox are routed.

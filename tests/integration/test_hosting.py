@@ -23,6 +23,9 @@ def run(tmp: Path, hosting: str) -> tuple[PlacesSummary, str]:
         out=tmp / name,
         swarm=f"hosting-{name}",
         hosting=hosting,
+        # Several services on one session share one certificate, which the access control
+        # does not grant (docs/security.md): shared hosting runs in the explicit insecure mode.
+        security="mtls" if hosting == "service" else "insecure",
         progress=False,
         plots=False,
     )
@@ -33,9 +36,9 @@ def run(tmp: Path, hosting: str) -> tuple[PlacesSummary, str]:
 def test_one_process_per_service_per_robot_or_for_all_robots_scores_the_same(tmp_path: Path) -> None:
     services, pairs = run(tmp_path, "service")
     assert services.offline_check is not None and services.offline_check.identical
-    assert services.swarm.processes == 1 + 4 * ROBOTS
+    assert services.swarm.processes == 2 + 4 * ROBOTS  # and the router and the gateway
     assert pairs.count("\n") > 20  # the comparison is about something
-    for hosting, processes in (("robot", 1 + ROBOTS), (f"robots:{ROBOTS}", 2)):
+    for hosting, processes in (("robot", 2 + ROBOTS), (f"robots:{ROBOTS}", 3)):
         summary, same = run(tmp_path, hosting)
         assert summary.swarm.processes == processes, hosting
         assert same == pairs, hosting

@@ -21,7 +21,6 @@ import cv2
 import numpy as np
 import pytest
 
-from swarmrec.client import SwarmClient
 from swarmrec.deployments.base import SwarmStartError
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.experiments.landmarks.report import recognition_rates, write_landmark_report
@@ -132,7 +131,7 @@ def test_bad_views_and_bad_rounds_get_clear_errors_and_the_robot_goes_on(
     key = keys.endpoint(swarm, "detector", 0, "classify")
     url = metrics_url(classifier_swarm.find("detector", 0))
     view = render_views([generate_configuration(0, seed=0)], 0, VIEW_PRESETS["nominal"])[0][0]
-    with SwarmClient([classifier_swarm.endpoint], swarm, timeout_s=5.0) as client:
+    with classifier_swarm.client(5.0) as client:
         client.wait_for({(k, r) for r in range(2) for k in ("fusion", "detector")})
         s = client.session
 

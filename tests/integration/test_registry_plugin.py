@@ -12,7 +12,6 @@ from pathlib import Path
 
 import pytest
 
-from swarmrec.client import SwarmClient
 from swarmrec.services import registry
 from swarmrec.wire import messages as pb
 from tests.integration.conftest import running_swarm, swarm_name
@@ -68,7 +67,7 @@ def test_a_service_added_by_another_package_runs_in_a_local_swarm_and_the_client
     assert registry.load_plugins() == ["echo"]
     assert registry.spec("echo").wire == 100
     with running_swarm(tmp_path, swarm_name(request), kinds=["echo"]) as swarm:
-        with SwarmClient([swarm.endpoint], swarm.spec_swarm, timeout_s=5.0) as client:
+        with swarm.client(5.0) as client:
             members = {(m.kind, m.robot) for m in client.members()}
             assert {("echo", 0), ("echo", 1), ("router", 0)} == members
             reply = reply_of(

@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 
-from swarmrec.client import SwarmClient
+from swarmrec.client import ZenohClient
 from swarmrec.core.descriptor import semantic_descriptor
 from swarmrec.datasets.constellations import read_constellations
 from swarmrec.deployments.local import LocalDeployment, ServiceProcess
@@ -67,7 +67,7 @@ class Robot0:
     """Robot 0's shard and verifier, reached through one client session."""
 
     swarm: LocalDeployment
-    client: SwarmClient
+    client: ZenohClient
 
     def key(self, kind: str, endpoint: str) -> str:
         return endpoint_key(self.swarm, kind, 0, endpoint)
@@ -130,7 +130,7 @@ class Robot0:
 
 
 @pytest.fixture
-def robot0(local_swarm: LocalDeployment, client: SwarmClient) -> Robot0:
+def robot0(local_swarm: LocalDeployment, client: ZenohClient) -> Robot0:
     r = Robot0(local_swarm, client)
     r.start()
     return r

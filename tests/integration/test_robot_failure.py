@@ -19,7 +19,6 @@ from typing import Any, cast
 import numpy as np
 import pytest
 
-from swarmrec.client import SwarmClient
 from swarmrec.core.descriptor import semantic_descriptor
 from swarmrec.core.split import split_frames
 from swarmrec.datasets.constellations import read_constellations
@@ -56,7 +55,7 @@ def test_a_robot_killed_mid_run_is_reported_missing_and_the_others_keep_querying
         def hook(swarm: Deployment) -> None:
             assert isinstance(swarm, LocalDeployment)
             held.append(swarm)
-            client = stack.enter_context(SwarmClient([swarm.endpoint], settings.swarm))
+            client = stack.enter_context(swarm.client())
             sub = client.session.declare_subscriber(
                 keys.event(settings.swarm, "query", "*"),
                 lambda sample: reports.append(pb.QueryReport.FromString(sample.payload.to_bytes())),
@@ -64,7 +63,7 @@ def test_a_robot_killed_mid_run_is_reported_missing_and_the_others_keep_querying
             stack.callback(sub.undeclare)
             # The router has the subscription before the first step is asked for:
             # a publisher of another session sees it as matching.
-            other = stack.enter_context(SwarmClient([swarm.endpoint], settings.swarm))
+            other = stack.enter_context(swarm.client())
             probe = other.session.declare_publisher(keys.event(settings.swarm, "query", ROBOTS))
             stack.callback(probe.undeclare)
             # matching_status is a snapshot, read anew each poll; zenoh's stub types it as bool,

@@ -484,11 +484,13 @@ def test_a_client_may_query_but_never_store(acl_swarm: tuple[zenoh.Session, Sess
     # The router's own session is not filtered: it sees every put the ACL let in.
     router.declare_subscriber(f"{P}/**", samples_into(tap))
     verify, store = (keys.endpoint(SWARM, "verifier", 2, n) for n in ("verify", "store"))
-    shard = keys.endpoint(SWARM, "index-shard", 2, "query")
+    # Clients read shards through lookup (never stores); query (stores) is the descriptors'.
+    shard, storing = (keys.endpoint(SWARM, "index-shard", 2, n) for n in ("lookup", "query"))
     wait_matching(cli, verify)
     wait_matching(cli, shard)
 
     assert get(cli, shard)[0] == [shard]
+    assert get(cli, storing, timeout_s=5.0) == ([], pytest.approx(0, abs=1.0))
     assert get(cli, verify)[0] == [verify]
     replies, seconds = get(cli, store, timeout_s=5.0)
     assert replies == []  # denied: no reply, no error, and no waiting for the timeout
@@ -622,6 +624,7 @@ def test_a_client_grant_never_covers_a_store_endpoint() -> None:
     for store in (
         keys.endpoint(SWARM, "verifier", 2, "store"),
         keys.endpoint(SWARM, "descriptor", 2, "process"),
+        keys.endpoint(SWARM, "index-shard", 2, "query"),
     ):
         assert not any(k.includes(zenoh.KeyExpr(store)) for k in key_exprs), store
     assert any(k.includes(zenoh.KeyExpr(keys.endpoint(SWARM, "verifier", 2, "verify"))) for k in key_exprs)

@@ -56,17 +56,25 @@ def test_compose_has_a_router_four_services_per_robot_and_prometheus(tmp_path: P
     s = ComposeSettings(router_port=17447, prometheus_port=19090)
     doc = compose_document(places_spec(3, (0, 27, 54, 80), tmp_path / "ds"), s)
     names = list(doc["services"])
-    assert names[0] == "router" and names[-1] == "prometheus"
-    assert sorted(names[1:-1]) == sorted(f"r{r}-{k}" for r in range(3) for k in PLACES)
+    assert names[:2] == ["router", "gateway"] and names[-1] == "prometheus"
+    assert sorted(names[2:-1]) == sorted(f"r{r}-{k}" for r in range(3) for k in PLACES)
     published = {n: svc["ports"] for n, svc in doc["services"].items() if "ports" in svc}
-    assert published == {"router": ["127.0.0.1:17447:7447"], "prometheus": ["127.0.0.1:19090:9090"]}
+    assert published == {
+        "router": ["127.0.0.1:17447:7447"],
+        "gateway": ["127.0.0.1:50051:50051"],
+        "prometheus": ["127.0.0.1:19090:9090"],
+    }
+    gateway = doc["services"]["gateway"]["environment"]
+    assert gateway["SWARMREC_GRPC_HOST"] == "0.0.0.0" and "SWARMREC_GRPC_PORT" not in gateway  # 50051
     shard = doc["services"]["r2-index-shard"]
     env = shard["environment"]
     assert (env["SWARMREC_ROBOT"], env["SWARMREC_LABEL_BOUNDS"], env["SWARMREC_CONNECT"]) == (
         "2",
         "0,27,54,80",
-        "tcp/router:7447",
+        "tls/router:7447",
     )
+    # Mutual TLS by default: each container mounts its own secrets folder as the PKI.
+    assert env["SWARMREC_PKI_DIR"] == "/run/swarmrec/pki" and "SWARMREC_SECURITY" not in env
     assert (env["SWARMREC_DATA_DIR"], env["SWARMREC_METRICS_PORT"], env["SWARMREC_METRICS_HOST"]) == (
         "/var/lib/swarmrec",
         "9464",
@@ -75,13 +83,14 @@ def test_compose_has_a_router_four_services_per_robot_and_prometheus(tmp_path: P
     # A shard's environment holds its own components' settings only: nothing of cameras.
     assert "SWARMREC_CAMERA_FX" not in env and "SWARMREC_DATASET" not in env
     assert shard["depends_on"] == {"router": {"condition": "service_healthy"}}
-    assert shard["volumes"] == ["r2-index-shard-data:/var/lib/swarmrec"]
+    secrets = "./secrets/{}:/run/swarmrec/pki:ro"
+    assert shard["volumes"] == [secrets.format("r2-index-shard"), "r2-index-shard-data:/var/lib/swarmrec"]
     detector = doc["services"]["r2-detector"]
-    assert detector["volumes"] == ["./dataset:/data/dataset:ro"]
+    assert detector["volumes"] == [secrets.format("r2-detector"), "./dataset:/data/dataset:ro"]
     assert detector["environment"]["SWARMREC_DATASET"] == "/data/dataset"
     assert "SWARMREC_DATA_DIR" not in detector["environment"]  # not stateful: no volume
     router = doc["services"]["router"]["environment"]
-    assert (router["SWARMREC_MODE"], router["SWARMREC_LISTEN"]) == ("router", "tcp/0.0.0.0:7447")
+    assert (router["SWARMREC_MODE"], router["SWARMREC_LISTEN"]) == ("router", "tls/0.0.0.0:7447")
     assert sorted(doc["volumes"]) == sorted(
         [f"r{r}-{k}-data" for r in range(3) for k in ("index-shard", "verifier", "descriptor")]
         + ["prometheus-data"]
@@ -94,6 +103,7 @@ def test_prometheus_scrapes_every_service_with_its_service_and_robot_labels(tmp_
     targets = {g["targets"][0]: (g["labels"]["service"], g["labels"]["robot"]) for g in job["static_configs"]}
     assert targets == {
         "router:9464": ("router", "0"),
+        "gateway:9464": ("gateway", "0"),
         **{f"{service_name(k, r)}:9464": (k, str(r)) for r in range(2) for k in PLACES},
     }
 
@@ -146,14 +156,16 @@ def test_a_landmarks_swarm_has_a_classifier_detector_and_a_fusion_service_per_ro
     spec = swarm_spec(LandmarkSettings(out=tmp_path / "r", robots=3, swarm="compose"))
     doc = compose_document(spec, s)
     names = list(doc["services"])
-    assert sorted(names[1:-1]) == sorted(f"r{r}-{k}" for r in range(3) for k in ("detector", "fusion"))
+    assert sorted(names[2:-1]) == sorted(f"r{r}-{k}" for r in range(3) for k in ("detector", "fusion"))
     detector = doc["services"]["r1-detector"]
     assert detector["environment"]["SWARMREC_DETECTOR_MODE"] == "classifier"
-    assert "volumes" not in detector and "SWARMREC_DATASET" not in detector["environment"]
+    assert detector["volumes"] == ["./secrets/r1-detector:/run/swarmrec/pki:ro"]
+    assert "SWARMREC_DATASET" not in detector["environment"]
     assert "SWARMREC_LABEL_BOUNDS" not in doc["services"]["r1-fusion"]["environment"]
     assert sorted(doc["volumes"]) == ["prometheus-data"]  # nothing a landmarks robot keeps
     (job,) = prometheus_document(spec, s)["scrape_configs"]
-    assert {g["labels"]["service"] for g in job["static_configs"]} == {"router", "detector", "fusion"}
+    services = {g["labels"]["service"] for g in job["static_configs"]}
+    assert services == {"router", "gateway", "detector", "fusion"}
     info = write_compose(spec, s)
     assert info.workload == "landmarks" and info.kinds == ["fusion", "detector"]
     assert read_swarm_file(tmp_path) == info

@@ -164,6 +164,7 @@ def test_pki_init_creates_one_pair_per_identity_in_the_documented_layout(pki: Pa
     expected = {"ca.pem", "ca.key", "router.lab.pem", "router.lab.key"}
     expected |= {f"client.cli.lab.{x}" for x in ("pem", "key")}
     expected |= {f"operator.job.lab.{x}" for x in ("pem", "key")}
+    expected |= {f"client.gateway.lab.{x}" for x in ("pem", "key")} | {"acl.json"}
     expected |= {f"r{r}.{k}.lab.{x}" for r in range(2) for k in SERVICE_KINDS for x in ("pem", "key")}
     assert {p.name for p in pki.iterdir()} == expected
 
@@ -224,7 +225,7 @@ def test_private_keys_are_0600_and_the_folder_0700_whatever_the_umask(tmp_path: 
     init_pki(PkiSettings(swarm=SWARM, robots=1, out=out), now=NOW)
     assert stat.S_IMODE(out.stat().st_mode) == 0o700
     keys = list(out.glob("*.key"))
-    assert len(keys) == 1 + 1 + len(SERVICE_KINDS) + 2
+    assert len(keys) == 1 + 1 + len(SERVICE_KINDS) + 3  # CA, router, services, client, operator, gateway
     for path in keys:
         assert stat.S_IMODE(path.stat().st_mode) == 0o600, path
     for path in out.glob("*.pem"):
@@ -244,7 +245,10 @@ def test_init_creates_only_what_is_missing(pki: Path) -> None:
     created = {d.common_name for d in done if d.status == "created"}
     assert created == {f"r2.{k}.lab" for k in SERVICE_KINDS} | {"client.viewer.lab"}
     after = snapshot(pki)
-    assert {k: after[k] for k in before} == before
+    # Every certificate and key stays byte for byte; acl.json (derived, not secret) grows.
+    kept = {k: v for k, v in before.items() if k != "acl.json"}
+    assert {k: after[k] for k in kept} == kept
+    assert b"r2.verifier.lab" in after["acl.json"] and b"client.viewer.lab" in after["acl.json"]
 
 
 def test_a_key_without_its_certificate_is_reported_not_replaced(pki: Path) -> None:
@@ -372,7 +376,7 @@ def test_main_reports_what_it_created_and_then_that_it_kept_everything(tmp_path:
     settings = PkiSettings(swarm=SWARM, robots=1, out=tmp_path / "pki")
     out = io.StringIO()
     assert main(settings, stdout=out) == 0
-    n = 1 + 1 + len(SERVICE_KINDS) + 2
+    n = 1 + 1 + len(SERVICE_KINDS) + 3  # CA, router, services, client, operator, gateway
     assert f"{n} created, 0 replaced, 0 kept" in out.getvalue()
     assert out.getvalue().count("created  ") == n
     out = io.StringIO()

@@ -57,7 +57,7 @@ def test_no_layer_gives_the_documented_defaults() -> None:
         0,
         1,
         "client",
-        ("tcp/127.0.0.1:7447",),
+        ("tls/127.0.0.1:7447",),
     )
 
 

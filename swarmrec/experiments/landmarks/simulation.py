@@ -43,7 +43,7 @@ import numpy as np
 import numpy.typing as npt
 from tqdm import tqdm
 
-from swarmrec.client import SwarmClient
+from swarmrec.client import ZenohClient
 from swarmrec.deployments.base import Deployment, SwarmSpec
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.deployments.metrics import Scrape
@@ -311,7 +311,7 @@ def _encode_png(image: ImageArray) -> bytes:
 class _Runner:
     """Runs rounds against a live swarm through one client session."""
 
-    def __init__(self, client: SwarmClient, settings: LandmarkSettings) -> None:
+    def __init__(self, client: ZenohClient, settings: LandmarkSettings) -> None:
         self.client = client
         self.s = settings
         self.pool = ThreadPoolExecutor(max_workers=settings.robots)
@@ -409,15 +409,15 @@ class _Runner:
 
 def _run_rounds(
     s: LandmarkSettings,
-    endpoint: str,
+    deployment: Deployment,
     configs: Sequence[SwarmConfiguration],
     encoded: Sequence[list[bytes]],
     timings: dict[str, float],
     on_round: Callable[[int, int], None] | None,
 ) -> tuple[_Runner, list[RobotRound]]:
-    """Every (configuration, law) round through the swarm behind ``endpoint``."""
+    """Every (configuration, law) round through ``deployment``'s swarm, as its operator."""
     rounds: list[RobotRound] = []
-    with SwarmClient([endpoint], s.swarm, timeout_s=s.request_timeout_s) as client:
+    with deployment.client(s.request_timeout_s) as client:
         runner = _Runner(client, s)
         try:
             first = _last_round(runner, s.robots)
@@ -498,7 +498,7 @@ def run_simulation(
         timings["start_s"] = time.perf_counter() - t1
         if swarm_hook is not None:
             swarm_hook(deployment)
-        runner, rounds = _run_rounds(s, deployment.endpoint, configs, encoded, timings, on_round)
+        runner, rounds = _run_rounds(s, deployment, configs, encoded, timings, on_round)
         metrics = deployment.metrics()
     finally:
         if runner is not None:

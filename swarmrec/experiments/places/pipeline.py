@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from swarmrec.client import SwarmClient
+from swarmrec.client import ZenohClient
 from swarmrec.core.association import build_table, warm_up
 from swarmrec.core.presets import Preset, get_preset
 from swarmrec.core.ranges import label_bounds
@@ -43,6 +43,7 @@ from swarmrec.datasets.constellations import write_constellations
 from swarmrec.datasets.source import load_dataset
 from swarmrec.deployments.base import Deployment, SwarmSpec
 from swarmrec.deployments.compose import ComposeSettings, SwarmFile, write_compose
+from swarmrec.deployments.identities import Security
 from swarmrec.deployments.links import read_schedule
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.errors import ConfigError
@@ -145,7 +146,7 @@ def compose(settings: PlacesSettings, compose_settings: ComposeSettings) -> Swar
 
 
 def _link_schedule(
-    deployment: Deployment, client: SwarmClient, events: list[tuple[float, str]]
+    deployment: Deployment, client: ZenohClient, events: list[tuple[float, str]]
 ) -> Callable[[int], None] | None:
     """What puts the links in the schedule's state before each lock-step step (or, for a
     schedule in seconds, a timer thread); every change is recorded in ``events``. In
@@ -185,12 +186,14 @@ def _local(settings: PlacesSettings) -> LocalDeployment:
     for old in (out / "data").glob("robot*/detector/constellations/*.txt"):
         old.unlink()
     schedule = read_schedule(settings.schedule, unit=settings.schedule_unit) if settings.schedule else None
+    security: Security = "insecure" if settings.security == "insecure" else "mtls"
     return LocalDeployment(
         data_dir=out / "data",
         log_dir=out / "logs",
         hosting=settings.hosting,
         link=settings.link,
         schedule=schedule,
+        security=security,
     )
 
 
@@ -226,7 +229,8 @@ def main(
         deployment.start(spec, progress=settings.progress)
         deployment.wait_ready()
         timings["start_s"] = time.perf_counter() - t0
-        with SwarmClient([deployment.endpoint], spec.swarm, timeout_s=settings.request_timeout_s) as client:
+        # The operator identity: it drives the replay (detector step/replay).
+        with deployment.client(settings.request_timeout_s) as client:
             holding = {f"{m.kind}-{m.robot}": m.stored_items for m in client.members() if m.stored_items}
             if holding:
                 # Frames of an earlier replay would be found as loop closures of this one.

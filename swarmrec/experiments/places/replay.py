@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import zenoh
 from tqdm import tqdm
 
-from swarmrec.client import SwarmClient
+from swarmrec.client import ZenohClient
 from swarmrec.errors import SwarmrecError
 from swarmrec.experiments.places.settings import PlacesSettings
 from swarmrec.runtime import keys
@@ -39,7 +39,7 @@ class Replay:
 
 
 def replay_lockstep(
-    client: SwarmClient,
+    client: ZenohClient,
     blocks: list[range],
     settings: PlacesSettings,
     on_step: Callable[[int], None] | None,
@@ -74,7 +74,7 @@ def replay_lockstep(
     return Replay(reports, missing, errors, step_s, time.perf_counter() - t0)
 
 
-def replay_free(client: SwarmClient, blocks: list[range], settings: PlacesSettings) -> Replay:
+def replay_free(client: ZenohClient, blocks: list[range], settings: PlacesSettings) -> Replay:
     rate = 0.0 if settings.pace == "fast" else float(settings.pace)
     expected = sum(len(b) for b in blocks)
     reports: list[pb.QueryReport] = []
@@ -109,7 +109,7 @@ def replay_free(client: SwarmClient, blocks: list[range], settings: PlacesSettin
 
 
 def replay(
-    client: SwarmClient,
+    client: ZenohClient,
     blocks: list[range],
     settings: PlacesSettings,
     on_step: Callable[[int], None] | None,
@@ -121,7 +121,7 @@ def replay(
     return replay_free(client, blocks, settings)
 
 
-def collect_loop_closures(client: SwarmClient, robots: int, result: Replay) -> list[pb.LoopClosure]:
+def collect_loop_closures(client: ZenohClient, robots: int, result: Replay) -> list[pb.LoopClosure]:
     """Every robot's loop closures after a replay; a robot that does not answer adds an
     error to ``result`` rather than losing the others'."""
     closures: list[pb.LoopClosure] = []

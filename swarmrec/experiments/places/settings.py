@@ -82,6 +82,8 @@ class PlacesSettings:
     schedule: Path | None = None
     #: The schedule's time unit: lock-step steps or seconds from the replay's start.
     schedule_unit: Literal["s", "step"] = "step"
+    #: A local swarm's links: mtls (mutual TLS and access control) or insecure (debugging).
+    security: str = "mtls"
 
     def __post_init__(self) -> None:
         if self.robots < 1:
@@ -94,6 +96,8 @@ class PlacesSettings:
             if not (math.isfinite(rate) and rate > 0):
                 raise ConfigError(f"pace must be lockstep, fast or a rate > 0 (frames/s), got {self.pace!r}")
         get_preset(self.preset)
+        if self.security not in ("mtls", "insecure"):
+            raise ConfigError(f"security must be mtls or insecure, got {self.security!r}")
         if self.pixels.from_pixels and not self.source.synthetic:
             raise ConfigError(
                 "--from-pixels renders the synthetic world (--dataset synthetic); "

@@ -1,0 +1,486 @@
+"""The gRPC gateway: the swarm for clients in any language, on one port.
+
+One per swarm (scope ``swarm``). It is a zenoh client of the swarm like the
+Python client, with a client identity (``client.gateway.<swarm>``: it may query
+and subscribe, never store), and serves ``swarmrec.v1.SwarmGateway``
+(proto/swarmrec/v1/gateway.proto) over gRPC:
+
+* unary calls: ``Members``, ``Query`` (the read-only two-step query run from the
+  gateway's own session, through the shards' ``lookup``), ``LoopClosures``,
+  ``Status``;
+* server streams of live events: loop closures, query reports, fusion
+  decisions, membership changes (liveliness, starting with who is alive);
+* the standard health service (``NOT_SERVING`` until the zenoh session is up
+  and the gateway's liveliness token declared, ``NOT_SERVING`` again as soon as
+  it stops) and server reflection.
+
+A call's deadline is the deadline of every zenoh request it makes (never more
+than ``request_timeout_s``); a call whose deadline passes ends
+``DEADLINE_EXCEEDED``. A refusal of the swarm becomes a gRPC status by one table
+(:data:`GRPC_STATUS`), with the swarm's code in the trailing metadata
+``swarmrec-error-code``. The gRPC port is TLS with the gateway's certificate
+from the swarm PKI and asks clients for theirs (``grpc_client_auth``).
+"""
+
+from __future__ import annotations
+
+import math
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NoReturn, TypeVar
+
+import grpc
+import zenoh
+
+# protobuf ships no type stubs (see swarmrec/runtime/rpc.py for the two codes).
+from google.protobuf.message import Message  # type: ignore[import-untyped, unused-ignore]
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection
+
+import swarmrec
+from swarmrec.client import ERROR_CODE_METADATA, ZenohClient
+from swarmrec.errors import (
+    ConfigError,
+    ErrorCode,
+    InvalidArgument,
+    NoReply,
+    RemoteError,
+    ReplyTimeout,
+    RequestError,
+    WireError,
+)
+from swarmrec.runtime import ServiceBase, ServiceContext, keys
+from swarmrec.runtime.rpc import Caller, Pending
+from swarmrec.runtime.settings import SecuritySettings
+from swarmrec.runtime.tls import TlsFiles
+from swarmrec.services.metrics import GatewayMetrics
+from swarmrec.services.registry import kind_of_wire
+from swarmrec.services.settings import GatewaySettings
+from swarmrec.wire import messages as pb
+from swarmrec.wire.codec import constellation_from_proto
+from swarmrec.wire.gen.swarmrec.v1 import gateway_pb2, gateway_pb2_grpc
+
+__all__ = ["GRPC_STATUS", "SERVICE_NAME", "SUBSCRIBED_METADATA", "Gateway", "grpc_status_of"]
+
+M = TypeVar("M", bound=Message)
+
+#: The gateway's gRPC service name (reflection lists it; health reports it).
+SERVICE_NAME: str = gateway_pb2.DESCRIPTOR.services_by_name["SwarmGateway"].full_name
+#: Initial metadata of a stream, sent once its zenoh subscriber is declared: events
+#: published after the client reads it are delivered.
+SUBSCRIBED_METADATA = "swarmrec-subscribed"
+
+#: The swarm's error codes as gRPC status codes: the one table.
+GRPC_STATUS: Mapping[ErrorCode, grpc.StatusCode] = {
+    ErrorCode.UNSPECIFIED: grpc.StatusCode.UNKNOWN,
+    ErrorCode.INVALID_ARGUMENT: grpc.StatusCode.INVALID_ARGUMENT,
+    ErrorCode.MALFORMED: grpc.StatusCode.INVALID_ARGUMENT,
+    ErrorCode.UNKNOWN_LABEL: grpc.StatusCode.INVALID_ARGUMENT,
+    ErrorCode.TOO_LARGE: grpc.StatusCode.RESOURCE_EXHAUSTED,
+    ErrorCode.NOT_FOUND: grpc.StatusCode.NOT_FOUND,
+    ErrorCode.UNAVAILABLE: grpc.StatusCode.UNAVAILABLE,
+    ErrorCode.TIMEOUT: grpc.StatusCode.DEADLINE_EXCEEDED,
+    ErrorCode.INTERNAL: grpc.StatusCode.INTERNAL,
+    ErrorCode.FAILED_PRECONDITION: grpc.StatusCode.FAILED_PRECONDITION,
+}
+
+
+def grpc_status_of(e: Exception) -> tuple[grpc.StatusCode, ErrorCode]:
+    """The gRPC status and the swarm's code a failure is answered with."""
+    if isinstance(e, ReplyTimeout):
+        return grpc.StatusCode.DEADLINE_EXCEEDED, ErrorCode.TIMEOUT
+    if isinstance(e, NoReply):
+        return grpc.StatusCode.UNAVAILABLE, ErrorCode.UNAVAILABLE
+    if isinstance(e, RemoteError | RequestError | WireError):
+        code = ErrorCode.of(int(e.code))
+        return GRPC_STATUS[code], code
+    if isinstance(e, ConfigError):
+        return grpc.StatusCode.INVALID_ARGUMENT, ErrorCode.INVALID_ARGUMENT
+    return grpc.StatusCode.INTERNAL, ErrorCode.INTERNAL
+
+
+class _Deadline(Exception):
+    """The call's deadline passed."""
+
+
+@dataclass
+class _DeadlineCaller(Caller):
+    """A caller whose every request times out at the gRPC call's deadline at the latest."""
+
+    deadline: float = math.inf
+
+    def start(
+        self,
+        key: str,
+        request: Message,
+        *,
+        target_robot: int | None,
+        endpoint: str = "",
+        scatter: bool = False,
+        timeout_s: float | None = None,
+    ) -> Pending:
+        left = self.deadline - time.monotonic()
+        if left <= 0:
+            raise ReplyTimeout(key, "the call's deadline passed before the request was sent")
+        timeout = min(self.timeout_s if timeout_s is None else timeout_s, left)
+        return super().start(
+            key, request, target_robot=target_robot, endpoint=endpoint, scatter=scatter, timeout_s=timeout
+        )
+
+
+@dataclass(frozen=True)
+class _Event:
+    """What a stream's zenoh callback hands the stream: bytes and headers, nothing parsed."""
+
+    data: bytes
+    key: str
+    put: bool
+
+
+class Gateway(ServiceBase):
+    """The gRPC server and the zenoh side it answers from."""
+
+    def __init__(self, ctx: ServiceContext) -> None:
+        self.ctx = ctx
+        self.bus = ctx.bus
+        self.settings = ctx.settings(GatewaySettings)
+        self.security = ctx.settings(SecuritySettings)
+        self.metrics = ctx.metric_set(GatewayMetrics)
+        # A client's caller: no robot id in the attachment (the services count it as client traffic).
+        self.caller = Caller(
+            ctx.session, None, self.bus.request_timeout_s, ctx.metrics, self.bus.max_message_bytes
+        )
+        self.swarm = ZenohClient.attached(
+            ctx.session, self.bus.swarm, self.caller, timeout_s=self.bus.request_timeout_s
+        )
+        self.stopping = threading.Event()
+        self.lock = threading.Lock()
+        self.open_streams = 0
+        self.ready = False
+        self.health = health.HealthServicer(experimental_non_blocking=True)
+        self._set_health(health_pb2.HealthCheckResponse.NOT_SERVING)
+        self.executor = ThreadPoolExecutor(self.settings.grpc_workers, thread_name_prefix="grpc")
+        limit = self.bus.max_message_bytes
+        self.server = grpc.server(
+            self.executor,
+            options=[("grpc.max_receive_message_length", limit), ("grpc.max_send_message_length", 1 << 24)],
+        )
+        gateway_pb2_grpc.add_SwarmGatewayServicer_to_server(_Servicer(self), self.server)  # type: ignore[no-untyped-call]  # generated
+        health_pb2_grpc.add_HealthServicer_to_server(self.health, self.server)
+        reflection.enable_server_reflection(
+            (SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME), self.server
+        )
+        address = f"{self.settings.grpc_host}:{self.settings.grpc_port}"
+        credentials = self._credentials()
+        try:
+            if credentials is None:
+                self.port = self.server.add_insecure_port(address)
+            else:
+                self.port = self.server.add_secure_port(address, credentials)
+        except RuntimeError as e:
+            raise ConfigError(f"the gateway cannot listen on {address}: {e}") from None
+        self.tls = credentials is not None
+        self.server.start()
+        host = self.settings.grpc_host
+        self.address = f"grpc://{'127.0.0.1' if host in ('0.0.0.0', '') else host}:{self.port}"
+        fields = {"grpc": self.address, "tls": self.tls, "client_auth": self._client_auth}
+        ctx.log.info("gRPC gateway listening", extra={"fields": fields})
+
+    # --- lifecycle ---------------------------------------------------------------------
+
+    def _set_health(self, status: int) -> None:
+        for name in ("", SERVICE_NAME):
+            self.health.set(name, status)
+
+    def announce(self) -> dict[str, Any]:
+        return {"grpc": self.address, "grpc_tls": self.tls}
+
+    def serving(self, ready: bool) -> None:
+        self.ready = ready
+        if ready:
+            self._set_health(health_pb2.HealthCheckResponse.SERVING)
+        else:
+            self.stopping.set()
+            self._set_health(health_pb2.HealthCheckResponse.NOT_SERVING)
+
+    def close(self) -> None:
+        self.stopping.set()
+        # Calls in flight get a moment to finish; streams see `stopping` and end UNAVAILABLE.
+        self.server.stop(grace=2.0).wait(5.0)
+        self.executor.shutdown(wait=False, cancel_futures=True)
+
+    # --- the gRPC port's TLS -------------------------------------------------------------
+
+    _client_auth = False
+
+    def _credentials(self) -> grpc.ServerCredentials | None:
+        g, sec = self.settings, self.security
+        ca: Path | None = None
+        if g.grpc_cert is not None and g.grpc_key is not None:
+            cert, key = g.grpc_cert, g.grpc_key
+            ca = sec.pki_dir / "ca.pem" if sec.pki_dir is not None else None
+        elif sec.security == "mtls" and sec.pki_dir is not None:
+            files = TlsFiles.in_dir(sec.pki_dir, self.ctx.identity)
+            files.check()
+            cert, key, ca = files.cert, files.key, files.root_ca
+        else:
+            self.ctx.log.warning(
+                "INSECURE MODE: the gateway's gRPC port is plaintext and unauthenticated: anyone who "
+                "reaches it can read the swarm's answers. Give grpc_cert and grpc_key, or run with mtls.",
+                extra={"fields": {"security": "insecure"}},
+            )
+            return None
+        self._client_auth = g.grpc_client_auth and ca is not None
+        return grpc.ssl_server_credentials(
+            [(key.read_bytes(), cert.read_bytes())],
+            root_certificates=ca.read_bytes() if self._client_auth and ca is not None else None,
+            require_client_auth=self._client_auth,
+        )
+
+    # --- answering -----------------------------------------------------------------------
+
+    def caller_for(self, context: grpc.ServicerContext) -> _DeadlineCaller:
+        """A caller whose requests end at the call's deadline (or request_timeout_s)."""
+        left = context.time_remaining()
+        deadline = time.monotonic() + (left if left is not None else math.inf)
+        return _DeadlineCaller(
+            self.ctx.session,
+            None,
+            self.bus.request_timeout_s,
+            self.ctx.metrics,
+            self.bus.max_message_bytes,
+            deadline=deadline,
+        )
+
+    def unary(self, method: str, context: grpc.ServicerContext, work: Callable[[_DeadlineCaller], M]) -> M:
+        """Run ``work`` with the call's deadline; map a failure to its gRPC status."""
+        t0 = time.perf_counter()
+        code = grpc.StatusCode.OK
+        try:
+            if not self.ready:
+                raise NoReply(
+                    f"gateway {self.bus.swarm}", "the gateway is not serving (starting or stopping)"
+                )
+            caller = self.caller_for(context)
+            reply = work(caller)
+            if time.monotonic() > caller.deadline:
+                raise _Deadline()
+            return reply
+        except _Deadline:
+            code = grpc.StatusCode.DEADLINE_EXCEEDED
+            self._abort(
+                context, code, ErrorCode.TIMEOUT, "the call's deadline passed before the swarm answered"
+            )
+        except Exception as e:
+            code, swarm_code = grpc_status_of(e)
+            if code == grpc.StatusCode.INTERNAL:
+                self.ctx.log.error("gateway call failed", exc_info=e, extra={"fields": {"method": method}})
+            message = e.message if isinstance(e, RequestError) else str(e)
+            self._abort(context, code, swarm_code, message)
+        finally:
+            self.metrics.calls.labels(method, code.name).inc()
+            self.metrics.call_seconds.labels(method).observe(time.perf_counter() - t0)
+
+    @staticmethod
+    def _abort(context: grpc.ServicerContext, code: grpc.StatusCode, swarm: ErrorCode, text: str) -> NoReturn:
+        context.set_trailing_metadata(((ERROR_CODE_METADATA, swarm.wire_name),))
+        context.abort(code, text[:1000])
+        raise AssertionError("unreachable: abort raises")
+
+    def members(self, caller: _DeadlineCaller) -> gateway_pb2.MembersReply:
+        left = max(caller.deadline - time.monotonic(), 0.001)
+        infos = self.swarm.member_infos(min(left, self.bus.request_timeout_s))
+        return gateway_pb2.MembersReply(members=infos)
+
+    def query(self, req: gateway_pb2.QueryRequest, caller: _DeadlineCaller) -> gateway_pb2.QueryReply:
+        if not req.HasField("constellation") or not req.constellation.labels:
+            raise InvalidArgument("a query needs a constellation with at least one object")
+        left = max(caller.deadline - time.monotonic(), 0.001)
+        plan = self.swarm.plan(req.preset or "paper", timeout_s=min(left, self.bus.request_timeout_s))
+        constellation = constellation_from_proto(req.constellation, plan.n_labels)
+        t0 = time.perf_counter()
+        result = self.swarm.query(constellation, plan=plan, caller=caller)
+        if time.monotonic() > caller.deadline:
+            raise _Deadline()  # what timed out is listed as failed, but the caller gave up first
+        return gateway_pb2.QueryReply(
+            matches=result.matches,
+            n_candidates=result.n_candidates,
+            verified_robot_ids=result.verified_robots,
+            failed_shard_robot_ids=result.failed_shards,
+            failed_verifier_robot_ids=result.failed_verifiers,
+            duration_us=min(int((time.perf_counter() - t0) * 1e6), 2**32 - 1),
+        )
+
+    def loop_closures(
+        self, req: gateway_pb2.RobotLoopClosuresRequest, caller: _DeadlineCaller
+    ) -> pb.LoopClosureList:
+        key = keys.endpoint(self.bus.swarm, "descriptor", req.robot_id, "loop_closures")
+        try:
+            return caller.call(
+                key, pb.LoopClosuresRequest(min_score=req.min_score), pb.LoopClosureList, target_robot=None
+            )
+        except NoReply:
+            raise RequestError(
+                f"robot {req.robot_id} has no live descriptor", code=ErrorCode.NOT_FOUND
+            ) from None
+
+    def status(self, caller: _DeadlineCaller) -> gateway_pb2.StatusReply:
+        left = max(caller.deadline - time.monotonic(), 0.001)
+        infos = self.swarm.member_infos(min(left, self.bus.request_timeout_s))
+        by_kind: dict[str, int] = {}
+        for info in infos:
+            by_kind[kind_of_wire(info.kind)] = by_kind.get(kind_of_wire(info.kind), 0) + 1
+        shards = [i.robot_id for i in infos if i.kind == pb.ServiceKind.SERVICE_KIND_INDEX_SHARD]
+        return gateway_pb2.StatusReply(
+            swarm=self.bus.swarm,
+            version=swarmrec.__version__,
+            serving=self.ready,
+            n_robots=len(set(shards)),
+            services_by_kind=by_kind,
+            zenoh_security=self.security.security,
+            open_streams=self.open_streams,
+        )
+
+    # --- streams -------------------------------------------------------------------------
+
+    def stream(
+        self,
+        name: str,
+        context: grpc.ServicerContext,
+        subscribe: Callable[[Callable[[zenoh.Sample], None]], Sequence[Any]],
+        convert: Callable[[_Event], Message | None],
+    ) -> Iterator[Message]:
+        """Events from the subscribers ``subscribe`` declares, converted, until the client
+        leaves or the gateway stops (then UNAVAILABLE)."""
+        if not self.ready:
+            self._abort(
+                context, grpc.StatusCode.UNAVAILABLE, ErrorCode.UNAVAILABLE, "the gateway is not serving"
+            )
+        with self.lock:
+            if self.open_streams >= self.settings.grpc_max_streams:
+                full = True
+            else:
+                full = False
+                self.open_streams += 1
+                self.metrics.streams_open.set(self.open_streams)
+        if full:
+            self._abort(
+                context,
+                grpc.StatusCode.RESOURCE_EXHAUSTED,
+                ErrorCode.UNAVAILABLE,
+                f"{self.settings.grpc_max_streams} streams are open already (grpc_max_streams)",
+            )
+        inbox: queue.Queue[_Event] = queue.Queue(maxsize=self.settings.grpc_stream_buffer)
+        overflow = threading.Event()
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            # zenoh's thread: copy the bytes out and return.
+            event = _Event(
+                sample.payload.to_bytes(), str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT
+            )
+            try:
+                inbox.put_nowait(event)
+            except queue.Full:
+                overflow.set()
+
+        subscribers = subscribe(on_sample)
+        sent = self.metrics.events_sent.labels(name)
+        try:
+            context.send_initial_metadata(((SUBSCRIBED_METADATA, "1"),))
+            while context.is_active():
+                if self.stopping.is_set():
+                    self._abort(
+                        context, grpc.StatusCode.UNAVAILABLE, ErrorCode.UNAVAILABLE, "the gateway is stopping"
+                    )
+                try:
+                    event = inbox.get(timeout=0.1)
+                except queue.Empty:
+                    if overflow.is_set():
+                        self._abort(
+                            context,
+                            grpc.StatusCode.RESOURCE_EXHAUSTED,
+                            ErrorCode.UNAVAILABLE,
+                            f"the client reads slower than events arrive ({inbox.maxsize} queued)",
+                        )
+                    continue
+                msg = convert(event)
+                if msg is not None:
+                    sent.inc()
+                    yield msg
+        finally:
+            for sub in subscribers:
+                sub.undeclare()
+            with self.lock:
+                self.open_streams -= 1
+                self.metrics.streams_open.set(self.open_streams)
+
+    def event_stream(
+        self, name: str, event: str, cls: type[M], robots: Sequence[int], context: grpc.ServicerContext
+    ) -> Iterator[Message]:
+        session, swarm = self.ctx.session, self.bus.swarm
+        targets: list[int | str] = list(dict.fromkeys(robots)) or ["*"]
+
+        def subscribe(callback: Callable[[zenoh.Sample], None]) -> list[Any]:
+            return [session.declare_subscriber(keys.event(swarm, event, r), callback) for r in targets]
+
+        def convert(e: _Event) -> Message | None:
+            try:
+                return cls.FromString(e.data)
+            except Exception:  # a malformed event is the publisher's problem, not the stream's
+                return None
+
+        return self.stream(name, context, subscribe, convert)
+
+    def membership_stream(self, robots: Sequence[int], context: grpc.ServicerContext) -> Iterator[Message]:
+        session, swarm = self.ctx.session, self.bus.swarm
+        wanted = set(robots)
+
+        def subscribe(callback: Callable[[zenoh.Sample], None]) -> list[Any]:
+            # history: the tokens alive now come first, as joins.
+            return [session.liveliness().declare_subscriber(keys.alive_all(swarm), callback, history=True)]
+
+        def convert(e: _Event) -> Message | None:
+            parsed = keys.parse_alive(e.key)
+            if parsed is None or (wanted and parsed[1] not in wanted):
+                return None
+            return gateway_pb2.MembershipChange(kind=parsed[0], robot_id=parsed[1], alive=e.put)
+
+        return self.stream("membership", context, subscribe, convert)
+
+
+class _Servicer(gateway_pb2_grpc.SwarmGatewayServicer):  # type: ignore[misc, unused-ignore]  # generated, untyped
+    """The generated servicer's methods, each handed to the gateway."""
+
+    def __init__(self, gateway: Gateway) -> None:
+        self.g = gateway
+
+    def Members(self, request: Any, context: grpc.ServicerContext) -> Any:  # gRPC's method names
+        return self.g.unary("Members", context, self.g.members)
+
+    def Query(self, request: Any, context: grpc.ServicerContext) -> Any:
+        return self.g.unary("Query", context, lambda caller: self.g.query(request, caller))
+
+    def LoopClosures(self, request: Any, context: grpc.ServicerContext) -> Any:
+        return self.g.unary("LoopClosures", context, lambda caller: self.g.loop_closures(request, caller))
+
+    def Status(self, request: Any, context: grpc.ServicerContext) -> Any:
+        return self.g.unary("Status", context, self.g.status)
+
+    def WatchLoopClosures(self, request: Any, context: grpc.ServicerContext) -> Any:
+        return self.g.event_stream(
+            "loop_closures", "loop_closure", pb.LoopClosure, request.robot_ids, context
+        )
+
+    def WatchQueryReports(self, request: Any, context: grpc.ServicerContext) -> Any:
+        return self.g.event_stream("query_reports", "query", pb.QueryReport, request.robot_ids, context)
+
+    def WatchFusion(self, request: Any, context: grpc.ServicerContext) -> Any:
+        return self.g.event_stream("fusion", "fusion", pb.FusionUpdate, request.robot_ids, context)
+
+    def WatchMembership(self, request: Any, context: grpc.ServicerContext) -> Any:
+        return self.g.membership_stream(request.robot_ids, context)

@@ -1,0 +1,99 @@
+from . import constellation_pb2 as _constellation_pb2
+from . import events_pb2 as _events_pb2
+from . import fusion_pb2 as _fusion_pb2
+from . import health_pb2 as _health_pb2
+from . import replay_pb2 as _replay_pb2
+from google.protobuf.internal import containers as _containers
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable, Mapping as _Mapping
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class MembersRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class MembersReply(_message.Message):
+    __slots__ = ("members",)
+    MEMBERS_FIELD_NUMBER: _ClassVar[int]
+    members: _containers.RepeatedCompositeFieldContainer[_health_pb2.MemberInfo]
+    def __init__(self, members: _Optional[_Iterable[_Union[_health_pb2.MemberInfo, _Mapping]]] = ...) -> None: ...
+
+class QueryRequest(_message.Message):
+    __slots__ = ("constellation", "preset")
+    CONSTELLATION_FIELD_NUMBER: _ClassVar[int]
+    PRESET_FIELD_NUMBER: _ClassVar[int]
+    constellation: _constellation_pb2.Constellation
+    preset: str
+    def __init__(self, constellation: _Optional[_Union[_constellation_pb2.Constellation, _Mapping]] = ..., preset: _Optional[str] = ...) -> None: ...
+
+class QueryReply(_message.Message):
+    __slots__ = ("matches", "n_candidates", "verified_robot_ids", "failed_shard_robot_ids", "failed_verifier_robot_ids", "duration_us")
+    MATCHES_FIELD_NUMBER: _ClassVar[int]
+    N_CANDIDATES_FIELD_NUMBER: _ClassVar[int]
+    VERIFIED_ROBOT_IDS_FIELD_NUMBER: _ClassVar[int]
+    FAILED_SHARD_ROBOT_IDS_FIELD_NUMBER: _ClassVar[int]
+    FAILED_VERIFIER_ROBOT_IDS_FIELD_NUMBER: _ClassVar[int]
+    DURATION_US_FIELD_NUMBER: _ClassVar[int]
+    matches: _containers.RepeatedCompositeFieldContainer[_events_pb2.VerifiedPair]
+    n_candidates: int
+    verified_robot_ids: _containers.RepeatedScalarFieldContainer[int]
+    failed_shard_robot_ids: _containers.RepeatedScalarFieldContainer[int]
+    failed_verifier_robot_ids: _containers.RepeatedScalarFieldContainer[int]
+    duration_us: int
+    def __init__(self, matches: _Optional[_Iterable[_Union[_events_pb2.VerifiedPair, _Mapping]]] = ..., n_candidates: _Optional[int] = ..., verified_robot_ids: _Optional[_Iterable[int]] = ..., failed_shard_robot_ids: _Optional[_Iterable[int]] = ..., failed_verifier_robot_ids: _Optional[_Iterable[int]] = ..., duration_us: _Optional[int] = ...) -> None: ...
+
+class RobotLoopClosuresRequest(_message.Message):
+    __slots__ = ("robot_id", "min_score")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    MIN_SCORE_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    min_score: float
+    def __init__(self, robot_id: _Optional[int] = ..., min_score: _Optional[float] = ...) -> None: ...
+
+class StatusRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class StatusReply(_message.Message):
+    __slots__ = ("swarm", "version", "serving", "n_robots", "services_by_kind", "zenoh_security", "open_streams")
+    class ServicesByKindEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: int
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[int] = ...) -> None: ...
+    SWARM_FIELD_NUMBER: _ClassVar[int]
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    SERVING_FIELD_NUMBER: _ClassVar[int]
+    N_ROBOTS_FIELD_NUMBER: _ClassVar[int]
+    SERVICES_BY_KIND_FIELD_NUMBER: _ClassVar[int]
+    ZENOH_SECURITY_FIELD_NUMBER: _ClassVar[int]
+    OPEN_STREAMS_FIELD_NUMBER: _ClassVar[int]
+    swarm: str
+    version: str
+    serving: bool
+    n_robots: int
+    services_by_kind: _containers.ScalarMap[str, int]
+    zenoh_security: str
+    open_streams: int
+    def __init__(self, swarm: _Optional[str] = ..., version: _Optional[str] = ..., serving: _Optional[bool] = ..., n_robots: _Optional[int] = ..., services_by_kind: _Optional[_Mapping[str, int]] = ..., zenoh_security: _Optional[str] = ..., open_streams: _Optional[int] = ...) -> None: ...
+
+class WatchRequest(_message.Message):
+    __slots__ = ("robot_ids",)
+    ROBOT_IDS_FIELD_NUMBER: _ClassVar[int]
+    robot_ids: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, robot_ids: _Optional[_Iterable[int]] = ...) -> None: ...
+
+class MembershipChange(_message.Message):
+    __slots__ = ("kind", "robot_id", "alive")
+    KIND_FIELD_NUMBER: _ClassVar[int]
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    ALIVE_FIELD_NUMBER: _ClassVar[int]
+    kind: str
+    robot_id: int
+    alive: bool
+    def __init__(self, kind: _Optional[str] = ..., robot_id: _Optional[int] = ..., alive: _Optional[bool] = ...) -> None: ...

@@ -1,0 +1,167 @@
+"""Mutual TLS and the access control on the real swarm services (a local deployment's
+defaults), not only on bare zenoh sessions (test_zenoh_mtls.py).
+
+One 4-robot swarm of index shards and verifiers (each a process with its own
+certificate of the run's PKI; the router enforces the PKI's acl.json). A
+session is then opened as one identity or another: the read-only client is
+served; no certificate, or a certificate of another CA, is refused when the
+session opens; robot 3's descriptor identity cannot store into robot 2's
+verifier nor put on robot 2's keys, and the stores are unchanged (each denial
+measured behind an allowed request that would have arrived after it).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from swarmrec.client import ZenohClient
+from swarmrec.deployments.local import LocalDeployment
+from swarmrec.errors import NoReply
+from swarmrec.runtime import keys
+from swarmrec.runtime.rpc import Caller
+from swarmrec.runtime.tls import TlsFiles, configure_client_tls
+from swarmrec.security.pki import PkiSettings, init_pki
+from swarmrec.services.settings import PlaceSettings
+from swarmrec.wire import messages as pb
+from swarmrec.wire.codec import schema_name
+from tests.integration.conftest import running_swarm
+from tests.integration.support import protobuf, wait_until
+
+ROBOTS = 4
+
+
+@pytest.fixture(scope="module")
+def swarm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LocalDeployment]:
+    tmp = tmp_path_factory.mktemp("swarm-mtls")
+    with running_swarm(
+        tmp, "mtls-swarm", PlaceSettings(), robots=ROBOTS, kinds=("index-shard", "verifier"), swarm_kinds=()
+    ) as deployment:
+        yield deployment
+
+
+def _as(swarm: LocalDeployment, cn: str) -> ZenohClient:
+    assert swarm.pki_dir is not None
+    return ZenohClient(
+        [swarm.endpoint], swarm.spec_swarm, timeout_s=3.0, tls=TlsFiles.in_dir(swarm.pki_dir, cn)
+    )
+
+
+def _stored(swarm: LocalDeployment) -> dict[tuple[str, int], int]:
+    with swarm.client(role="client") as c:
+        return {(m.kind, m.robot): m.stored_items for m in c.members()}
+
+
+def _frame(robot: int, frame: int) -> pb.Constellation:
+    return pb.Constellation(robot_id=robot, frame_index=frame, labels=[1, 2, 3], positions_m=[0, 0, 1] * 3)
+
+
+def test_every_service_process_runs_with_its_own_certificate_and_the_router_with_the_acl(
+    swarm: LocalDeployment,
+) -> None:
+    assert swarm.endpoint.startswith("tls/")
+    acl = json.loads((swarm.pki_dir / "acl.json").read_text())  # type: ignore[operator]
+    assert acl["default_permission"] == "deny"
+    logs = {p.stem: p.read_text() for p in swarm.log_dir.glob("*.log")}
+    assert "INSECURE" not in "".join(logs.values())
+    assert set(_stored(swarm)) == {("router", 0)} | {
+        (k, r) for k in ("index-shard", "verifier") for r in range(ROBOTS)
+    }
+
+
+def test_a_client_with_a_valid_certificate_is_served(swarm: LocalDeployment) -> None:
+    with _as(swarm, f"client.cli.{swarm.spec_swarm}") as client:
+        assert len(client.members()) == 1 + 2 * ROBOTS
+
+
+def test_a_client_without_a_certificate_is_refused_at_connection(swarm: LocalDeployment) -> None:
+    assert swarm.pki_dir is not None
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", json.dumps([swarm.endpoint]))
+    conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(swarm.pki_dir / "ca.pem")))
+    with pytest.raises(zenoh.ZError):
+        zenoh.open(conf)
+    plain = zenoh.Config()
+    plain.insert_json5("mode", '"client"')
+    plain.insert_json5("connect/endpoints", json.dumps([swarm.endpoint.replace("tls/", "tcp/")]))
+    with pytest.raises(zenoh.ZError):
+        zenoh.open(plain)
+
+
+def test_a_certificate_of_another_ca_is_refused_at_connection(swarm: LocalDeployment, tmp_path: Path) -> None:
+    other = tmp_path / "impostor"
+    init_pki(PkiSettings(swarm=swarm.spec_swarm, robots=ROBOTS, out=other))
+    for cn in (f"client.cli.{swarm.spec_swarm}", f"r2.verifier.{swarm.spec_swarm}"):
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"client"')
+        configure_client_tls(conf, TlsFiles.in_dir(other, cn), [swarm.endpoint])
+        with pytest.raises(zenoh.ZError):
+            zenoh.open(conf)
+
+
+def test_robot_3_cannot_store_into_robot_2s_verifier_and_the_store_is_unchanged(
+    swarm: LocalDeployment,
+) -> None:
+    before = _stored(swarm)
+    s = swarm.spec_swarm
+    with _as(swarm, f"r3.descriptor.{s}") as robot3:
+        caller = Caller(robot3.session, 3, 3.0)
+        # Denied: the router drops the query, nobody answers.
+        with pytest.raises(NoReply):
+            caller.call(keys.endpoint(s, "verifier", 2, "store"), _frame(3, 0), pb.StoreReply, target_robot=2)
+        # Allowed, and sent after: robot 3's descriptor stores into its own verifier.
+        caller.call(keys.endpoint(s, "verifier", 3, "store"), _frame(3, 0), pb.StoreReply, target_robot=3)
+    after = _stored(swarm)
+    assert after[("verifier", 2)] == before[("verifier", 2)]
+    assert after[("verifier", 3)] == before[("verifier", 3)] + 1
+
+
+def test_robot_3_cannot_put_on_robot_2s_keys(swarm: LocalDeployment) -> None:
+    s = swarm.spec_swarm
+    seen: list[str] = []
+    with swarm.client(role="client") as watcher, _as(swarm, f"r3.verifier.{s}") as robot3:
+        sub = watcher.session.declare_subscriber(
+            keys.event(s, "loop_closure", "*"), lambda x: seen.append(str(x.key_expr))
+        )
+        try:
+            pub = robot3.session.declare_publisher(keys.event(s, "loop_closure", 3))
+            wait_until(lambda: pub.matching_status.matching, 10, "the watcher's subscriber known to robot 3")
+            enc = protobuf(schema_name(pb.LoopClosure))
+            robot3.session.put(
+                keys.event(s, "loop_closure", 2),
+                pb.LoopClosure(query_robot_id=2).SerializeToString(),
+                encoding=enc,
+            )
+            robot3.session.put(
+                keys.event(s, "loop_closure", 3),
+                pb.LoopClosure(query_robot_id=3).SerializeToString(),
+                encoding=enc,
+            )
+            wait_until(lambda: keys.event(s, "loop_closure", 3) in seen, 10, "robot 3's own event")
+        finally:
+            sub.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
+    assert seen == [keys.event(s, "loop_closure", 3)]
+
+
+def test_a_client_may_look_up_but_never_store_into_a_shard(swarm: LocalDeployment) -> None:
+    before = _stored(swarm)
+    s = swarm.spec_swarm
+    with _as(swarm, f"client.cli.{s}") as client:
+        caller = Caller(client.session, None, 3.0)
+        desc = pb.PartialDescriptor(
+            robot_id=1, frame_index=0, label_lo=0, label_hi=20, label_offsets=[1], counts=[2]
+        )
+        storing = pb.PartialQuery(descriptor=desc, read_only=False)
+        with pytest.raises(NoReply):  # the router lets clients call lookup, not query
+            caller.call(
+                keys.endpoint(s, "index-shard", 0, "query"), storing, pb.CandidatesReply, target_robot=0
+            )
+        looked = pb.PartialQuery(descriptor=desc, read_only=True)
+        caller.call(keys.endpoint(s, "index-shard", 0, "lookup"), looked, pb.CandidatesReply, target_robot=0)
+    assert _stored(swarm) == before
