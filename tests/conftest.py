@@ -25,9 +25,7 @@ def make(*objects: tuple[str, float, float, float]) -> Constellation:
     """A constellation from (label name, x, y, z) tuples."""
     if not objects:
         return Constellation.empty()
-    return Constellation(
-        np.array([label(o[0]) for o in objects]), np.array([o[1:] for o in objects], float)
-    )
+    return Constellation(np.array([label(o[0]) for o in objects]), np.array([o[1:] for o in objects], float))
 
 
 @pytest.fixture(scope="session")

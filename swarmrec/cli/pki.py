@@ -7,6 +7,7 @@ import argparse
 from pathlib import Path
 
 from swarmrec.cli.common import Subparsers
+from swarmrec.runtime.hosting import host_ranges, robots_per_process
 from swarmrec.security.pki import DEFAULT_ROUTER_NAMES, PkiSettings, main
 
 __all__ = ["add", "run"]
@@ -14,6 +15,15 @@ __all__ = ["add", "run"]
 
 def _names(text: str) -> tuple[str, ...]:
     return tuple(n.strip() for n in text.split(",") if n.strip())
+
+
+def _hosts(hosting: str, robots: int) -> tuple[tuple[int, int], ...]:
+    """The host certificates ``hosting`` needs: its processes' ranges and each robot alone
+    (a robot restarted by itself)."""
+    if hosting == "service":
+        robots_per_process(hosting)
+        return ()
+    return tuple(sorted({*host_ranges(hosting, robots), *((r, r) for r in range(robots))}))
 
 
 def add(sub: Subparsers) -> None:
@@ -44,6 +54,13 @@ def add(sub: Subparsers) -> None:
         default=",".join((*DEFAULT_ROUTER_NAMES, "gateway")),
         help="names and IPs the gateway's gRPC port is dialled at",
     )
+    p.add_argument(
+        "--hosting",
+        default="service",
+        help="service (default), robot or robots:K: also issue the host certificates of processes "
+        "that run every service of one robot (r<i>.host.<swarm>) or of K consecutive robots "
+        "(r<first>-<last>.host.<swarm>)",
+    )
     p.add_argument("--key-type", choices=("p256", "ed25519"), default="p256")
     p.add_argument("--days", type=int, default=365, help="validity of the end certificates (default 365)")
     p.add_argument(
@@ -63,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
         gateways=_names(args.gateways),
         router_names=_names(args.router_names),
         gateway_names=_names(args.gateway_names),
+        hosts=_hosts(args.hosting, args.robots),
         key_type=args.key_type,
         cert_days=args.days,
         renew_days=args.renew_days,

@@ -37,10 +37,12 @@ def swarm_pki(
     *,
     router_names: Sequence[str] = (),
     gateway_names: Sequence[str] = (),
+    hosts: Sequence[tuple[int, int]] = (),
 ) -> Path:
     """The PKI of a swarm of ``robots`` in ``folder`` (created, or completed: an existing one
     is kept); the router and the gateway are also dialled at ``router_names`` and
-    ``gateway_names`` (a container's host name)."""
+    ``gateway_names`` (a container's host name); ``hosts``: the (first, last) robots of
+    each process hosting several services."""
     init_pki(
         PkiSettings(
             swarm=swarm,
@@ -50,6 +52,7 @@ def swarm_pki(
             operators=(OPERATOR,),
             router_names=(*DEFAULT_ROUTER_NAMES, *router_names),
             gateway_names=(*DEFAULT_ROUTER_NAMES, "gateway", *gateway_names),
+            hosts=tuple(hosts),
         )
     )
     return folder

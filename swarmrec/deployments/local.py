@@ -47,8 +47,10 @@ from swarmrec.deployments.identities import Security, client_tls, security_for, 
 from swarmrec.deployments.links import LinkEmulator, LinkSpec, Schedule
 from swarmrec.deployments.metrics import Scrape, scrape
 from swarmrec.errors import ConfigError
+from swarmrec.runtime.hosting import host_ranges, robots_per_process
 from swarmrec.runtime.settings import Component, Config, to_flags
 from swarmrec.runtime.tls import tls_endpoint
+from swarmrec.security.identity import Identity
 from swarmrec.services.settings import GatewaySettings
 
 __all__ = ["LocalDeployment", "ServiceProcess", "free_port"]
@@ -56,18 +58,6 @@ __all__ = ["LocalDeployment", "ServiceProcess", "free_port"]
 #: A router that cannot listen on the port it was given (taken between choosing and
 #: binding it) exits at once; it is started again on another port this many times.
 ROUTER_ATTEMPTS = 5
-
-
-def _robots_per_process(hosting: str) -> int | None:
-    """None for ``service`` hosting, else how many robots one process hosts."""
-    if hosting == "service":
-        return None
-    if hosting == "robot":
-        return 1
-    name, _, count = hosting.partition(":")
-    if name == "robots" and count.isdigit() and int(count) >= 1:
-        return int(count)
-    raise ConfigError(f"hosting must be service, robot or robots:K (K >= 1), got {hosting!r}")
 
 
 def free_port() -> int:
@@ -155,18 +145,13 @@ class LocalDeployment:
         self.security: Security = security
         self.pki_dir: Path | None = None
         self.swarm_procs: list[ServiceProcess] = []
-        self.robots_per_process = _robots_per_process(hosting)
+        self.robots_per_process = robots_per_process(hosting)
         self.link = link or LinkSpec()
         self.schedule = schedule
         self.links: LinkEmulator | None = None
         if (self.link.limited or schedule is not None) and (self.robots_per_process or 1) > 1:
             raise ConfigError(
                 "emulated links are per robot: use service or robot hosting, not several robots a process"
-            )
-        if self.robots_per_process is not None and security == "mtls":
-            raise ConfigError(
-                f"{hosting} hosting puts several services on one zenoh session, and the access control "
-                "grants a certificate one service's keys: use service hosting, or security insecure"
             )
         self.hosting = hosting
         self.description = (
@@ -218,9 +203,8 @@ class LocalDeployment:
             for r in range(spec.robots):
                 started += self.start_robot(r)
         else:
-            k = self.robots_per_process
-            for first in range(0, spec.robots, k):
-                started.append(self.start_host(list(range(first, min(first + k, spec.robots)))))
+            for first, last in host_ranges(self.hosting, spec.robots):
+                started.append(self.start_host(list(range(first, last + 1))))
         self._wait(started, timeout_s, progress=progress)
 
     def wait_ready(self, timeout_s: float = 60.0) -> None:
@@ -271,15 +255,26 @@ class LocalDeployment:
             raise ConfigError("start the router first (it takes the swarm spec)")
         return self.spec
 
-    def _secured(self, config: Config, who: str) -> Config:
-        return config.replace(security_for(self.security, self.pki_dir, who))
+    def _secured(self, config: Config, who: str, *, host: tuple[int, int] | None = None) -> Config:
+        """``config`` with the process's security: its kind's own certificate, or for a process
+        hosting robots ``host`` (first, last) the host certificate of those robots."""
+        security = security_for(self.security, self.pki_dir, who)
+        if host is not None and security.security == "mtls":
+            identity = Identity.host(self._spec().swarm, *host).common_name
+            security = security.with_(identity=identity)
+        return config.replace(security)
 
     def start_router(self, spec: SwarmSpec, timeout_s: float = 30.0) -> None:
         """The run's PKI (mutual TLS), then the router on a free port (another one if that
         port was taken meanwhile)."""
         self.spec = spec
         if self.security == "mtls":
-            self.pki_dir = swarm_pki(self.data_dir / "pki", spec.swarm, spec.robots)
+            # A hosting process presents a host certificate covering its robots; a robot
+            # restarted alone (start_robot) presents its own robot's.
+            hosts: set[tuple[int, int]] = set()
+            if self.robots_per_process is not None:
+                hosts = {*host_ranges(self.hosting, spec.robots), *((r, r) for r in range(spec.robots))}
+            self.pki_dir = swarm_pki(self.data_dir / "pki", spec.swarm, spec.robots, hosts=sorted(hosts))
         fixed = self.router_port
         for attempt in range(1, ROUTER_ATTEMPTS + 1):
             self.router_port = fixed or free_port()
@@ -369,7 +364,7 @@ class LocalDeployment:
                 data_dir=self.data_dir,
                 metrics_port=0,
             )
-            config = self._secured(config, f"host of robots {robots}")
+            config = self._secured(config, f"host of robots {robots}", host=(robots[0], robots[-1]))
             for part in config.parts:
                 parts.setdefault(type(part), part)
         flags = [flag for part in parts.values() for flag in to_flags(part, only_changed=True)]

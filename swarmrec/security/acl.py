@@ -19,8 +19,10 @@ What is allowed is derived from the protocol (docs/security.md has the table):
 The ACL sees key expressions, not payloads: an index-shard ``query`` that
 stores looks like one that does not, so clients read shards through their
 read-only ``lookup`` endpoint (``shard_read_endpoint``) and only descriptors may
-call ``query``. A gateway (``gateways``) is a client that also declares its own
-``info`` queryable and liveliness token under ``gateway/0``.
+call ``query``. A host (a process running every service of some robots, ``--hosting
+robot`` or ``robots:K``) gets the union of its robots' services' rules. A gateway
+(``gateways``) is a client that also declares its own ``info`` queryable and liveliness
+token under ``gateway/0``.
 """
 
 from __future__ import annotations
@@ -115,11 +117,19 @@ def grants(
     *,
     shard_read_endpoint: str = SHARD_READ_ENDPOINT,
     gateway: bool = False,
+    kinds: Sequence[str] = SERVICE_KINDS,
 ) -> list[Grant]:
     """What ``identity`` may do in a swarm of ``robots``; everything else is denied.
-    ``gateway``: the identity (a client) hosts the swarm's gRPC gateway."""
+    ``gateway``: the identity (a client) hosts the swarm's gRPC gateway. A host may do
+    what each of its robots' services (``kinds``) may, and nothing more: so a process
+    hosting robots 0..4 can act as any of them, never as robot 5."""
     s, p = identity.swarm, _prefix(identity.swarm)
     out = [Grant("egress", _EGRESS, (f"{p}/**",))]
+    if identity.role == "host":
+        for r in identity.robots:
+            for kind in kinds:
+                out += grants(Identity.service(s, kind, r), robots)[1:]  # [0]: the shared egress
+        return out
     if identity.role == "service":
         kind, r = identity.kind, identity.robot
         own = keys.endpoint(s, kind, r, "*")
@@ -166,9 +176,12 @@ def swarm_identities(
     kinds: Sequence[str] = SERVICE_KINDS,
     clients: Sequence[str] = (),
     operators: Sequence[str] = (),
+    hosts: Sequence[tuple[int, int]] = (),
 ) -> list[Identity]:
-    """Every identity the ACL names: each robot's services, clients, operators."""
+    """Every identity the ACL names: each robot's services, the hosts (first, last robot),
+    clients, operators."""
     out = [Identity.service(swarm, k, r) for r in robots for k in kinds]
+    out += [Identity.host(swarm, first, last) for first, last in hosts]
     out += [Identity.client(swarm, n) for n in clients]
     out += [Identity.operator(swarm, n) for n in operators]
     return out
@@ -189,28 +202,35 @@ def access_control(
     clients: Sequence[str] = (),
     operators: Sequence[str] = (),
     gateways: Sequence[str] = (),
+    hosts: Sequence[tuple[int, int]] = (),
     shard_read_endpoint: str = SHARD_READ_ENDPOINT,
 ) -> dict[str, Any]:
     """The ``access_control`` section of the router's zenoh config.
 
     ``robots`` is a count (ids 0..n-1) or the ids; ``gateways`` are client names that
-    host the gRPC gateway (clients too, listed or not in ``clients``). Each identity becomes a
+    host the gRPC gateway (clients too, listed or not in ``clients``); ``hosts`` are the
+    (first, last) robots of processes that host several robots' services. Each identity becomes a
     subject matched on its certificate CN, with one policy holding its rules;
     a certificate whose CN is not listed, or a connection without one, gets
     the default: deny.
     """
     keys.validate_swarm_name(swarm)
     ids = _robots(robots)
+    for first, last in hosts:
+        if first > last or first not in ids or last not in ids:
+            raise ConfigError(f"a host's robots {first}..{last} must be robots of the swarm")
     rules: list[dict[str, Any]] = []
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
     every_client = [*clients, *(g for g in gateways if g not in clients)]
-    for ident in swarm_identities(swarm, ids, kinds=kinds, clients=every_client, operators=operators):
+    for ident in swarm_identities(
+        swarm, ids, kinds=kinds, clients=every_client, operators=operators, hosts=hosts
+    ):
         cn = ident.common_name
         rule_ids = []
         hosts_gateway = ident.role == "client" and ident.name in gateways
         for n, g in enumerate(
-            grants(ident, ids, shard_read_endpoint=shard_read_endpoint, gateway=hosts_gateway)
+            grants(ident, ids, shard_read_endpoint=shard_read_endpoint, gateway=hosts_gateway, kinds=kinds)
         ):
             rule_ids.append(f"{cn}/{n}")
             rules.append(

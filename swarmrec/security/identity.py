@@ -5,6 +5,8 @@ name (CN) of the certificate each one presented, so the CN carries
 everything a rule needs, and nothing else:
 
     r<robot>.<kind>.<swarm>      a robot's service        r3.index-shard.lab
+    r<first>-<last>.host.<swarm> a process hosting every service of robots first..last
+                                 (r3.host.lab for one robot: robot hosting)
     client.<name>.<swarm>        a read-only client       client.cli.lab
     operator.<name>.<swarm>      a client that also drives replay (detector step/replay/classify)
     router.<swarm>               the router
@@ -28,13 +30,14 @@ from swarmrec.services import registry
 
 __all__ = ["SERVICE_KINDS", "Identity", "Role", "parse_common_name"]
 
-Role = Literal["service", "client", "operator", "router"]
+Role = Literal["service", "host", "client", "operator", "router"]
 
 #: The kinds a robot runs (the registry's per-robot kinds); the router is an identity of its own.
 SERVICE_KINDS: tuple[str, ...] = registry.kinds("robot")
 
 _NAME = re.compile(r"^[a-z0-9](?:[a-z0-9-]{0,30}[a-z0-9])?$")
 _ROBOT = re.compile(r"^r(0|[1-9][0-9]{0,5})$")
+_ROBOTS = re.compile(r"^r(0|[1-9][0-9]{0,5})(?:-(0|[1-9][0-9]{0,5}))?$")
 MAX_ROBOT = 999_999
 
 
@@ -48,6 +51,8 @@ class Identity:
     kind: str = ""
     robot: int = -1
     name: str = ""
+    #: A host's last robot (its first is ``robot``).
+    last: int = -1
 
     def __post_init__(self) -> None:
         keys.validate_swarm_name(self.swarm)
@@ -56,18 +61,26 @@ class Identity:
                 raise ConfigError(f"service kind must be one of {SERVICE_KINDS}, got {self.kind!r}")
             if not 0 <= self.robot <= MAX_ROBOT:
                 raise ConfigError(f"robot id must be 0..{MAX_ROBOT}, got {self.robot}")
-            if self.name:
+            if self.name or self.last != -1:
                 raise ConfigError("a service identity has no name, only a kind and a robot")
+        elif self.role == "host":
+            if not 0 <= self.robot <= self.last <= MAX_ROBOT:
+                raise ConfigError(
+                    f"a host's robots must be first..last within 0..{MAX_ROBOT}, "
+                    f"got {self.robot}..{self.last}"
+                )
+            if self.kind or self.name:
+                raise ConfigError("a host identity has only its robots")
         elif self.role in ("client", "operator"):
             if not _NAME.fullmatch(self.name):
                 raise ConfigError(
                     f"{self.role} name must be 1-32 of a-z 0-9 - (not starting or ending with -), "
                     f"got {self.name!r}"
                 )
-            if self.kind or self.robot != -1:
+            if self.kind or self.robot != -1 or self.last != -1:
                 raise ConfigError(f"a {self.role} identity has a name, not a kind or a robot")
         elif self.role == "router":
-            if self.kind or self.name or self.robot != -1:
+            if self.kind or self.name or self.robot != -1 or self.last != -1:
                 raise ConfigError("the router identity has only a swarm")
         else:
             raise ConfigError(f"unknown role {self.role!r}")
@@ -75,6 +88,20 @@ class Identity:
     @classmethod
     def service(cls, swarm: str, kind: str, robot: int) -> Identity:
         return cls(swarm, "service", kind=kind, robot=robot)
+
+    @classmethod
+    def host(cls, swarm: str, first: int, last: int | None = None) -> Identity:
+        """A process hosting every service of robots ``first``..``last`` (one robot by default)."""
+        return cls(swarm, "host", robot=first, last=first if last is None else last)
+
+    @property
+    def robots(self) -> range:
+        """The robots whose services this identity may act as (none for clients and the router)."""
+        if self.role == "service":
+            return range(self.robot, self.robot + 1)
+        if self.role == "host":
+            return range(self.robot, self.last + 1)
+        return range(0)
 
     @classmethod
     def client(cls, swarm: str, name: str) -> Identity:
@@ -92,6 +119,9 @@ class Identity:
     def common_name(self) -> str:
         if self.role == "service":
             return f"r{self.robot}.{self.kind}.{self.swarm}"
+        if self.role == "host":
+            span = f"r{self.robot}" if self.last == self.robot else f"r{self.robot}-{self.last}"
+            return f"{span}.host.{self.swarm}"
         if self.role == "router":
             return f"router.{self.swarm}"
         return f"{self.role}.{self.name}.{self.swarm}"
@@ -109,10 +139,16 @@ def parse_common_name(cn: str) -> Identity:
         first, middle, swarm = parts
         if first in ("client", "operator"):
             return Identity(swarm, "client" if first == "client" else "operator", name=middle)
+        if middle == "host":
+            span = _ROBOTS.fullmatch(first)
+            if span:
+                lo = int(span.group(1))
+                return Identity.host(swarm, lo, int(span.group(2)) if span.group(2) else lo)
         robot = _ROBOT.fullmatch(first)
         if robot:
             return Identity.service(swarm, middle, int(robot.group(1)))
     raise ConfigError(
         f"{cn!r} is not a swarmrec common name "
-        "(r<robot>.<kind>.<swarm>, client.<name>.<swarm>, operator.<name>.<swarm>, router.<swarm>)"
+        "(r<robot>.<kind>.<swarm>, r<first>-<last>.host.<swarm>, client.<name>.<swarm>, "
+        "operator.<name>.<swarm>, router.<swarm>)"
     )

@@ -282,6 +282,8 @@ class PkiSettings:
     operators: tuple[str, ...] = ("job",)
     #: Clients that host the gRPC gateway: their certificate also serves its gRPC port.
     gateways: tuple[str, ...] = ("gateway",)
+    #: Processes hosting every service of robots first..last (robot or robots:K hosting).
+    hosts: tuple[tuple[int, int], ...] = ()
     #: DNS names and IPs the router is dialled at (container or k8s service names too).
     router_names: tuple[str, ...] = DEFAULT_ROUTER_NAMES
     #: DNS names and IPs a gateway's gRPC port is dialled at.
@@ -319,6 +321,10 @@ class PkiSettings:
         # Identity validates the swarm name, every kind and every client name.
         ids = [Identity.router(self.swarm)]
         ids += [Identity.service(self.swarm, k, r) for r in range(self.robots) for k in self.kinds]
+        for first, last in self.hosts:
+            if not 0 <= first <= last < self.robots:
+                raise ConfigError(f"a host's robots must be first..last within 0..{self.robots - 1}")
+        ids += [Identity.host(self.swarm, first, last) for first, last in self.hosts]
         ids += [Identity.client(self.swarm, n) for n in (*self.clients, *self.gateways)]
         ids += [Identity.operator(self.swarm, n) for n in self.operators]
         object.__setattr__(self, "identities", tuple(ids))
@@ -355,7 +361,13 @@ def acl_document(settings: PkiSettings) -> dict[str, Any]:
     """The router's access control for the identities of ``settings``."""
     s = settings
     return access_control(
-        s.swarm, s.robots, kinds=s.kinds, clients=s.clients, operators=s.operators, gateways=s.gateways
+        s.swarm,
+        s.robots,
+        kinds=s.kinds,
+        clients=s.clients,
+        operators=s.operators,
+        gateways=s.gateways,
+        hosts=s.hosts,
     )
 
 

@@ -108,9 +108,7 @@ def test_prometheus_scrapes_every_service_and_sees_bytes_and_shard_load(swarm: d
     assert set(per_shard) == {str(r) for r in range(ROBOTS)}
     assert all(v > 0 for v in per_shard.values()), per_shard
     # The report read the same counters through Prometheus.
-    assert swarm["summary"].shard_load.partial_queries == [
-        int(per_shard[str(r)]) for r in range(ROBOTS)
-    ]
+    assert swarm["summary"].shard_load.partial_queries == [int(per_shard[str(r)]) for r in range(ROBOTS)]
 
 
 @pytest.mark.slow

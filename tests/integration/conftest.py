@@ -38,13 +38,14 @@ def running_swarm(
     start: bool = True,
     timeout_s: float = 90.0,
     swarm_kinds: Sequence[str] = ("gateway",),
+    hosting: str = "service",
     **bus: object,
 ) -> Iterator[LocalDeployment]:
     """A local swarm of ``robots`` robots running ``kinds`` with ``components``; with
     ``start`` False only its router runs (the test starts what it needs)."""
     settings = BusSettings(swarm=swarm, n_robots=robots, request_timeout_s=request_timeout_s, **bus)  # type: ignore[arg-type]
     spec = SwarmSpec(settings, tuple(kinds), components, swarm_kinds=tuple(swarm_kinds))
-    deployment = LocalDeployment(data_dir=tmp / "data", log_dir=tmp / "logs")
+    deployment = LocalDeployment(data_dir=tmp / "data", log_dir=tmp / "logs", hosting=hosting)
     try:
         if start:
             deployment.start(spec, timeout_s=timeout_s)

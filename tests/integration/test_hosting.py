@@ -23,9 +23,7 @@ def run(tmp: Path, hosting: str) -> tuple[PlacesSummary, str]:
         out=tmp / name,
         swarm=f"hosting-{name}",
         hosting=hosting,
-        # Several services on one session share one certificate, which the access control
-        # does not grant (docs/security.md): shared hosting runs in the explicit insecure mode.
-        security="mtls" if hosting == "service" else "insecure",
+        # Mutual TLS throughout: a shared process presents its robots' host certificate.
         progress=False,
         plots=False,
     )

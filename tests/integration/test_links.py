@@ -8,7 +8,6 @@ from pathlib import Path
 
 import pytest
 
-from swarmrec.client import SwarmClient
 from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.links import LinkSpec, read_schedule
@@ -32,7 +31,7 @@ def test_a_robot_out_of_range_misses_its_steps_keeps_its_data_and_comes_back(tmp
 
     def on_step(t: int) -> None:
         if t in (OUT - 1, BACK):
-            with SwarmClient([held[0].endpoint], held[0].spec_swarm, timeout_s=5.0) as client:
+            with held[0].client(5.0) as client:
                 stored[f"after step {t}"] = {f"{m.kind}-{m.robot}": m.stored_items for m in client.members()}
 
     settings = PlacesSettings(

@@ -149,6 +149,38 @@ def test_robot_3_cannot_put_on_robot_2s_keys(swarm: LocalDeployment) -> None:
     assert seen == [keys.event(s, "loop_closure", 3)]
 
 
+@pytest.fixture(scope="module")
+def hosted(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LocalDeployment]:
+    """The same swarm, two robots a process: each process presents its robots' host certificate."""
+    tmp = tmp_path_factory.mktemp("hosted-mtls")
+    with running_swarm(
+        tmp,
+        "mtls-hosted",
+        PlaceSettings(),
+        robots=ROBOTS,
+        kinds=("index-shard", "verifier"),
+        swarm_kinds=(),
+        hosting="robots:2",
+    ) as deployment:
+        yield deployment
+
+
+def test_a_host_certificate_acts_for_its_own_robots_only(hosted: LocalDeployment) -> None:
+    s = hosted.spec_swarm
+    logs = "".join(p.read_text() for p in hosted.log_dir.glob("*.log"))
+    assert "INSECURE" not in logs
+    assert len(_stored(hosted)) == 1 + 2 * ROBOTS  # every hosted service is up behind the ACL
+    before = _stored(hosted)
+    with _as(hosted, f"r0-1.host.{s}") as host:
+        caller = Caller(host.session, 1, 3.0)
+        with pytest.raises(NoReply):  # robot 2 is another host's
+            caller.call(keys.endpoint(s, "verifier", 2, "store"), _frame(2, 0), pb.StoreReply, target_robot=2)
+        caller.call(keys.endpoint(s, "verifier", 1, "store"), _frame(1, 0), pb.StoreReply, target_robot=1)
+    after = _stored(hosted)
+    assert after[("verifier", 2)] == before[("verifier", 2)]
+    assert after[("verifier", 1)] == before[("verifier", 1)] + 1
+
+
 def test_a_client_may_look_up_but_never_store_into_a_shard(swarm: LocalDeployment) -> None:
     before = _stored(swarm)
     s = swarm.spec_swarm

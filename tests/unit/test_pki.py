@@ -74,6 +74,9 @@ def test_common_names_name_robot_kind_and_swarm() -> None:
     assert Identity.client(SWARM, "cli").common_name == "client.cli.lab"
     assert Identity.operator(SWARM, "job").common_name == "operator.job.lab"
     assert Identity.router(SWARM).common_name == "router.lab"
+    assert Identity.host(SWARM, 3).common_name == "r3.host.lab"
+    assert Identity.host(SWARM, 0, 4).common_name == "r0-4.host.lab"
+    assert list(Identity.host(SWARM, 0, 4).robots) == [0, 1, 2, 3, 4]
 
 
 @pytest.mark.parametrize(
@@ -83,6 +86,8 @@ def test_common_names_name_robot_kind_and_swarm() -> None:
         Identity.client("s", "cli-2"),
         Identity.operator("s", "job"),
         Identity.router("s"),
+        Identity.host("s", 7),
+        Identity.host("s", 10, 19),
     ],
 )
 def test_every_common_name_parses_back_to_its_identity(identity: Identity) -> None:
@@ -102,6 +107,9 @@ def test_every_common_name_parses_back_to_its_identity(identity: Identity) -> No
         "router.lab.x",
         "verifier.3.lab",
         "r3.verifier.la*b",
+        "r3-1.host.lab",  # a host's robots run first..last
+        "r03-4.host.lab",
+        "r3-4.verifier.lab",  # only a host spans robots
     ],
 )
 def test_names_outside_the_scheme_are_refused(cn: str) -> None:
@@ -116,6 +124,40 @@ def test_an_identity_refuses_fields_of_another_role() -> None:
         Identity(SWARM, "client", kind="verifier", name="x")
     with pytest.raises(ConfigError, match="swarm name"):
         Identity.router("a.b")
+    with pytest.raises(ConfigError, match=r"first\.\.last"):
+        Identity.host(SWARM, 4, 3)
+    with pytest.raises(ConfigError, match="only its robots"):
+        Identity(SWARM, "host", kind="verifier", robot=1, last=1)
+
+
+def test_a_host_is_granted_exactly_what_its_robots_services_are() -> None:
+    from swarmrec.security.acl import grants
+
+    robots = range(6)
+    host = grants(Identity.host(SWARM, 2, 3), robots)
+    services = [
+        g for r in (2, 3) for k in SERVICE_KINDS for g in grants(Identity.service(SWARM, k, r), robots)[1:]
+    ]
+    assert host[1:] == services
+    keys_granted = {k for g in host if g.flow == "ingress" for k in g.key_exprs}
+    assert any("/verifier/2/" in k for k in keys_granted) and any("/verifier/3/" in k for k in keys_granted)
+    assert not any("/verifier/1/" in k or "/verifier/4/" in k for k in keys_granted if "store" not in k)
+
+
+def test_pki_init_issues_the_host_certificates_asked_for_and_the_acl_names_them(tmp_path: Path) -> None:
+    import json
+
+    out = tmp_path / "pki"
+    init_pki(PkiSettings(swarm=SWARM, robots=4, out=out, hosts=((0, 1), (2, 3), (2, 2))))
+    assert {p.name for p in out.glob("r*.host.*.pem")} == {
+        "r0-1.host.lab.pem",
+        "r2-3.host.lab.pem",
+        "r2.host.lab.pem",
+    }
+    acl = json.loads((out / "acl.json").read_text())
+    assert {"r0-1.host.lab", "r2-3.host.lab", "r2.host.lab"} <= {s["id"] for s in acl["subjects"]}
+    with pytest.raises(ConfigError, match="host's robots"):
+        PkiSettings(swarm=SWARM, robots=4, out=out, hosts=((3, 4),))
 
 
 # --- what the certificates hold ---------------------------------------------------
