@@ -2,11 +2,13 @@
 the n_ret best candidates for a query (paper Sec. III-C).
 
 A holder scores the query's slice against every stored slice with the
-partial Jaccard index and keeps the ``n_ret`` best scores > 0. Candidates
-are laid out as the published evaluation lays them out, robot-major over
-``n_robots x n_frames`` slots (unstored slots score 0), so that ties are
-broken by the same sort on the same array and a swarm replaying in lock-step
-returns exactly the offline evaluation's candidates.
+partial Jaccard index and keeps the ``n_ret`` best scores > 0. In lock-step
+(``before=t``) candidates are picked as the published evaluation picks them,
+robot-major over ``n_robots x t`` slots (unstored slots score 0), so that
+ties are broken by the same sort on the same array and a swarm replaying in
+lock-step returns exactly the offline evaluation's candidates. Without a
+step (a free-running swarm, a read-only lookup) there is no evaluation to
+equal, and equal scores at the cut are kept in (robot, frame) order.
 """
 
 from __future__ import annotations
@@ -40,12 +42,15 @@ class RangeIndex:
 
     Stored compactly, one row per stored (robot, frame) with the robot and the
     frame as columns, so memory and the work of a query grow with what is
-    stored, never with the frame indices a request claims. The candidates are
-    still those of the published layout (robot-major ``n_robots x t`` slots,
-    unstored slots scoring 0): the kept set and its order depend on the slots
-    only through their (robot, frame) order, except when a tie straddles the
-    ``n_ret`` cut, where the published unstable argsort decides; only then is
-    the dense ``n_robots x t`` score vector built, for that one call.
+    stored, never with the frame indices a request claims. In lock-step the
+    candidates are still those of the published layout (robot-major
+    ``n_robots x t`` slots, unstored slots scoring 0): the kept set and its
+    order depend on the slots only through their (robot, frame) order, except
+    when a tie straddles the ``n_ret`` cut, where the published unstable
+    argsort decides; only then is the dense ``n_robots x t`` score vector
+    built, for that one call, as the offline evaluation builds it. Without a
+    step the tie is cut in (robot, frame) order, so that no claimed frame
+    index, however high, makes a query cost more than the rows stored.
     """
 
     def __init__(self, lo: int, hi: int, n_robots: int) -> None:
@@ -127,7 +132,9 @@ class RangeIndex:
         """The ``n_ret`` best stored frames for the query slice ``counts``, best first.
 
         ``before`` limits the search to frames with a smaller index on every
-        robot (lock-step replay at step ``before``); None searches everything.
+        robot (lock-step replay at step ``before``, ties as the published
+        evaluation breaks them); None searches everything (equal scores at the
+        ``n_ret`` cut kept in (robot, frame) order).
         """
         query = np.asarray(counts, dtype=np.float64).reshape(-1)
         t = before if before is not None else self.frames
@@ -147,7 +154,7 @@ class RangeIndex:
         # Each row's slot in the published robot-major n_robots x t layout.
         slots = self._robot[rows] * t + self._frame[rows]
         positive = np.flatnonzero(values > 0.0)
-        kept = self._select(values[positive], slots[positive], n_ret, t)
+        kept = self._select(values[positive], slots[positive], n_ret, t if before is not None else None)
         chosen_slots, chosen_values = slots[positive][kept], values[positive][kept]
         # Best first, equal scores in slot order (a stable sort of the slot-sorted set).
         by_slot = np.argsort(chosen_slots, kind="stable")
@@ -158,9 +165,10 @@ class RangeIndex:
             for s, v in zip(chosen_slots[order].tolist(), chosen_values[order].tolist(), strict=True)
         ]
 
-    def _select(self, values: FloatArray, slots: IntArray, n_ret: int, t: int) -> IntArray:
-        """Which of the positive ``values`` (at ``slots``) the published selection keeps:
-        :func:`~swarmrec.core.selection.select_candidates` on the dense slot vector."""
+    def _select(self, values: FloatArray, slots: IntArray, n_ret: int, t: int | None) -> IntArray:
+        """Which of the positive ``values`` (at ``slots``) are kept: with a step ``t``,
+        :func:`~swarmrec.core.selection.select_candidates` on the dense slot vector;
+        without, equal scores at the cut in slot order."""
         m = values.shape[0]
         if m <= n_ret:
             return np.arange(m)
@@ -168,6 +176,11 @@ class RangeIndex:
         keep = np.flatnonzero(values >= kth)
         if keep.shape[0] == n_ret:
             return keep
+        if t is None:
+            above = np.flatnonzero(values > kth)
+            tied = np.flatnonzero(values == kth)
+            tied = tied[np.argsort(slots[tied], kind="stable")][: n_ret - above.shape[0]]
+            return np.concatenate([above, tied])
         # A tie straddles the cut: which of the equal scores are kept is decided by the
         # published unstable argsort on the dense vector, zeros included, so it is built.
         dense = np.zeros(self.n_robots * t)

@@ -45,6 +45,12 @@ def reference_candidates(values: FloatArray, t: int, n_ret: int) -> list[tuple[i
     return [(c // t, c % t, float(values[c])) for c in kept]
 
 
+def slot_order_candidates(values: FloatArray, t: int, n_ret: int) -> list[tuple[int, int, float]]:
+    """Without a step: the n_ret best > 0, equal scores in (robot, frame) order."""
+    kept = sorted((c for c in range(values.shape[0]) if values[c] > 0), key=lambda c: (-values[c], c))[:n_ret]
+    return [(c // t, c % t, float(values[c])) for c in kept]
+
+
 def tie_straddles_the_cut(values: FloatArray, n_ret: int) -> bool:
     """More than n_ret positive scores reach the n_ret-th best: the sort picks among equals."""
     positive = np.sort(values[values > 0])[::-1]
@@ -78,7 +84,8 @@ def test_candidates_are_the_papers_top_n_ret_on_random_slices(seed: int) -> None
         for before in (None, int(rng.integers(0, t_max + 3))):
             t = t_max if before is None else before
             values = partial_scores(stored, query, n_robots, t)
-            expected = reference_candidates(values, t, n_ret) if t > 0 else []
+            pick = reference_candidates if before is not None else slot_order_candidates
+            expected = pick(values, t, n_ret) if t > 0 else []
             assert as_tuples(index.candidates(query, n_ret, before=before)) == expected
             straddling += tie_straddles_the_cut(values, n_ret)
     assert straddling > 0  # the argsort had ties to decide, so they were compared too
@@ -316,26 +323,27 @@ def test_a_tie_straddling_the_cut_is_decided_as_the_dense_layout_decides_it() ->
             (1, 7, [0, 1]), (0, 8, [1, 0]), (2, 5, [0, 1]), (1, 3, [1, 0]), (0, 2, [0, 1]),
             (2, 3, [1, 0]), (1, 9, [0, 1]), (1, 5, [2, 2])]  # fmt: skip
     new, old = both(0, 2, 3, rows)
-    for before in (None, 4, 6, 10, 11, 37):
+    for before in (4, 6, 10, 11, 37):
         for n_ret in (1, 3, 5, 12):
-            assert new.candidates([1, 1], n_ret, before=before) == old.candidates(
-                [1, 1], n_ret, before=before
-            )
-    best = new.candidates([1, 1], 5)
-    assert best[0] == IndexCandidate(1, 5, 2 / (4 + 1e-12))  # the one frame above the tie
-    assert {c.score for c in best[1:]} == {1 / (2 + 1e-12)}
+            got = new.candidates([1, 1], n_ret, before=before)
+            assert got == old.candidates([1, 1], n_ret, before=before)
+    # Without a step the tie is cut in (robot, frame) order.
+    half = 1 / (2 + 1e-12)
+    got = new.candidates([1, 1], 5)
+    assert got[0] == IndexCandidate(1, 5, 2 / (4 + 1e-12))  # the one frame above the tie
+    assert got[1:] == [IndexCandidate(0, f, half) for f in (0, 2, 4, 8)]
 
 
 def test_a_row_stored_again_takes_its_new_slice_and_keeps_its_slot() -> None:
     new, old = both(3, 6, 2, [(1, 2, [1, 1, 0]), (0, 2, [0, 1, 0]), (1, 0, [0, 1, 1]), (1, 2, [0, 1, 0])])
     assert new.size == 3
     for query in ([0, 1, 0], [1, 1, 1], [0, 0, 4]):
-        assert new.candidates(query, 2) == old.candidates(query, 2)
-        assert new.candidates(query, 2, before=1) == old.candidates(query, 2, before=1)
+        for before in (1, 3, 9):
+            assert new.candidates(query, 2, before=before) == old.candidates(query, 2, before=before)
 
 
 @pytest.mark.parametrize("seed", range(8))
-def test_the_compact_layout_returns_the_dense_layouts_candidates_in_its_order(seed: int) -> None:
+def test_in_lock_step_the_compact_layout_returns_the_dense_layouts_candidates_in_its_order(seed: int) -> None:
     # Frames arrive in any order, robots interleaved, with long gaps (a robot's slice is
     # sent only when its frame has labels in the range); scores tie often.
     rng = np.random.default_rng(seed)
@@ -351,14 +359,16 @@ def test_the_compact_layout_returns_the_dense_layouts_candidates_in_its_order(se
     for _ in range(25):
         query = rng.integers(0, 3, width)
         n_ret = int(rng.integers(1, 9))
-        for before in (None, int(rng.integers(0, 700))):
+        for before in (int(rng.integers(0, 700)), 600, old.frames):
             assert new.candidates(query, n_ret, before=before) == old.candidates(query, n_ret, before=before)
 
 
-def test_memory_follows_the_frames_stored_not_the_frame_indices_claimed() -> None:
+def test_memory_follows_the_frames_stored_not_the_frame_indices_claimed(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     # 256 slices at frame indices stepping by 4096 (the gap a shard allows) up to 2^20:
-    # the dense layout held n_robots x 2^20 x bins doubles (and scanned them on every
-    # query); one row per stored frame holds 256.
+    # the dense layout held n_robots x 2^20 x bins doubles (670 MB here) and scanned
+    # them on every query; one row per stored frame holds 256.
     index = RangeIndex(0, 8, 10)
     for i in range(256):
         index.add(3, 4096 * i, [1, 0, 0, 0, 0, 0, 0, 1])
@@ -367,6 +377,15 @@ def test_memory_follows_the_frames_stored_not_the_frame_indices_claimed() -> Non
     index.add(0, 7, [1, 1, 0, 0, 0, 0, 0, 0])
     got = index.candidates([1, 1, 0, 0, 0, 0, 0, 0], 4, before=10)
     assert got == [IndexCandidate(0, 7, 2 / (2 + 1e-12)), IndexCandidate(3, 0, 1 / (3 + 1e-12))]
+
+    # Without a step, not even a tie at the cut (256 equal scores for 4 places) builds
+    # the n_robots x 2^20 vector: the dense selection is never called.
+    def dense(*_args: object) -> None:
+        raise AssertionError("the dense slot vector was built")
+
+    monkeypatch.setattr("swarmrec.core.index.select_candidates", dense)
+    got = index.candidates([1, 0, 0, 0, 0, 0, 0, 0], 4)
+    assert [(c.robot, c.frame) for c in got] == [(0, 7), (3, 0), (3, 4096), (3, 8192)]
 
 
 def test_a_stored_slice_is_read_back_and_an_unstored_one_is_none() -> None:
