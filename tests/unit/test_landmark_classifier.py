@@ -215,7 +215,7 @@ def test_a_view_claiming_more_pixels_than_allowed_is_refused_before_it_is_decode
 @pytest.mark.parametrize(
     ("data", "match"),
     [
-        (b"GIF89a....", "not a PNG or a JPEG"),
+        (b"GIF89a....", "as a PNG or a JPEG"),
         (b"\x89PNG\r\n\x1a\n\0\0", "without its IHDR"),
         (b"\xff\xd8\xff", "JPEG without"),
     ],

@@ -54,7 +54,7 @@ def view_size(data: bytes) -> tuple[int, int]:
     if data.startswith(_PNG_SIGNATURE):
         # The IHDR chunk comes first: length, "IHDR", width, height (big-endian).
         if len(data) < 24 or data[12:16] != b"IHDR":
-            raise ValueError("the view is a PNG without its IHDR header")
+            raise ValueError("the view does not decode: a PNG without its IHDR header")
         return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
     if data.startswith(b"\xff\xd8"):
         i = 2
@@ -75,8 +75,8 @@ def view_size(data: bytes) -> tuple[int, int]:
                 # length (2), precision (1), height (2), width (2)
                 return int.from_bytes(data[i + 7 : i + 9], "big"), int.from_bytes(data[i + 5 : i + 7], "big")
             i += 2 + length
-        raise ValueError("the view is a JPEG without a readable frame header")
-    raise ValueError("the view is not a PNG or a JPEG")
+        raise ValueError("the view does not decode: a JPEG without a readable frame header")
+    raise ValueError("the view does not decode as a PNG or a JPEG")
 
 
 def decode_view(data: bytes, max_pixels: int | None = None) -> np.ndarray:
