@@ -12,12 +12,15 @@ so a caller can catch the whole family in one place::
     ├── WireError                  a message on the bus does not decode or validate   [INVALID_ARGUMENT]
     │   ├── MalformedMessageError  the bytes do not parse as the expected message     [MALFORMED]
     │   ├── MessageTooLargeError   the payload exceeds the receiver's size limit      [TOO_LARGE]
+    │   ├── LimitExceededError     it asks for more work than the receiver's bounds   [TOO_LARGE]
+    │   ├── MissingFieldError      a required field is absent                         [INVALID_ARGUMENT]
     │   └── LabelOutOfRangeError   a label index past the receiver's label list       [UNKNOWN_LABEL]
     ├── RequestError               a service refuses a request; the reply carries .code
     │   ├── InvalidArgument        [INVALID_ARGUMENT]
     │   ├── NotFound               [NOT_FOUND]
     │   ├── Unavailable            [UNAVAILABLE]
     │   ├── FailedPrecondition     [FAILED_PRECONDITION]
+    │   ├── AlreadyExists          [ALREADY_EXISTS] stored already, with other content
     │   └── Internal               [INTERNAL]
     ├── CallError                  a request to a peer did not get the expected answer
     │   ├── NoReply                nobody answered (gone, crashed, not discovered yet)
@@ -57,6 +60,7 @@ from pathlib import Path
 from typing import ClassVar
 
 __all__ = [
+    "AlreadyExists",
     "CallError",
     "CertificateExpiredError",
     "ConfigError",
@@ -66,9 +70,11 @@ __all__ = [
     "Internal",
     "InvalidArgument",
     "LabelOutOfRangeError",
+    "LimitExceededError",
     "MalformedLineError",
     "MalformedMessageError",
     "MessageTooLargeError",
+    "MissingFieldError",
     "NoReply",
     "NotFound",
     "PkiConflictError",
@@ -96,6 +102,7 @@ class ErrorCode(IntEnum):
     TIMEOUT = 7
     INTERNAL = 8
     FAILED_PRECONDITION = 9
+    ALREADY_EXISTS = 10
 
     @property
     def wire_name(self) -> str:
@@ -173,6 +180,33 @@ class MessageTooLargeError(WireError):
         self.max_size = max_size
 
 
+class LimitExceededError(WireError):
+    """A message that decodes but asks for more than the receiver's bounds allow:
+    objects in a frame, objects of one label, frames or object pairs to verify.
+
+    Checked before the work starts, so refusing costs next to nothing.
+    """
+
+    code = ErrorCode.TOO_LARGE
+
+    def __init__(self, what: str, value: int, limit: int, setting: str) -> None:
+        super().__init__(f"{what}: {value}, more than the limit of {limit} (setting {setting})")
+        self.what = what
+        self.value = value
+        self.limit = limit
+        self.setting = setting
+
+
+class MissingFieldError(WireError):
+    """A required field is absent: proto3 would read it as 0 (robot 0, frame 0, step 0),
+    so an empty payload or another message's bytes would pass for a real request."""
+
+    def __init__(self, message: str, field: str) -> None:
+        super().__init__(f"{message} has no {field}; it is required")
+        self.message_name = message
+        self.field = field
+
+
 class LabelOutOfRangeError(WireError):
     """A label index (or a label range) past the end of the receiver's label list."""
 
@@ -217,6 +251,17 @@ class FailedPrecondition(RequestError):
     """The request is well formed but the service is not in the mode or state to serve it."""
 
     code = ErrorCode.FAILED_PRECONDITION
+
+
+class AlreadyExists(RequestError):
+    """A store of a frame (robot, frame index) that is already stored with other content.
+
+    Stores are idempotent: the same content again is accepted and answered as
+    before; other content would silently replace what peers already matched
+    against, so it is refused and nothing changes.
+    """
+
+    code = ErrorCode.ALREADY_EXISTS
 
 
 class Internal(RequestError):

@@ -12,8 +12,14 @@ what a robot on a shared bus needs:
   messages of a round not started yet are kept (at most ``early_per_round`` per
   round, for at most :data:`MAX_EARLY_ROUNDS` rounds) and processed, in arrival
   order, right after the robot's own message goes out when the round starts;
-* round order: round ids must increase, so a message of a lower round than the
-  current one is late and rejected (``stale_round``);
+* round order: a new round must come after the current one, so a message of an
+  earlier round is late and rejected (``stale_round``). Round ids are uint32 on
+  the wire and count modulo 2^32, like TCP sequence numbers (RFC 1982): a new
+  round is 1 to ``max_round_jump`` ahead of the current one, after 2^32 - 1
+  comes 0. So no round id can lock the robot (with plain order, round
+  2^32 - 1 left no higher id until a restart), and one request cannot move it
+  further than ``max_round_jump`` ahead; a message more than that far ahead
+  is refused (``too_far_ahead``) rather than kept;
 * the records of the last :data:`KEPT_ROUNDS` rounds, for the ``posterior`` endpoint.
 
 A radio broadcast reaches exactly the robots in range, including the one a message
@@ -38,8 +44,10 @@ from swarmrec.fusion.flooding import SUM_TOLERANCE, FloodingNode, FloodMessage, 
 from swarmrec.fusion.wnbc import FusionState, LikelihoodError, WeightLaw, normalise_likelihood
 
 __all__ = [
+    "DEFAULT_MAX_ROUND_JUMP",
     "KEPT_ROUNDS",
     "MAX_EARLY_ROUNDS",
+    "ROUND_MODULUS",
     "Broadcast",
     "EarlyBuffer",
     "FusionRobot",
@@ -50,6 +58,7 @@ __all__ = [
     "RoundRecord",
     "RoundStart",
     "Step",
+    "rounds_ahead",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -59,6 +68,16 @@ FloatArray = npt.NDArray[np.float64]
 MAX_EARLY_ROUNDS = 4
 #: Finished rounds whose posterior the ``posterior`` endpoint can still report.
 KEPT_ROUNDS = 8
+#: Round ids are uint32 on the wire and count modulo this.
+ROUND_MODULUS = 2**32
+#: How far ahead of the current round a new one may be, unless configured.
+DEFAULT_MAX_ROUND_JUMP = 1024
+
+
+def rounds_ahead(round_id: int, current: int) -> int:
+    """How many rounds ``round_id`` is after ``current``, modulo 2^32 (0: the same round;
+    an earlier round reads as nearly 2^32 ahead)."""
+    return (round_id - current) % ROUND_MODULUS
 
 
 class Reason(StrEnum):
@@ -71,6 +90,7 @@ class Reason(StrEnum):
     SENDER_MISMATCH = "sender_mismatch"
     NOT_NEIGHBOUR = "not_neighbour"
     STALE_ROUND = "stale_round"
+    TOO_FAR_AHEAD = "too_far_ahead"
     BUFFER_FULL = "buffer_full"
     BAD_HOPS = "bad_hops"
     IGNORED = "ignored"
@@ -157,20 +177,29 @@ class EarlyBuffer:
     """Messages of rounds not started yet: at most ``per_round`` per round, for at most
     ``max_rounds`` rounds.
 
-    When a message of a new round finds every slot taken, the highest buffered round
-    makes way if the new one is lower (the lower round starts sooner, and a bogus far
-    round id must not lock the buffer); otherwise the new message is refused.
+    When a message of a new round finds every slot taken, the furthest buffered round
+    makes way if the new one is nearer (the nearer round starts sooner, and a bogus far
+    round id must not lock the buffer); otherwise the new message is refused. Rounds
+    are ordered by how far they are ahead of ``origin``, the robot's current round
+    (modulo 2^32), or by their id before the robot's first round.
     """
 
-    def __init__(self, per_round: int, max_rounds: int = MAX_EARLY_ROUNDS) -> None:
-        if per_round < 0 or max_rounds < 1:
-            raise ValueError(f"need per_round >= 0 and max_rounds >= 1, got {per_round}, {max_rounds}")
+    def __init__(
+        self, per_round: int, max_rounds: int = MAX_EARLY_ROUNDS, max_ahead: int = DEFAULT_MAX_ROUND_JUMP
+    ) -> None:
+        if per_round < 0 or max_rounds < 1 or not 1 <= max_ahead < ROUND_MODULUS // 2:
+            raise ValueError(
+                f"need per_round >= 0, max_rounds >= 1 and 1 <= max_ahead < 2^31, "
+                f"got {per_round}, {max_rounds}, {max_ahead}"
+            )
         self.per_round = per_round
         self.max_rounds = max_rounds
+        self.max_ahead = max_ahead
         self._rounds: dict[int, list[FloodMessage]] = {}
 
-    def add(self, message: FloodMessage) -> tuple[bool, int]:
-        """Keep ``message``; returns (kept, messages of another round evicted for it)."""
+    def add(self, message: FloodMessage, origin: int | None = None) -> tuple[bool, int]:
+        """Keep ``message`` (``origin``: the robot's current round, None before the first);
+        returns (kept, messages of another round evicted for it)."""
         kept = self._rounds.get(message.round_id)
         if kept is not None:
             if len(kept) >= self.per_round:
@@ -181,18 +210,23 @@ class EarlyBuffer:
             return False, 0
         evicted = 0
         if len(self._rounds) >= self.max_rounds:
-            highest = max(self._rounds)
-            if message.round_id > highest:
+
+            def distance(r: int) -> int:
+                return r if origin is None else rounds_ahead(r, origin)
+
+            furthest = max(self._rounds, key=distance)
+            if distance(message.round_id) > distance(furthest):
                 return False, 0
-            evicted = len(self._rounds.pop(highest))
+            evicted = len(self._rounds.pop(furthest))
         self._rounds[message.round_id] = [message]
         return True, evicted
 
     def take(self, round_id: int) -> tuple[list[FloodMessage], int]:
-        """Round ``round_id``'s messages in arrival order, and the number of messages of
-        lower rounds dropped (those rounds were skipped here and will never start)."""
+        """Round ``round_id``'s messages in arrival order, and the number of messages
+        dropped of rounds that are not 1 to ``max_ahead`` rounds after it (earlier rounds
+        were skipped here and will never start; far ones cannot start from here)."""
         messages = self._rounds.pop(round_id, [])
-        stale = [r for r in self._rounds if r < round_id]
+        stale = [r for r in self._rounds if not 1 <= rounds_ahead(r, round_id) <= self.max_ahead]
         dropped = sum(len(self._rounds.pop(r)) for r in stale)
         return messages, dropped
 
@@ -222,14 +256,18 @@ class FusionRobot:
         n_classes: int,
         r_max: int | None = None,
         early_per_round: int = 1024,
+        max_round_jump: int = DEFAULT_MAX_ROUND_JUMP,
     ) -> None:
+        if not 1 <= max_round_jump < ROUND_MODULUS // 2:
+            raise ValueError(f"max_round_jump must be in [1, 2^31), got {max_round_jump}")
+        self.max_round_jump = max_round_jump
         self.robot = robot
         self.n_robots = n_robots
         self.n_classes = n_classes
         self.law = law
         self.r_max = r_max
         self.node = FloodingNode(robot, n_robots, n_classes=n_classes, r_max=r_max)
-        self.buffer = EarlyBuffer(early_per_round)
+        self.buffer = EarlyBuffer(early_per_round, max_ahead=max_round_jump)
         self.current: RoundRecord | None = None
         self._rounds: OrderedDict[int, RoundRecord] = OrderedDict()
 
@@ -250,10 +288,16 @@ class FusionRobot:
         it, :data:`~swarmrec.fusion.flooding.SUM_TOLERANCE`): a robot whose every
         message its neighbours reject would silently drop out of the swarm's fusion.
         """
-        if self.current is not None and round_id <= self.current.round_id:
-            raise RoundError(
-                f"round ids must increase: round {self.current.round_id} already started, got {round_id}"
-            )
+        if not 0 <= round_id < ROUND_MODULUS:
+            raise RoundError(f"round ids are 32-bit unsigned integers, got {round_id}")
+        if self.current is not None:
+            current = self.current.round_id
+            if not 1 <= rounds_ahead(round_id, current) <= self.max_round_jump:
+                raise RoundError(
+                    f"round ids must advance: round {current} runs now, so a new round is "
+                    f"{(current + 1) % ROUND_MODULUS} to {(current + self.max_round_jump) % ROUND_MODULUS} "
+                    f"(at most {self.max_round_jump} ahead, modulo 2^32), got {round_id}"
+                )
         own = self._own_probabilities(probabilities)
         if not math.isfinite(yaw):
             raise RoundError(f"yaw must be finite, got {yaw}")
@@ -288,14 +332,17 @@ class FusionRobot:
     def receive(self, message: FloodMessage) -> Handled:
         """Handle one flooded message; never raises for anything a peer can send."""
         cur = self.current
-        if cur is None or message.round_id > cur.round_id:
-            kept, evicted = self.buffer.add(message)
-            if kept:
-                return Handled(Handling.BUFFERED, message, evicted=evicted)
-            return self.reject(Reason.BUFFER_FULL, message)
-        if message.round_id < cur.round_id:
-            return self.reject(Reason.STALE_ROUND, message)
-        return self._process(message)
+        ahead = None if cur is None else rounds_ahead(message.round_id, cur.round_id)
+        if ahead == 0:
+            return self._process(message)
+        if ahead is not None and ahead > self.max_round_jump:
+            # Modulo 2^32 an earlier round is nearly 2^32 ahead: the lower half is "ahead".
+            late = ahead >= ROUND_MODULUS // 2
+            return self.reject(Reason.STALE_ROUND if late else Reason.TOO_FAR_AHEAD, message)
+        kept, evicted = self.buffer.add(message, None if cur is None else cur.round_id)
+        if kept:
+            return Handled(Handling.BUFFERED, message, evicted=evicted)
+        return self.reject(Reason.BUFFER_FULL, message)
 
     def reject(self, reason: str, message: FloodMessage) -> Handled:
         """Refuse ``message`` for ``reason`` (also for a check the caller made, such as

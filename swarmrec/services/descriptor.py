@@ -3,9 +3,13 @@
 Endpoints:
 
 * ``process``: a :class:`Constellation` of this robot -> :class:`QueryReport`.
-  The frame is stored in the robot's own verifier and, when it has at least
-  ``min_objects`` objects, queried with the two-step protocol
+  The frame is stored in the robot's own verifier first and, when it has at
+  least ``min_objects`` objects, then queried with the two-step protocol
   (:mod:`swarmrec.services.protocol`); its slices are stored by the shards.
+  The verifier is the authority on what frame ``t`` of this robot is: a frame
+  it refuses (ALREADY_EXISTS: stored with other content) is refused here before
+  any shard stores a slice of it, and the same frame again is processed again
+  without storing anything twice (a loop closure is kept once per frame).
   The best verified match at least ``loop_closure_min_score`` good (and, on
   the robot's own trajectory, more than ``exclusion`` frames back) becomes a
   loop closure, published on ``events/loop_closure/<robot>``; every report is
@@ -21,14 +25,14 @@ import threading
 import time
 
 from swarmrec.core.presets import get_preset
-from swarmrec.errors import CallError, InvalidArgument, Unavailable
+from swarmrec.errors import AlreadyExists, CallError, ErrorCode, InvalidArgument, RemoteError, Unavailable
 from swarmrec.runtime import Endpoint, RequestContext, ServiceBase, ServiceContext, keys
 from swarmrec.services.limits import MAX_FRAME_INDEX
 from swarmrec.services.metrics import DescriptorMetrics
 from swarmrec.services.protocol import QueryPlan, two_step_query
 from swarmrec.services.settings import PlaceSettings
 from swarmrec.wire import messages as pb
-from swarmrec.wire.codec import constellation_from_proto, encode
+from swarmrec.wire.codec import check_fields, constellation_from_proto, encode
 
 __all__ = ["Descriptor"]
 
@@ -51,11 +55,14 @@ class Descriptor(ServiceBase):
         self.lock = threading.Lock()
         self.closure_log = ctx.open_log("loop-closures")
         self.closures = [pb.LoopClosure.FromString(r) for r in self.closure_log.records()]
+        # Query frames that have their loop closure: a frame processed again adds none.
+        self.closed = {c.query_frame_index for c in self.closures}
 
     def member_info(self) -> pb.MemberInfo:
         return pb.MemberInfo(n_labels=self.places.n_labels)
 
     def process(self, msg: pb.Constellation, _ctx: RequestContext) -> pb.QueryReport:
+        check_fields(msg, "robot_id", "frame_index")
         robot = self.bus.robot
         if msg.robot_id != robot:
             raise InvalidArgument(
@@ -63,24 +70,28 @@ class Descriptor(ServiceBase):
             )
         if msg.frame_index >= MAX_FRAME_INDEX:
             raise InvalidArgument(f"frame index must be below {MAX_FRAME_INDEX}, got {msg.frame_index}")
-        c = constellation_from_proto(msg, self.places.n_labels)
+        c = constellation_from_proto(msg, self.places.n_labels, self.places.frame_limits())
         t0 = time.perf_counter()
         caller = self.ctx.caller
-        stored = caller.start(
-            keys.endpoint(self.bus.swarm, "verifier", robot, "store"),
-            msg,
-            target_robot=robot,
-            endpoint="store",
-        )
+        try:
+            caller.call(
+                keys.endpoint(self.bus.swarm, "verifier", robot, "store"),
+                msg,
+                pb.StoreReply,
+                target_robot=robot,
+                endpoint="store",
+            )
+        except RemoteError as e:
+            if e.code == ErrorCode.ALREADY_EXISTS:
+                raise AlreadyExists(f"frame {msg.frame_index}: {e.message}") from None
+            raise Unavailable(f"own verifier did not store the frame: {e}") from None
+        except CallError as e:
+            # Without its own verifier the robot cannot answer for this frame later.
+            raise Unavailable(f"own verifier did not store the frame: {e}") from None
         if len(c) >= self.preset.min_objects:
             report = two_step_query(caller, self.plan, c, msg, query_id=0, read_only=False, self_robot=robot)
         else:
             report = pb.QueryReport(robot_id=robot, frame_index=msg.frame_index, queried=False)
-        try:
-            stored.result(pb.StoreReply)
-        except CallError as e:
-            # Without its own verifier the robot cannot answer for this frame later.
-            raise Unavailable(f"own verifier did not store the frame: {e}") from None
         report.duration_us = min(int((time.perf_counter() - t0) * 1e6), 2**32 - 1)
         self.metrics.query_seconds.observe(report.duration_us / 1e6)
         if report.queried:
@@ -111,16 +122,21 @@ class Descriptor(ServiceBase):
                 unix_time_ns=time.time_ns(),
             )
             with self.lock:
+                if report.frame_index in self.closed:
+                    return  # processed again: its closure is kept already
                 self.closure_log.append(encode(closure))
                 self.closures.append(closure)
+                self.closed.add(report.frame_index)
             self.metrics.loop_closures.inc()
             self.ctx.publish(keys.event(self.bus.swarm, "loop_closure", robot), closure)
             return
 
     def loop_closures(self, req: pb.LoopClosuresRequest, _ctx: RequestContext) -> pb.LoopClosureList:
-        if math.isnan(req.min_score):
-            # Every comparison with NaN is false: the answer would be an empty list, read as "none found".
-            raise InvalidArgument("min_score must be a number, got NaN")
+        check_fields(req)
+        if not math.isfinite(req.min_score):
+            # NaN compares false with everything and no score reaches inf: the answer would be
+            # an empty list, indistinguishable from "none found".
+            raise InvalidArgument(f"min_score must be a finite number, got {req.min_score}")
         with self.lock:
             found = [c for c in self.closures if c.score >= req.min_score]
         return pb.LoopClosureList(robot_id=self.bus.robot, loop_closures=found)

@@ -32,7 +32,7 @@ from swarmrec.runtime import Endpoint, RequestContext, ServiceBase, ServiceConte
 from swarmrec.services.metrics import FusionMetrics
 from swarmrec.services.settings import FusionSettings, LandmarkSettings
 from swarmrec.wire import messages as pb
-from swarmrec.wire.codec import encode
+from swarmrec.wire.codec import check_fields, encode
 from swarmrec.wire.fusion import (
     classifier_output_to_flood,
     flood_to_classifier_output,
@@ -59,6 +59,7 @@ class FusionService(ServiceBase):
             n_classes=ctx.settings(LandmarkSettings).n_classes,
             r_max=fusion.fusion_r_max or None,
             early_per_round=fusion.fusion_early_messages,
+            max_round_jump=fusion.fusion_max_round_jump,
         )
         # One lock orders everything that touches the rounds: start_round (endpoint
         # workers), the inbox worker and posterior reads. Sends happen under it too,
@@ -75,6 +76,7 @@ class FusionService(ServiceBase):
     # --- endpoints ------------------------------------------------------------------
 
     def start_round(self, req: pb.FusionRoundStart, _ctx: RequestContext) -> pb.FusionRoundStarted:
+        check_fields(req, "round_id")
         law: WeightLaw | None = None
         if req.HasField("weight_law"):
             try:
@@ -108,6 +110,7 @@ class FusionService(ServiceBase):
         )
 
     def posterior(self, req: pb.PosteriorRequest, _ctx: RequestContext) -> pb.FusionPosterior:
+        check_fields(req)  # an empty request asks for the latest round, which is harmless
         round_id = req.round_id if req.HasField("round_id") else None
         with self.lock:
             record = self.robot.record(round_id)
@@ -134,6 +137,9 @@ class FusionService(ServiceBase):
     # --- the inbox ------------------------------------------------------------------
 
     def inbox(self, msg: pb.ClassifierOutput, ctx: RequestContext) -> None:
+        # Another message's bytes are refused here (MALFORMED); an empty one has no
+        # probabilities and the robot refuses it (wrong_length).
+        check_fields(msg)
         message = classifier_output_to_flood(msg)
         with self.lock:
             if ctx.caller_robot is not None and ctx.caller_robot != msg.sender_robot_id:

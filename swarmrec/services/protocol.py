@@ -106,10 +106,12 @@ def two_step_query(
     robots_arr = np.asarray(cand_robot, np.int64)
     frames_arr = np.asarray(cand_frame, np.int64)
     chosen = select_robots(robots_arr, plan.preset.n_fq, self_robot)
-    # The verifiers need the objects, not the frame's name: frame_id stays home.
+    # The verifiers need the objects, not the frame's name: frame_id stays home. A robot
+    # or frame of 0 is left absent (a verify query may, and reads it as 0), so the
+    # presence a store requires costs no byte between robots.
     query = pb.Constellation(
-        robot_id=wire.robot_id,
-        frame_index=wire.frame_index,
+        robot_id=wire.robot_id or None,
+        frame_index=wire.frame_index or None,
         labels=wire.labels,
         positions_mm=wire.positions_mm,
         positions_m=wire.positions_m,

@@ -22,7 +22,9 @@ from swarmrec.core.presets import get_preset
 from swarmrec.core.ranges import label_bounds
 from swarmrec.datasets.tum import DEFAULT_MAX_DT, TUM_DEPTH_SCALE
 from swarmrec.errors import ConfigError
+from swarmrec.fusion.robot import DEFAULT_MAX_ROUND_JUMP
 from swarmrec.runtime.settings import BusSettings, Component, Config, setting
+from swarmrec.wire.codec import FrameLimits
 
 if TYPE_CHECKING:
     from swarmrec.detection.points import CameraIntrinsics
@@ -65,11 +67,30 @@ class PlaceSettings(Component):
         "object positions on the wire: mm (integers, about 2 bytes a coordinate) or exact (8-byte doubles, "
         "every score bit for bit the published scripts')",
     )
+    # Bounds on the work one request can cause (docs/swarm.md, "Bad input"): a frame's
+    # association costs about objects^2 x labels, so one huge frame must not cost seconds
+    # of CPU and gigabytes, on arrival or in every later verify.
+    max_objects_per_frame: int = setting(
+        300, "a frame with more objects is refused (TOO_LARGE); the detector keeps at most 300 boxes"
+    )
+    max_objects_per_label: int = setting(100, "a frame with more objects of one label is refused (TOO_LARGE)")
+    verify_max_frames: int = setting(
+        1024, "a verify request that would check more stored frames is refused (TOO_LARGE)"
+    )
+    verify_max_object_pairs: int = setting(
+        1_000_000,
+        "a verify request that would compare more object pairs (query objects x frame objects, "
+        "summed over the frames checked) is refused (TOO_LARGE)",
+    )
 
     def problems(self) -> list[str]:
         problems = []
         if self.n_labels < 1:
             problems.append(f"n_labels must be >= 1, got {self.n_labels}")
+        for name in ("max_objects_per_frame", "max_objects_per_label", "verify_max_frames",
+                     "verify_max_object_pairs"):  # fmt: skip
+            if getattr(self, name) < 1:
+                problems.append(f"{name} must be >= 1, got {getattr(self, name)}")
         if not math.isfinite(self.loop_closure_min_score):
             problems.append(f"loop_closure_min_score must be a number, got {self.loop_closure_min_score}")
         try:
@@ -79,6 +100,10 @@ class PlaceSettings(Component):
         if self.wire_positions not in WIRE_POSITIONS:
             problems.append(f"wire_positions must be mm or exact, got {self.wire_positions!r}")
         return problems
+
+    def frame_limits(self) -> FrameLimits:
+        """The bounds on one frame's objects, as the wire codec checks them."""
+        return FrameLimits(self.max_objects_per_frame, self.max_objects_per_label)
 
     @property
     def exact_positions(self) -> bool:
@@ -214,6 +239,14 @@ class ClassifierSettings(Component):
     title: ClassVar[str] = "detector, classifier mode"
 
     classifier_model: str = setting("", "the landmark classifier's ONNX model; empty: the project's own")
+    max_view_pixels: int = setting(
+        1 << 22, "a view (PNG or JPEG) whose header claims more pixels is refused before decoding (TOO_LARGE)"
+    )
+
+    def problems(self) -> list[str]:
+        return (
+            [] if self.max_view_pixels >= 1 else [f"max_view_pixels must be >= 1, got {self.max_view_pixels}"]
+        )
 
 
 @dataclass(frozen=True)
@@ -232,6 +265,10 @@ class FusionSettings(Component):
     fusion_early_messages: int = setting(
         1024, "messages kept per round that arrive before this robot starts that round"
     )
+    fusion_max_round_jump: int = setting(
+        DEFAULT_MAX_ROUND_JUMP,
+        "a new round id is at most this far ahead of the current one (ids count modulo 2^32)",
+    )
 
     def problems(self) -> list[str]:
         problems = []
@@ -245,6 +282,8 @@ class FusionSettings(Component):
             problems.append(f"fusion_r_max must be >= 0 (0: no limit), got {self.fusion_r_max}")
         if self.fusion_early_messages < 0:
             problems.append(f"fusion_early_messages must be >= 0, got {self.fusion_early_messages}")
+        if not 1 <= self.fusion_max_round_jump < 2**31:
+            problems.append(f"fusion_max_round_jump must be in [1, 2^31), got {self.fusion_max_round_jump}")
         return problems
 
 

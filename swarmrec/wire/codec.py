@@ -10,6 +10,16 @@ crashing later in numpy. Every ``*_to_proto`` refuses what the schema cannot
 carry (NaN, negative ids, values past 32 bits) with the same error, rather
 than letting protobuf raise its own exception types or silently clamp.
 
+Two more things protobuf lets through. proto3 reads an absent field as 0, so
+an empty payload is "robot 0, frame 0, step 0": fields a request cannot do
+without are declared ``optional`` in the schema (presence is then on the wire)
+and :func:`check_fields` refuses a request without them. And the bytes of
+another message type often parse: their fields land in the unknown-field set
+(a field number or wire type this schema does not have), which
+:func:`check_fields` refuses as MALFORMED. The work a frame can cause is
+bounded too (:class:`FrameLimits`): its objects are counted before anything
+is converted, so refusing a huge frame costs next to nothing.
+
 Positions travel as integer millimetres (zigzag varints, 1 to 2 bytes for the
 few metres a camera sees) instead of 4-byte floats: a millimetre is finer than
 any depth camera's noise, so nothing measurable is lost. A swarm that must
@@ -33,9 +43,17 @@ from google.protobuf.message import (  # type: ignore[import-untyped, unused-ign
     DecodeError,
     Message,
 )
+from google.protobuf.unknown_fields import UnknownFieldSet  # type: ignore[import-untyped, unused-ignore]
 
 from swarmrec.core.types import Constellation
-from swarmrec.errors import LabelOutOfRangeError, MalformedMessageError, MessageTooLargeError, WireError
+from swarmrec.errors import (
+    LabelOutOfRangeError,
+    LimitExceededError,
+    MalformedMessageError,
+    MessageTooLargeError,
+    MissingFieldError,
+    WireError,
+)
 from swarmrec.wire.gen.swarmrec.v1 import (
     constellation_pb2,
     descriptor_pb2,
@@ -49,8 +67,10 @@ __all__ = [
     "MM_PER_M",
     "Candidate",
     "DescriptorSlice",
+    "FrameLimits",
     "candidates_from_proto",
     "candidates_to_proto",
+    "check_fields",
     "constellation_from_proto",
     "constellation_to_proto",
     "decode",
@@ -156,7 +176,77 @@ def _sparse_bins(
     return idx, cnt
 
 
+def _unknown_field(msg: Message, path: str) -> str | None:
+    """The path of the first (sub)message holding fields its schema does not have."""
+    if len(UnknownFieldSet(msg)):
+        return path
+    for field, value in msg.ListFields():
+        if field.message_type is None:
+            continue
+        items = value if field.is_repeated else (value,)
+        for i, item in enumerate(items):
+            name = f"{path}.{field.name}" + (f"[{i}]" if field.is_repeated else "")
+            found = _unknown_field(item, name)
+            if found is not None:
+                return found
+    return None
+
+
+def check_fields(msg: Message, *required: str) -> None:
+    """Refuse a request that carries fields its schema does not have, or lacks a required one.
+
+    Unknown fields (a field number or wire type the schema does not have, as the
+    bytes of another message type usually give) raise MalformedMessageError;
+    a field of ``required`` that is not present raises MissingFieldError. A
+    required field is a message field or an ``optional`` scalar (proto3 has no
+    presence for plain scalars); ``"query.robot_id"`` names a field of a field.
+    """
+    name = schema_name(msg)
+    where = _unknown_field(msg, name)
+    if where is not None:
+        raise MalformedMessageError(
+            f"{where} holds fields its schema does not have (another message's bytes?)"
+        )
+    for path in required:
+        holder = msg
+        parts = path.split(".")
+        for i, part in enumerate(parts):
+            if not holder.HasField(part):
+                raise MissingFieldError(name, ".".join(parts[: i + 1]))
+            holder = getattr(holder, part)
+
+
 # --- constellations ---------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FrameLimits:
+    """Bounds on one frame's objects, so that the work a frame causes is bounded.
+
+    ``setting_*`` name the settings the bounds come from, for the error message.
+    """
+
+    max_objects: int
+    max_per_label: int
+    setting_objects: str = "max_objects_per_frame"
+    setting_per_label: str = "max_objects_per_label"
+
+    def check_count(self, n: int) -> None:
+        """Refuse a frame of ``n`` objects (before anything is converted)."""
+        if n > self.max_objects:
+            raise LimitExceededError("objects in the frame", n, self.max_objects, self.setting_objects)
+
+    def check_labels(self, counts: npt.NDArray[np.int64], lo: int = 0) -> None:
+        """Refuse per-label object counts (bin i is label ``lo + i``) over the bounds."""
+        if counts.size and int(counts.max()) > self.max_per_label:
+            i = int(np.argmax(counts))
+            raise LimitExceededError(
+                f"objects of label {lo + i} in the frame", int(counts[i]), self.max_per_label,
+                self.setting_per_label,
+            )  # fmt: skip
+        total = int(counts.sum())
+        if total > self.max_objects:
+            raise LimitExceededError("objects in the frame", total, self.max_objects, self.setting_objects)
 
 
 def constellation_to_proto(
@@ -198,8 +288,11 @@ def constellation_to_proto(
     return msg
 
 
-def constellation_from_proto(msg: constellation_pb2.Constellation, n_labels: int) -> Constellation:
-    """The constellation in a wire message, checked against a list of ``n_labels`` labels.
+def constellation_from_proto(
+    msg: constellation_pb2.Constellation, n_labels: int, limits: FrameLimits | None = None
+) -> Constellation:
+    """The constellation in a wire message, checked against a list of ``n_labels`` labels
+    and, when given, ``limits`` (the object count first, before anything is converted).
 
     Millimetres come back as ``mm / 1000``: dividing (rather than multiplying by
     0.001) gives the float nearest the exact decimal, so 1234 mm is 1.234.
@@ -207,6 +300,8 @@ def constellation_from_proto(msg: constellation_pb2.Constellation, n_labels: int
     """
     _check_n_labels(n_labels)
     n = len(msg.labels)
+    if limits is not None:
+        limits.check_count(n)
     exact = len(msg.positions_m) > 0
     if exact and len(msg.positions_mm):
         raise WireError("constellation carries both positions_mm and positions_m; send one")
@@ -223,6 +318,8 @@ def constellation_from_proto(msg: constellation_pb2.Constellation, n_labels: int
         raise LabelOutOfRangeError(
             f"object {k} has label {int(labels[k])}, outside the label list of {n_labels} labels"
         )
+    if limits is not None:
+        limits.check_labels(np.bincount(labels, minlength=1))
     if exact:
         metres = np.fromiter(msg.positions_m, dtype=np.float64, count=3 * n).reshape(n, 3)
         bad = np.flatnonzero(~np.isfinite(metres).all(axis=1))
@@ -296,8 +393,11 @@ def partial_descriptor_to_proto(
     )
 
 
-def partial_descriptor_from_proto(msg: descriptor_pb2.PartialDescriptor, n_labels: int) -> DescriptorSlice:
-    """The dense slice in a partial descriptor, checked against a list of ``n_labels`` labels.
+def partial_descriptor_from_proto(
+    msg: descriptor_pb2.PartialDescriptor, n_labels: int, limits: FrameLimits | None = None
+) -> DescriptorSlice:
+    """The dense slice in a partial descriptor, checked against a list of ``n_labels`` labels
+    and, when given, ``limits`` (no count past a frame's bounds).
 
     The range must satisfy ``lo < hi <= n_labels``; whether it is the range
     the receiving shard owns is the shard's business.
@@ -308,6 +408,8 @@ def partial_descriptor_from_proto(msg: descriptor_pb2.PartialDescriptor, n_label
     offsets, counts = _sparse_bins(msg.label_offsets, msg.counts, lo, hi)
     dense = np.zeros(hi - lo, dtype=np.int64)
     dense[offsets] = counts
+    if limits is not None:
+        limits.check_labels(dense, lo)
     return DescriptorSlice(lo=lo, hi=hi, counts=dense)
 
 

@@ -10,8 +10,19 @@ bad request and checks that
 * the rejection is counted in ``swarmrec_rejected_requests_total{endpoint,code}``
   on the service's own metrics endpoint (and nothing else is),
 * nothing stored changed: stored-count gauges, the frames queried, every
-  shard's full candidate list and every verifier's answer are identical,
+  shard's full candidate list, every verifier's answer and the bytes of every
+  record log on disk are identical,
 * every service still answers a valid request.
+
+An empty payload is no request: the fields a request cannot do without have
+presence on the wire and are required (an empty Constellation used to be robot
+0's frame 0 with nothing in it, which wiped a stored frame). Another message's
+bytes sent without an encoding parse more often than not; their fields are
+unknown to the schema and refused as MALFORMED. Stores are idempotent: the same
+frame again is accepted, another one at a stored index is ALREADY_EXISTS. What a
+frame may cost is bounded (objects per frame and per label, frames and object
+pairs a verify compares: TOO_LARGE); the heavy cases (a 100,000-object frame,
+claimed frame indices, fusion round ids) are in test_hostile_input.py.
 
 Positions are integer millimetres on the wire, so a NaN cannot travel in a
 Constellation; a dataset with a non-finite coordinate is refused when the
@@ -26,6 +37,7 @@ import functools
 import math
 import random
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -37,6 +49,7 @@ import zenoh
 from google.protobuf.message import DecodeError, Message  # type: ignore[import-untyped, unused-ignore]
 
 from swarmrec.client import ZenohClient
+from swarmrec.core.descriptor import semantic_descriptor
 from swarmrec.core.split import split_frames
 from swarmrec.datasets.constellations import read_constellations
 from swarmrec.deployments.base import SwarmStartError
@@ -46,7 +59,12 @@ from swarmrec.services.limits import MAX_FRAME_GAP, MAX_FRAME_INDEX, MAX_N_RET
 from swarmrec.services.registry import WORKLOADS, spec
 from swarmrec.services.settings import DetectorSettings, PlaceSettings
 from swarmrec.wire import messages as pb
-from swarmrec.wire.codec import constellation_to_proto, partial_descriptor_to_proto, schema_name
+from swarmrec.wire.codec import (
+    constellation_from_proto,
+    constellation_to_proto,
+    partial_descriptor_to_proto,
+    schema_name,
+)
 from tests.integration.conftest import running_swarm, swarm_name
 from tests.integration.support import (
     Answer,
@@ -61,6 +79,9 @@ from tests.integration.support import (
 )
 
 N_ROBOTS, N_LABELS, LIMIT = 2, 80, 4096
+#: Object pairs a verify may compare: above the swarm's own verifies (at most ~1,200
+#: here), below a 100-object query against robot 1's six seeded frames (58 objects).
+PAIRS_LIMIT = 3000
 BOUNDS = (0, 40, 80)  # even ranges of 80 labels over 2 robots
 SEEDED_STEPS = 6
 PROBE_STEP = 2  # each robot's frame used to probe its verifier
@@ -85,13 +106,13 @@ class Swarm:
         return metrics_url(self.local.find(kind, robot))
 
 
-@pytest.fixture(scope="module")
-def swarm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Swarm]:
-    tmp = tmp_path_factory.mktemp("bad-input")
+@contextmanager
+def seeded_swarm(tmp: Path, name: str, place: PlaceSettings, **bus: object) -> Iterator[Swarm]:
+    """A running 2-robot places swarm fed SEEDED_STEPS lock-step steps of the synthetic office."""
     dataset = write_office(tmp / "dataset", n_frames=200)
-    parts = (PlaceSettings(lockstep=True), DetectorSettings(dataset=str(dataset)))
+    parts = (place, DetectorSettings(dataset=str(dataset)))
     with (
-        running_swarm(tmp, "bad-input", *parts, robots=N_ROBOTS, max_message_bytes=LIMIT) as local,
+        running_swarm(tmp, name, *parts, robots=N_ROBOTS, **bus) as local,
         local.client(5.0) as client,
     ):
         for t in range(SEEDED_STEPS):
@@ -99,12 +120,21 @@ def swarm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Swarm]:
             assert sorted(r.robot_id for r in replies if isinstance(r, pb.StepReply)) == [0, 1], replies
         seq = read_constellations(dataset)
         blocks = split_frames(len(seq), N_ROBOTS)
+        # Exactly as the detector sent them (the paper preset carries exact positions).
+        probe = {r: blocks[r][PROBE_STEP] for r in range(N_ROBOTS)}
         frames = {
-            r: constellation_to_proto(seq.constellations[blocks[r][PROBE_STEP]], r, PROBE_STEP)
-            for r in range(N_ROBOTS)
+            r: constellation_to_proto(seq.constellations[g], r, PROBE_STEP, seq.frame_ids[g], exact=True)
+            for r, g in probe.items()
         }
         assert all(len(f.labels) >= 3 for f in frames.values())  # they verify against themselves
         yield Swarm(local, client, frames)
+
+
+@pytest.fixture(scope="module")
+def swarm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Swarm]:
+    place = PlaceSettings(lockstep=True, verify_max_object_pairs=PAIRS_LIMIT)
+    with seeded_swarm(tmp_path_factory.mktemp("bad-input"), "bad-input", place, max_message_bytes=LIMIT) as s:
+        yield s
 
 
 # --- what must not change -------------------------------------------------------
@@ -152,6 +182,11 @@ def snapshot(s: Swarm) -> dict[str, Any]:
         out[f"descriptor {r} frames queried"] = metric(
             s.url("descriptor", r), "swarmrec_query_duration_seconds_count"
         )
+    # Every record log, byte for byte (4-byte length + protobuf per record).
+    logs = sorted(s.local.data_dir.rglob("*.log"))
+    assert {p.name for p in logs} == {"index-shard.log", "verifier.log", "loop-closures.log"}
+    for path in logs:
+        out[f"file {path.relative_to(s.local.data_dir)}"] = path.read_bytes()
     # The seeded frames are really there (the comparison is about something).
     assert out["shard 0 stored"] > 0 and out["shard 1 stored"] > 0
     assert out["verifier 0 stored"] >= SEEDED_STEPS and out["verifier 1 stored"] >= SEEDED_STEPS
@@ -269,6 +304,21 @@ WRONG_SCHEMA: dict[type[Message], Message] = {
     pb.ClassifyRequest: pb.StepRequest(step=0),
 }
 
+# The same bytes with no encoding (the runner has no schema to compare): they parse,
+# mostly with fields the schema does not have (a field number or wire type of the other
+# message: MALFORMED). A PartialQuery's descriptor parses as a Constellation's labels,
+# but the frame has no robot (INVALID_ARGUMENT); a StepRequest(step=0) is a
+# ClassifyRequest of round 0, which a replaying detector does not serve.
+NO_ENCODING_CODE: dict[type[Message], str] = {
+    pb.PartialQuery: "ERROR_CODE_MALFORMED",
+    pb.Constellation: "ERROR_CODE_INVALID_ARGUMENT",
+    pb.VerifyRequest: "ERROR_CODE_MALFORMED",
+    pb.LoopClosuresRequest: "ERROR_CODE_MALFORMED",
+    pb.StepRequest: "ERROR_CODE_MALFORMED",
+    pb.ReplayRequest: "ERROR_CODE_MALFORMED",
+    pb.ClassifyRequest: "ERROR_CODE_FAILED_PRECONDITION",
+}
+
 CASES: dict[str, Case] = {}
 for (_kind, _ep), _cls in REQUEST_OF.items():
     _r = 1
@@ -283,22 +333,29 @@ for (_kind, _ep), _cls in REQUEST_OF.items():
         _kind, _r, _ep, _wrong.SerializeToString, schema_name(_wrong),
         "ERROR_CODE_INVALID_ARGUMENT",
     )  # fmt: skip
+    CASES[f"{_kind} {_r} {_ep}: a {type(_wrong).__name__}'s bytes with no encoding"] = Case(
+        _kind, _r, _ep, _wrong.SerializeToString, None, NO_ENCODING_CODE[_cls]
+    )
     CASES[f"{_kind} {_r} {_ep}: random bytes over the size limit"] = Case(
         _kind, _r, _ep, lambda: random.Random(7).randbytes(LIMIT + 1), schema_name(_cls),
         "ERROR_CODE_TOO_LARGE",
     )  # fmt: skip
 
-INVALID, UNKNOWN, TOO_LARGE, PRECONDITION = (
+INVALID, UNKNOWN, TOO_LARGE, PRECONDITION, EXISTS, MALFORMED = (
     "ERROR_CODE_INVALID_ARGUMENT",
     "ERROR_CODE_UNKNOWN_LABEL",
     "ERROR_CODE_TOO_LARGE",
     "ERROR_CODE_FAILED_PRECONDITION",
+    "ERROR_CODE_ALREADY_EXISTS",
+    "ERROR_CODE_MALFORMED",
 )
+MANY = [i % N_LABELS for i in range(301)]  # 301 objects, at most 4 of a label
+STORED = 3  # a frame index every robot has stored (seeded steps 0-5)
 F20 = MAX_FRAME_INDEX  # 2**20: the first frame index refused
 # Well-formed messages that do not validate, by (service, robot, endpoint):
 # (what is wrong, the message, the expected code). Shard 1 owns labels [40, 80),
-# shard 0 [0, 40). An empty Constellation is robot 0's frame 0 with nothing
-# detected, which is valid for robot 0: the empty payload goes to robot 1.
+# shard 0 [0, 40). An empty Constellation has no robot and no frame: refused by
+# robot 0 too (it used to read as robot 0's frame 0 with nothing detected).
 SPECIFIC: dict[tuple[str, int, str], list[tuple[str, Callable[[], Message], str]]] = {
     ("index-shard", 1, "query"): [
         ("empty payload (no descriptor)", lambda: pb.PartialQuery(), INVALID),
@@ -315,14 +372,25 @@ SPECIFIC: dict[tuple[str, int, str], list[tuple[str, Callable[[], Message], str]
         ("a frame index far past the stored frames",
          lambda: partial(40, 80, [1], [1], frame_index=MAX_FRAME_GAP + 1000), INVALID),
         ("n_ret 257", lambda: partial(40, 80, [1], [1], n_ret=MAX_N_RET + 1), INVALID),
+        ("101 objects of one label", lambda: partial(40, 80, [1], [101], frame_index=90), TOO_LARGE),
+        ("301 objects", lambda: partial(40, 80, [1, 2, 3, 4], [100, 100, 100, 1], frame_index=90), TOO_LARGE),
         ("a well-formed query over the size limit",
          lambda: big(partial(40, 80, list(range(40)) * 60, [1] * 2400)), TOO_LARGE),
     ],
     ("index-shard", 0, "query"): [
         ("a label outside the slice's range", lambda: partial(0, 40, [45], [1]), INVALID),
     ],
+    ("verifier", 0, "store"): [
+        ("empty payload (no robot, no frame)", lambda: pb.Constellation(), INVALID),
+        ("robot 0's frame 0 with nothing detected and no frame index",
+         lambda: pb.Constellation(robot_id=0), INVALID),
+    ],
     ("verifier", 1, "store"): [
-        ("empty payload (robot 0's frame) to robot 1", lambda: pb.Constellation(), INVALID),
+        ("empty payload (no robot, no frame)", lambda: pb.Constellation(), INVALID),
+        ("a stored frame index with other objects", lambda: constellation(1, frame=STORED), EXISTS),
+        ("a stored frame index with nothing detected", lambda: constellation(1, [], frame=STORED), EXISTS),
+        ("301 objects", lambda: constellation(1, MANY, frame=90), TOO_LARGE),
+        ("101 objects of one label", lambda: constellation(1, [5] * 101, frame=90), TOO_LARGE),
         ("label index 80 of 80", lambda: constellation(1, [1, 80, 2]), UNKNOWN),
         ("7 coordinates for 3 labels", lambda: constellation(1, n_coords=7), INVALID),
         ("robot id >= n_robots", lambda: constellation(N_ROBOTS), INVALID),
@@ -331,6 +399,11 @@ SPECIFIC: dict[tuple[str, int, str], list[tuple[str, Callable[[], Message], str]
     ],
     ("verifier", 1, "verify"): [
         ("empty payload (no query)", lambda: pb.VerifyRequest(), INVALID),
+        ("a query of 301 objects", lambda: verify(constellation(0, MANY)), TOO_LARGE),
+        ("1025 candidate frames",
+         lambda: verify(constellation(0), candidate_frame_indices=range(1025)), TOO_LARGE),
+        (f"more than {PAIRS_LIMIT} object pairs to compare (100 objects x 58)",
+         lambda: verify(constellation(0, MANY[:100]), candidate_frame_indices=range(6)), TOO_LARGE),
         ("a query label index 80 of 80", lambda: verify(constellation(0, [80, 1, 2])), UNKNOWN),
         ("2 coordinates for 3 labels", lambda: verify(constellation(0, n_coords=2)), INVALID),
         ("query robot id >= n_robots", lambda: verify(constellation(N_ROBOTS)), INVALID),
@@ -340,8 +413,13 @@ SPECIFIC: dict[tuple[str, int, str], list[tuple[str, Callable[[], Message], str]
         ("a well-formed request over the size limit",
          lambda: big(verify(constellation(0), candidate_frame_indices=range(3000))), TOO_LARGE),
     ],
+    ("descriptor", 0, "process"): [
+        ("empty payload (no robot, no frame)", lambda: pb.Constellation(), INVALID),
+    ],
     ("descriptor", 1, "process"): [
-        ("empty payload (robot 0's frame) to robot 1", lambda: pb.Constellation(), INVALID),
+        ("empty payload (no robot, no frame)", lambda: pb.Constellation(), INVALID),
+        ("a processed frame index with other objects", lambda: constellation(1, frame=STORED), EXISTS),
+        ("301 objects", lambda: constellation(1, MANY, frame=90), TOO_LARGE),
         ("label index 80 of 80", lambda: constellation(1, [80, 1, 2]), UNKNOWN),
         ("10 coordinates for 3 labels", lambda: constellation(1, n_coords=10), INVALID),
         ("robot id >= n_robots", lambda: constellation(N_ROBOTS), INVALID),
@@ -350,12 +428,19 @@ SPECIFIC: dict[tuple[str, int, str], list[tuple[str, Callable[[], Message], str]
     ],
     ("descriptor", 1, "loop_closures"): [
         ("NaN min score", lambda: pb.LoopClosuresRequest(min_score=math.nan), INVALID),
+        ("infinite min score (nothing could reach it)",
+         lambda: pb.LoopClosuresRequest(min_score=math.inf), INVALID),
+        ("-inf min score", lambda: pb.LoopClosuresRequest(min_score=-math.inf), INVALID),
+    ],
+    ("detector", 1, "step"): [
+        ("empty payload (no step)", lambda: pb.StepRequest(), INVALID),
     ],
     ("detector", 1, "classify"): [
         ("a view to a detector that replays constellations",
          lambda: pb.ClassifyRequest(round_id=1, image=b"\x89PNG"), PRECONDITION),
     ],
     ("detector", 1, "replay"): [
+        ("empty payload (no rate; it used to start a replay)", lambda: pb.ReplayRequest(), INVALID),
         ("NaN rate", lambda: pb.ReplayRequest(rate_hz=math.nan), INVALID),
         ("infinite rate", lambda: pb.ReplayRequest(rate_hz=math.inf), INVALID),
         ("negative rate", lambda: pb.ReplayRequest(rate_hz=-1.0), INVALID),
@@ -383,6 +468,61 @@ def test_a_bad_request_gets_its_error_code_is_counted_and_changes_nothing(swarm:
     counted = rejected(url)
     key = (case.endpoint, case.code)
     assert counted.get(key, 0) == counted_before.get(key, 0) + 1
+    assert sum(counted.values()) == sum(counted_before.values()) + 1
+    assert_unchanged(before, snapshot(swarm))
+    still_serves(swarm)
+
+
+#: Counters a valid request moves, which a store-by-store comparison leaves out.
+COUNTERS = ("stored queries", "frames queried")
+
+
+def stores(snap: dict[str, Any]) -> dict[str, Any]:
+    """What a snapshot says of the stores alone (answers, gauges, record logs)."""
+    return {k: v for k, v in snap.items() if not k.endswith(COUNTERS)}
+
+
+def test_storing_a_stored_frame_again_with_the_same_content_is_answered_as_before_and_changes_nothing(
+    swarm: Swarm,
+) -> None:
+    frame = swarm.frames[1]  # robot 1's frame PROBE_STEP, exactly as its detector sent it
+    before = snapshot(swarm)
+    counted = {kind: rejected(swarm.url(kind, 1)) for kind in ("verifier", "index-shard", "descriptor")}
+
+    stored = reply_of(request(swarm.session, swarm.key("verifier", 1, "store"), frame), pb.StoreReply)
+    assert stored.stored_frames == before["verifier 1 stored"]
+    desc = semantic_descriptor(constellation_from_proto(frame, N_LABELS), N_LABELS)
+    for k in range(N_ROBOTS):
+        lo, hi = BOUNDS[k], BOUNDS[k + 1]
+        if desc[lo:hi].any():
+            again = pb.PartialQuery(
+                read_only=False,
+                descriptor=partial_descriptor_to_proto(desc, lo, hi, robot=1, frame=PROBE_STEP, query_step=0),
+            )
+            reply_of(request(swarm.session, swarm.key("index-shard", k, "query"), again), pb.CandidatesReply)
+    # The whole frame again through its descriptor: stored nowhere twice, no second closure.
+    report = reply_of(request(swarm.session, swarm.key("descriptor", 1, "process"), frame), pb.QueryReport)
+    assert report.frame_index == PROBE_STEP and not report.failed_shard_robot_ids
+
+    assert stores(snapshot(swarm)) == stores(before)
+    assert {kind: rejected(swarm.url(kind, 1)) for kind in counted} == counted
+
+
+def test_a_shard_refuses_another_slice_for_a_stored_frame_and_changes_nothing(swarm: Swarm) -> None:
+    full = reply_of(
+        request(swarm.session, swarm.key("index-shard", 1, "query"), _full_range_query(1)), pb.CandidatesReply
+    )
+    robot, frame = full.robot_ids[0], full.frame_indices[0]  # a frame shard 1 holds
+    other = partial(40, 80, [39], [7], robot_id=robot, frame_index=frame)  # 7 of label 79: no real frame's
+    url = swarm.url("index-shard", 1)
+    before, counted_before = snapshot(swarm), rejected(url)
+
+    answer = request(swarm.session, swarm.key("index-shard", 1, "query"), other)
+
+    assert answer.code == EXISTS, answer
+    assert f"frame {frame} of robot {robot} is already stored" in answer.error.message
+    counted = rejected(url)
+    assert counted.get(("query", EXISTS), 0) == counted_before.get(("query", EXISTS), 0) + 1
     assert sum(counted.values()) == sum(counted_before.values()) + 1
     assert_unchanged(before, snapshot(swarm))
     still_serves(swarm)

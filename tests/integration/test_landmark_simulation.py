@@ -155,7 +155,7 @@ def test_bad_views_and_bad_rounds_get_clear_errors_and_the_robot_goes_on(
 
         # The fusion service's refusals come back with its reason.
         again = classify(png(view), 1)
-        assert again.code == "ERROR_CODE_INVALID_ARGUMENT" and "increase" in again.error.message  # type: ignore[attr-defined]
+        assert again.code == "ERROR_CODE_INVALID_ARGUMENT" and "must advance" in again.error.message  # type: ignore[attr-defined]
         unknown = classify(png(view), 2, weight_law=pb.WeightLaw(name="magic"))
         assert unknown.code == "ERROR_CODE_INVALID_ARGUMENT" and "weight law" in unknown.error.message  # type: ignore[attr-defined]
         outside = request(s, key, pb.ClassifyRequest(round_id=3, image=png(view), neighbour_robot_ids=[7]))

@@ -186,8 +186,57 @@ def test_a_round_started_again_or_out_of_order_is_refused() -> None:
     r = robot(0, 3)
     r.start_round(5, UNIFORM, 0.0, [1])
     for round_id in (5, 4):
-        with pytest.raises(RoundError, match="round ids must increase"):
+        with pytest.raises(RoundError, match="round ids must advance: round 5 runs now"):
             r.start_round(round_id, UNIFORM, 0.0, [1])
+
+
+def test_a_new_round_id_may_jump_at_most_max_round_jump_ahead() -> None:
+    r = FusionRobot(0, 3, law=make_weight_law("paper"), n_classes=N_CLASSES, max_round_jump=10)
+    r.start_round(5, UNIFORM, 0.0, [1])
+    with pytest.raises(RoundError, match=r"is 6 to 15 \(at most 10 ahead, modulo 2\^32\), got 16"):
+        r.start_round(16, UNIFORM, 0.0, [1])
+    with pytest.raises(RoundError, match="got 4294967295"):
+        r.start_round(2**32 - 1, UNIFORM, 0.0, [1])  # the id that used to lock the robot
+    current = r.record()
+    assert current is not None and current.round_id == 5  # nothing changed
+    r.start_round(15, UNIFORM, 0.0, [1])
+
+
+def test_round_ids_count_modulo_2_to_the_32_so_no_round_id_locks_the_robot() -> None:
+    # A fresh robot takes any first round, 2^32 - 1 included; the next is 0, not "nothing".
+    r = robot(0, 3)
+    r.start_round(2**32 - 1, UNIFORM, 0.0, [1])
+    assert r.receive(msg(0, 1, 1, 0)).outcome is Handling.BUFFERED  # round 0 comes next
+    assert r.receive(msg(2**32 - 2, 1, 1, 0)).reason == "stale_round"  # one before
+    started = r.start_round(0, UNIFORM, 0.0, [1])
+    assert [h.outcome for h in started.early] == [Handling.ACCEPTED]
+    r.start_round(3, UNIFORM, 0.0, [1])
+    with pytest.raises(RoundError, match="round ids must advance"):
+        r.start_round(2**32 - 1, UNIFORM, 0.0, [1])  # behind now
+    with pytest.raises(RoundError, match="32-bit"):
+        r.start_round(2**32, UNIFORM, 0.0, [1])
+
+
+def test_a_message_more_than_max_round_jump_ahead_is_refused_not_kept() -> None:
+    r = FusionRobot(0, 3, law=make_weight_law("paper"), n_classes=N_CLASSES, max_round_jump=10)
+    r.start_round(5, UNIFORM, 0.0, [1])
+    assert r.receive(msg(15, 1, 1, 0)).outcome is Handling.BUFFERED
+    far = r.receive(msg(16, 1, 1, 0))
+    assert (far.outcome, far.reason) == (Handling.REJECTED, "too_far_ahead")
+    assert r.receive(msg(2**31, 1, 1, 0)).reason == "too_far_ahead"
+    assert r.receive(msg(4, 1, 1, 0)).reason == "stale_round"
+    assert len(r.buffer) == 1
+
+
+def test_starting_a_round_drops_kept_messages_of_rounds_it_cannot_reach() -> None:
+    # Before the first round any round is kept; once round 3 starts, rounds outside
+    # 4 .. 3 + max_round_jump cannot follow it and are dropped as stale.
+    r = FusionRobot(0, 3, law=make_weight_law("paper"), n_classes=N_CLASSES, max_round_jump=10)
+    for round_id in (1, 3, 9, 2**32 - 1):
+        assert r.receive(msg(round_id, 1, 1, 0)).outcome is Handling.BUFFERED
+    started = r.start_round(3, UNIFORM, 0.0, [1])
+    assert (len(started.early), started.stale) == (1, 2)
+    assert r.buffer.rounds() == [9]
 
 
 @pytest.mark.parametrize(
@@ -358,6 +407,8 @@ def test_the_fusion_settings_come_from_the_environment_like_any_other() -> None:
         ({"fusion_lambda": math.nan}, "fusion_lambda must be finite and >= 0"),
         ({"fusion_r_max": -1}, "fusion_r_max must be >= 0"),
         ({"fusion_early_messages": -1}, "fusion_early_messages must be >= 0"),
+        ({"fusion_max_round_jump": 0}, r"fusion_max_round_jump must be in \[1, 2\^31\)"),
+        ({"fusion_max_round_jump": 2**31}, r"fusion_max_round_jump must be in \[1, 2\^31\)"),
     ],
 )
 def test_bad_fusion_settings_are_refused(changes: dict[str, object], match: str) -> None:

@@ -164,3 +164,64 @@ def test_negative_threads_or_fewer_than_two_classes_are_config_errors() -> None:
         LandmarkClassifier(intra_op_threads=-1)
     with pytest.raises(ConfigError, match="n_classes"):
         LandmarkClassifier(n_classes=1)
+
+
+# --- the classify endpoint's view: its size is read before it is decoded ----------------
+
+
+def _png_header(width: int, height: int) -> bytes:
+    """A PNG whose IHDR claims ``width x height`` RGB pixels, with a tiny zlib stream."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", ihdr)
+        + chunk(b"IDAT", zlib.compress(b"\0" * 64))
+        + chunk(b"IEND", b"")
+    )
+
+
+@pytest.mark.parametrize(("ext", "progressive"), [(".png", False), (".jpg", False), (".jpg", True)])
+def test_a_views_size_is_read_from_its_png_or_jpeg_header(ext: str, progressive: bool) -> None:
+    import cv2
+
+    from swarmrec.services.detector.classifier import decode_view, view_size
+
+    image = np.random.default_rng(0).integers(0, 255, (37, 53, 3), np.uint8)
+    ok, data = cv2.imencode(ext, image, [cv2.IMWRITE_JPEG_PROGRESSIVE, 1] if progressive else [])
+    assert ok
+    assert view_size(data.tobytes()) == (53, 37)
+    assert decode_view(data.tobytes(), max_pixels=53 * 37).shape == (37, 53, 3)
+
+
+def test_a_view_claiming_more_pixels_than_allowed_is_refused_before_it_is_decoded() -> None:
+    from swarmrec.errors import ErrorCode, LimitExceededError
+    from swarmrec.services.detector.classifier import decode_view
+
+    bomb = _png_header(30_000, 30_000)  # 2.7 GB decoded, from 100 bytes
+    assert len(bomb) < 200
+    with pytest.raises(
+        LimitExceededError, match=r"30000 x 30000\): 900000000, more than the limit of 4194304"
+    ) as e:
+        decode_view(bomb, max_pixels=1 << 22)
+    assert e.value.code == ErrorCode.TOO_LARGE
+
+
+@pytest.mark.parametrize(
+    ("data", "match"),
+    [
+        (b"GIF89a....", "as a PNG or a JPEG"),
+        (b"\x89PNG\r\n\x1a\n\0\0", "without its IHDR"),
+        (b"\xff\xd8\xff", "JPEG without"),
+    ],
+)
+def test_a_view_that_is_not_a_png_or_a_jpeg_is_refused(data: bytes, match: str) -> None:
+    from swarmrec.services.detector.classifier import decode_view
+
+    with pytest.raises(ValueError, match=match):
+        decode_view(data, max_pixels=1 << 22)

@@ -9,9 +9,9 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from swarmrec.core.index import IndexCandidate, RangeIndex
+from swarmrec.core.index import PARTIAL_EPSILON, IndexCandidate, RangeIndex
 from swarmrec.core.presets import get_preset
-from swarmrec.core.selection import select_candidates_many
+from swarmrec.core.selection import select_candidates, select_candidates_many
 from swarmrec.core.types import Constellation, ConstellationSequence
 from swarmrec.evaluation.scoring import score_decentralized
 
@@ -42,6 +42,12 @@ def reference_candidates(values: FloatArray, t: int, n_ret: int) -> list[tuple[i
     order = np.argsort(-values)
     kept = [int(c) for c in order[:n_ret] if values[c] > 0]
     kept.sort(key=lambda c: (-values[c], c))
+    return [(c // t, c % t, float(values[c])) for c in kept]
+
+
+def slot_order_candidates(values: FloatArray, t: int, n_ret: int) -> list[tuple[int, int, float]]:
+    """Without a step: the n_ret best > 0, equal scores in (robot, frame) order."""
+    kept = sorted((c for c in range(values.shape[0]) if values[c] > 0), key=lambda c: (-values[c], c))[:n_ret]
     return [(c // t, c % t, float(values[c])) for c in kept]
 
 
@@ -78,7 +84,8 @@ def test_candidates_are_the_papers_top_n_ret_on_random_slices(seed: int) -> None
         for before in (None, int(rng.integers(0, t_max + 3))):
             t = t_max if before is None else before
             values = partial_scores(stored, query, n_robots, t)
-            expected = reference_candidates(values, t, n_ret) if t > 0 else []
+            pick = reference_candidates if before is not None else slot_order_candidates
+            expected = pick(values, t, n_ret) if t > 0 else []
             assert as_tuples(index.candidates(query, n_ret, before=before)) == expected
             straddling += tie_straddles_the_cut(values, n_ret)
     assert straddling > 0  # the argsort had ties to decide, so they were compared too
@@ -240,3 +247,158 @@ def test_a_slice_of_the_wrong_width_is_refused(counts: npt.ArrayLike) -> None:
 def test_an_empty_or_negative_label_range_is_refused(lo: int, hi: int) -> None:
     with pytest.raises(ValueError, match="empty label range"):
         RangeIndex(lo, hi, 2)
+
+
+# --- the compact layout against the dense one it replaced -----------------------------
+
+
+class DenseRangeIndex:
+    """The layout RangeIndex had before it stored one row per frame: per-robot arrays
+    indexed by frame (n_robots x frames x bins), kept here verbatim as the reference."""
+
+    def __init__(self, lo: int, hi: int, n_robots: int) -> None:
+        self.lo, self.hi, self.n_robots = lo, hi, n_robots
+        self._counts = np.zeros((n_robots, 0, hi - lo))
+        self._sums = np.zeros((n_robots, 0))
+        self._stored = np.zeros((n_robots, 0), np.bool_)
+        self._frames = np.zeros(n_robots, np.int64)
+
+    @property
+    def frames(self) -> int:
+        return int(self._frames.max(initial=0))
+
+    def _grow(self, frames: int) -> None:
+        cap = self._counts.shape[1]
+        if frames <= cap:
+            return
+        new_cap = max(frames, 2 * cap, 64)
+        counts = np.zeros((self.n_robots, new_cap, self.hi - self.lo))
+        counts[:, :cap] = self._counts
+        sums = np.zeros((self.n_robots, new_cap))
+        sums[:, :cap] = self._sums
+        stored = np.zeros((self.n_robots, new_cap), np.bool_)
+        stored[:, :cap] = self._stored
+        self._counts, self._sums, self._stored = counts, sums, stored
+
+    def add(self, robot: int, frame: int, counts: npt.ArrayLike) -> None:
+        row = np.asarray(counts, dtype=np.float64).reshape(-1)
+        self._grow(frame + 1)
+        self._counts[robot, frame] = row
+        self._sums[robot, frame] = row.sum()
+        self._stored[robot, frame] = True
+        self._frames[robot] = max(self._frames[robot], frame + 1)
+
+    def candidates(
+        self, counts: npt.ArrayLike, n_ret: int, *, before: int | None = None
+    ) -> list[IndexCandidate]:
+        query = np.asarray(counts, dtype=np.float64).reshape(-1)
+        t = before if before is not None else self.frames
+        if t <= 0:
+            return []
+        self._grow(t)
+        bins = np.flatnonzero(query)
+        common = np.minimum(self._counts[:, :t, bins], query[bins]).sum(axis=2)
+        total = self._sums[:, :t] + query.sum() - common
+        values = (common / (total + PARTIAL_EPSILON)).reshape(-1)
+        cols = select_candidates(values, n_ret)
+        order = cols[np.argsort(-values[cols], kind="stable")]
+        return [IndexCandidate(int(c // t), int(c % t), float(values[c])) for c in order.tolist()]
+
+
+def both(
+    lo: int, hi: int, n_robots: int, rows: list[tuple[int, int, list[int]]]
+) -> tuple[RangeIndex, DenseRangeIndex]:
+    new, old = RangeIndex(lo, hi, n_robots), DenseRangeIndex(lo, hi, n_robots)
+    for r, f, c in rows:
+        new.add(r, f, c)
+        old.add(r, f, c)
+    return new, old
+
+
+def test_a_tie_straddling_the_cut_is_decided_as_the_dense_layout_decides_it() -> None:
+    # Twelve frames scoring exactly 1/2 against [1, 1] (one of two labels), stored out of
+    # order over three robots with gaps; n_ret 5 cuts inside the tie, so the published
+    # unstable argsort over every slot (the unstored zeros too) picks which five.
+    rows = [(2, 9, [1, 0]), (0, 4, [0, 1]), (1, 0, [1, 0]), (0, 0, [0, 1]), (2, 1, [1, 0]),
+            (1, 7, [0, 1]), (0, 8, [1, 0]), (2, 5, [0, 1]), (1, 3, [1, 0]), (0, 2, [0, 1]),
+            (2, 3, [1, 0]), (1, 9, [0, 1]), (1, 5, [2, 2])]  # fmt: skip
+    new, old = both(0, 2, 3, rows)
+    for before in (4, 6, 10, 11, 37):
+        for n_ret in (1, 3, 5, 12):
+            got = new.candidates([1, 1], n_ret, before=before)
+            assert got == old.candidates([1, 1], n_ret, before=before)
+    # Without a step the tie is cut in (robot, frame) order.
+    half = 1 / (2 + 1e-12)
+    got = new.candidates([1, 1], 5)
+    assert got[0] == IndexCandidate(1, 5, 2 / (4 + 1e-12))  # the one frame above the tie
+    assert got[1:] == [IndexCandidate(0, f, half) for f in (0, 2, 4, 8)]
+
+
+def test_a_row_stored_again_takes_its_new_slice_and_keeps_its_slot() -> None:
+    new, old = both(3, 6, 2, [(1, 2, [1, 1, 0]), (0, 2, [0, 1, 0]), (1, 0, [0, 1, 1]), (1, 2, [0, 1, 0])])
+    assert new.size == 3
+    for query in ([0, 1, 0], [1, 1, 1], [0, 0, 4]):
+        for before in (1, 3, 9):
+            assert new.candidates(query, 2, before=before) == old.candidates(query, 2, before=before)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_in_lock_step_the_compact_layout_returns_the_dense_layouts_candidates_in_its_order(seed: int) -> None:
+    # Frames arrive in any order, robots interleaved, with long gaps (a robot's slice is
+    # sent only when its frame has labels in the range); scores tie often.
+    rng = np.random.default_rng(seed)
+    n_robots, width = int(rng.integers(1, 5)), int(rng.integers(1, 5))
+    slots = [
+        (r, int(f))
+        for r in range(n_robots)
+        for f in rng.choice(600, size=int(rng.integers(0, 60)), replace=False)
+    ]
+    order = rng.permutation(len(slots))
+    rows = [(slots[i][0], slots[i][1], rng.integers(0, 3, width).tolist()) for i in order]
+    new, old = both(7, 7 + width, n_robots, rows)
+    for _ in range(25):
+        query = rng.integers(0, 3, width)
+        n_ret = int(rng.integers(1, 9))
+        for before in (int(rng.integers(0, 700)), 600, old.frames):
+            assert new.candidates(query, n_ret, before=before) == old.candidates(query, n_ret, before=before)
+
+
+def test_memory_follows_the_frames_stored_not_the_frame_indices_claimed(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # 256 slices at frame indices stepping by 4096 (the gap a shard allows) up to 2^20:
+    # the dense layout held n_robots x 2^20 x bins doubles (670 MB here) and scanned
+    # them on every query; one row per stored frame holds 256.
+    index = RangeIndex(0, 8, 10)
+    for i in range(256):
+        index.add(3, 4096 * i, [1, 0, 0, 0, 0, 0, 0, 1])
+    assert index.frames == 4096 * 255 + 1
+    assert index.nbytes < 256 * 8 * 8 * 4  # well under 100 bytes a stored row
+    index.add(0, 7, [1, 1, 0, 0, 0, 0, 0, 0])
+    got = index.candidates([1, 1, 0, 0, 0, 0, 0, 0], 4, before=10)
+    assert got == [IndexCandidate(0, 7, 2 / (2 + 1e-12)), IndexCandidate(3, 0, 1 / (3 + 1e-12))]
+
+    # Without a step, not even a tie at the cut (256 equal scores for 4 places) builds
+    # the n_robots x 2^20 vector: the dense selection is never called.
+    def dense(*_args: object) -> None:
+        raise AssertionError("the dense slot vector was built")
+
+    monkeypatch.setattr("swarmrec.core.index.select_candidates", dense)
+    got = index.candidates([1, 0, 0, 0, 0, 0, 0, 0], 4)
+    assert [(c.robot, c.frame) for c in got] == [(0, 7), (3, 0), (3, 4096), (3, 8192)]
+
+
+def test_a_stored_slice_is_read_back_and_an_unstored_one_is_none() -> None:
+    index = RangeIndex(0, 3, 2)
+    index.add(1, 5, [0, 2, 1])
+    stored = index.get(1, 5)
+    assert stored is not None and stored.tolist() == [0.0, 2.0, 1.0]
+    assert index.get(0, 5) is None and index.get(1, 4) is None
+
+
+@pytest.mark.parametrize(("robot", "frame"), [(-1, 0), (2, 0), (0, -1), (0, 2**32)])
+def test_a_robot_or_frame_outside_the_index_is_refused(robot: int, frame: int) -> None:
+    index = RangeIndex(0, 1, 2)
+    with pytest.raises(ValueError, match="outside"):
+        index.add(robot, frame, [1])
+    assert index.size == 0

@@ -18,7 +18,7 @@ from google.protobuf import (  # type: ignore[import-untyped, unused-ignore]
 
 import swarmrec.wire
 from swarmrec.core.types import Constellation
-from swarmrec.errors import WireError
+from swarmrec.errors import ErrorCode, LimitExceededError, MalformedMessageError, MissingFieldError, WireError
 from swarmrec.wire import (
     MAX_ERROR_MESSAGE_CHARS,
     Candidate,
@@ -39,7 +39,7 @@ from swarmrec.wire import (
     verify_match_to_proto,
 )
 from swarmrec.wire import messages as pb
-from swarmrec.wire.codec import match_scores
+from swarmrec.wire.codec import FrameLimits, check_fields, match_scores
 
 N_LABELS = 80  # a COCO-sized label list
 
@@ -623,3 +623,89 @@ def test_every_name_in_dunder_all_exists(module: object) -> None:
     assert sorted(names) == sorted(set(names)), "duplicate names in __all__"
     missing = [name for name in names if not hasattr(module, name)]
     assert missing == []
+
+
+# --- required fields, other messages' bytes, frame bounds ----------------------------
+
+
+def test_an_empty_payload_lacks_the_fields_a_store_requires() -> None:
+    empty = pb.Constellation.FromString(b"")
+    with pytest.raises(MissingFieldError, match="Constellation has no robot_id") as e:
+        check_fields(empty, "robot_id", "frame_index")
+    assert (e.value.field, e.value.code) == ("robot_id", ErrorCode.INVALID_ARGUMENT)
+    # Robot 0's frame 0 sent on purpose carries both, zeros included (2 bytes each).
+    frame0 = pb.Constellation.FromString(
+        constellation_to_proto(typical_constellation(), 0, 0).SerializeToString()
+    )
+    check_fields(frame0, "robot_id", "frame_index")
+    assert pb.Constellation(robot_id=0, frame_index=0).ByteSize() == 4
+
+
+def test_a_required_field_of_a_field_is_named_with_its_path() -> None:
+    with pytest.raises(MissingFieldError, match="VerifyRequest has no query;"):
+        check_fields(pb.VerifyRequest(), "query", "query.frame_index")
+    with pytest.raises(MissingFieldError, match=r"has no query\.frame_index"):
+        check_fields(pb.VerifyRequest(query=pb.Constellation(robot_id=1)), "query", "query.frame_index")
+
+
+@pytest.mark.parametrize(
+    ("sent", "as_cls"),
+    [
+        (pb.StepRequest(step=1), pb.LoopClosuresRequest),  # a varint where a float belongs
+        (pb.LoopClosuresRequest(min_score=0.5), pb.StepRequest),  # a fixed32 where a varint belongs
+        (pb.ReplayReply(robot_id=1, n_frames=9), pb.StepRequest),  # a field number StepRequest lacks
+    ],
+)
+def test_another_messages_bytes_that_parse_are_refused_as_malformed(sent: Any, as_cls: Any) -> None:
+    parsed = as_cls.FromString(sent.SerializeToString())  # protobuf accepts them
+    with pytest.raises(MalformedMessageError, match="fields its schema does not have") as e:
+        check_fields(parsed)
+    assert e.value.code == ErrorCode.MALFORMED
+
+
+def test_unknown_fields_inside_a_field_are_found_too() -> None:
+    inner = pb.Constellation(robot_id=1, frame_index=2).SerializeToString()
+    req = pb.VerifyRequest(
+        query=pb.Constellation.FromString(inner + b"\x38\x05")
+    )  # field 7: not in Constellation
+    with pytest.raises(MalformedMessageError, match=r"VerifyRequest\.query holds fields"):
+        check_fields(req, "query")
+
+
+def test_a_frame_over_its_bounds_is_refused_before_it_is_converted() -> None:
+    limits = FrameLimits(max_objects=4, max_per_label=2)
+    msg = pb.Constellation(robot_id=0, frame_index=1, labels=[1, 2, 3, 4, 5], positions_mm=[0] * 15)
+    with pytest.raises(
+        LimitExceededError,
+        match=r"objects in the frame: 5, more than the limit of 4 \(setting max_objects_per_frame\)",
+    ) as e:
+        constellation_from_proto(msg, N_LABELS, limits)
+    assert (e.value.value, e.value.limit, e.value.code) == (5, 4, ErrorCode.TOO_LARGE)
+    same = pb.Constellation(robot_id=0, frame_index=1, labels=[7, 1, 7, 7], positions_mm=[0] * 12)
+    with pytest.raises(
+        LimitExceededError, match="objects of label 7 in the frame: 3, more than the limit of 2"
+    ):
+        constellation_from_proto(same, N_LABELS, limits)
+    ok = pb.Constellation(robot_id=0, frame_index=1, labels=[7, 1, 7, 2], positions_mm=[0] * 12)
+    assert len(constellation_from_proto(ok, N_LABELS, limits)) == 4
+    # A frame's bounds apply to a shard's slice of it too (label 40 + 2 = 42).
+    part = partial_descriptor_to_proto(
+        np.eye(1, N_LABELS, 42, dtype=np.int64)[0] * 3, 40, 80, robot=0, frame=1, query_step=0
+    )
+    with pytest.raises(LimitExceededError, match="objects of label 42"):
+        partial_descriptor_from_proto(part, N_LABELS, limits)
+
+
+def test_refusing_a_frame_of_100000_objects_takes_no_time() -> None:
+    import time
+
+    n = 100_000
+    msg = pb.Constellation.FromString(
+        pb.Constellation(
+            robot_id=0, frame_index=1, labels=[1] * n, positions_mm=[5] * (3 * n)
+        ).SerializeToString()
+    )
+    t0 = time.perf_counter()
+    with pytest.raises(LimitExceededError):
+        constellation_from_proto(msg, N_LABELS, FrameLimits(300, 100))
+    assert time.perf_counter() - t0 < 0.01

@@ -13,7 +13,10 @@ one class with one set of endpoints:
 
 The replay and rgbd modes answer ``step`` and ``replay`` (:mod:`.frames`); the
 classifier mode answers ``classify``. Asking a detector for an endpoint of
-another mode is answered FAILED_PRECONDITION, naming the mode it runs in.
+another mode is answered FAILED_PRECONDITION, naming the mode it runs in. A
+request without its required field (``step``, ``rate_hz``, ``round_id``: an
+empty payload would read as step 0, a replay as fast as possible, round 0) or
+with fields its schema does not have is refused before anything runs.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from swarmrec.services.detector.frames import FramePlayer, FrameSource
 from swarmrec.services.detector.replay import ReplaySource
 from swarmrec.services.settings import DetectorSettings, PlaceSettings
 from swarmrec.wire import messages as pb
+from swarmrec.wire.codec import check_fields
 
 if TYPE_CHECKING:
     from swarmrec.services.detector.classifier import ClassifierMode
@@ -67,12 +71,15 @@ class Detector(ServiceBase):
         return self.player
 
     def step(self, req: pb.StepRequest, _ctx: RequestContext) -> pb.StepReply:
+        check_fields(req, "step")
         return self._player("step").step(req)
 
     def replay(self, req: pb.ReplayRequest, _ctx: RequestContext) -> pb.ReplayReply:
+        check_fields(req, "rate_hz")
         return self._player("replay").replay(req)
 
     def classify(self, req: pb.ClassifyRequest, _ctx: RequestContext) -> pb.ClassifyReply:
+        check_fields(req, "round_id")
         if self.classifier is None:
             raise FailedPrecondition(f"classify: this detector runs in {self.mode} mode (it plays frames)")
         return self.classifier.classify(req)

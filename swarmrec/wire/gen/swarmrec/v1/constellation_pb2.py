@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x1fswarmrec/v1/constellation.proto\x12\x0bswarmrec.v1\"\x83\x01\n\rConstellation\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x13\n\x0b\x66rame_index\x18\x02 \x01(\r\x12\x0e\n\x06labels\x18\x03 \x03(\r\x12\x14\n\x0cpositions_mm\x18\x04 \x03(\x11\x12\x10\n\x08\x66rame_id\x18\x05 \x01(\t\x12\x13\n\x0bpositions_m\x18\x06 \x03(\x01\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x1fswarmrec/v1/constellation.proto\x12\x0bswarmrec.v1\"\xaa\x01\n\rConstellation\x12\x15\n\x08robot_id\x18\x01 \x01(\rH\x00\x88\x01\x01\x12\x18\n\x0b\x66rame_index\x18\x02 \x01(\rH\x01\x88\x01\x01\x12\x0e\n\x06labels\x18\x03 \x03(\r\x12\x14\n\x0cpositions_mm\x18\x04 \x03(\x11\x12\x10\n\x08\x66rame_id\x18\x05 \x01(\t\x12\x13\n\x0bpositions_m\x18\x06 \x03(\x01\x42\x0b\n\t_robot_idB\x0e\n\x0c_frame_indexb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -32,5 +32,5 @@ _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, __name__, _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_CONSTELLATION']._serialized_start=49
-  _globals['_CONSTELLATION']._serialized_end=180
+  _globals['_CONSTELLATION']._serialized_end=219
 # @@protoc_insertion_point(module_scope)
