@@ -177,11 +177,7 @@ def main(check: bool) -> int:
         generate_into(fresh)
         rel_gen = GEN_DIR.relative_to(ROOT)
         if check:
-            diff = (
-                differences(fresh, GEN_DIR, rel_gen)
-                if GEN_DIR.is_dir()
-                else [f"  missing: {rel_gen}"]
-            )
+            diff = differences(fresh, GEN_DIR, rel_gen) if GEN_DIR.is_dir() else [f"  missing: {rel_gen}"]
             if diff:
                 print(
                     f"{rel_gen} is not what proto/ generates:\n"
