@@ -54,7 +54,7 @@ stop containerd; stop etcd
 # 2. Leftovers: shims of our containerd (they name its socket on their command line), processes
 #    still in the kubelet's pod cgroups.
 for d in /proc/[0-9]*; do
-  if tr '\0' ' ' < "$d/cmdline" 2>/dev/null | grep -q -- "-address $CONTAINERD_SOCK"; then
+  if tr '\0' ' ' 2>/dev/null < "$d/cmdline" | grep -q -- "-address $CONTAINERD_SOCK"; then
     log "killing leftover shim ${d#/proc/}"; kill -9 "${d#/proc/}" 2>/dev/null
   fi
 done

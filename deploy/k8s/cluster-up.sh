@@ -166,16 +166,30 @@ cert kube-proxy system:kube-proxy                      # bound to system:node-pr
 cert coredns system:coredns                            # bound below, to read Services and EndpointSlices
 cert kubelet "system:node:$K8S_NODE" system:nodes      # the Node authorizer's naming
 cert kubelet-server "$K8S_NODE" "" "DNS:$K8S_NODE,IP:$NODE_IP,IP:127.0.0.1"
-kubeconfig() {  # NAME: $K8S_STATE/etc/NAME.kubeconfig with NAME's certificate
-  local f=$K8S_STATE/etc/$1.kubeconfig
+kubeconfig() {  # NAME: $K8S_STATE/etc/NAME.kubeconfig with NAME's certificate, written directly
+  local f=$K8S_STATE/etc/$1.kubeconfig   # (four `kubectl config` runs each took seconds in all)
   [ -f "$f" ] && return
-  kubectl config --kubeconfig="$f" set-cluster swarmrec --server="https://127.0.0.1:$API_PORT" \
-    --certificate-authority="$PKI/ca.crt" --embed-certs >/dev/null
-  kubectl config --kubeconfig="$f" set-credentials "$1" --client-certificate="$PKI/$1.crt" \
-    --client-key="$PKI/$1.key" --embed-certs >/dev/null
-  kubectl config --kubeconfig="$f" set-context swarmrec --cluster=swarmrec --user="$1" >/dev/null
-  kubectl config --kubeconfig="$f" use-context swarmrec >/dev/null
-  chmod 600 "$f"
+  (
+    umask 077
+    cat > "$f" <<EOF
+apiVersion: v1
+kind: Config
+clusters:
+  - name: swarmrec
+    cluster:
+      server: https://127.0.0.1:$API_PORT
+      certificate-authority-data: $(base64 -w0 < "$PKI/ca.crt")
+users:
+  - name: $1
+    user:
+      client-certificate-data: $(base64 -w0 < "$PKI/$1.crt")
+      client-key-data: $(base64 -w0 < "$PKI/$1.key")
+contexts:
+  - name: swarmrec
+    context: { cluster: swarmrec, user: $1 }
+current-context: swarmrec
+EOF
+  )
 }
 for c in admin controller-manager scheduler kube-proxy kubelet coredns; do kubeconfig $c; done
 phase certificates
