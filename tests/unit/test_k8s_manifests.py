@@ -1,0 +1,515 @@
+"""The Kubernetes manifests (k8s/): every rendered object is valid against Kubernetes' own
+OpenAPI schemas, and the swarm they describe is consistent with the services' settings.
+
+How the schemas are had, offline: the OpenAPI v3 documents of the exact release the project's
+cluster runs are part of the Go module ``k8s.io/kubernetes`` (``api/openapi-spec/v3/``), which
+``deploy/k8s/build-binaries.sh`` fetches from the Go module proxy into the project's cache, once,
+to build the cluster. Nothing is vendored, no schema registry is asked, and the documents are
+the apiserver's own, so a field the cluster would reject fails here first. ``kubectl kustomize``
+(the cluster's kubectl, from the same cache) renders the overlays, and ``kubectl patch --local``
+turns the YAML into JSON without a server. When the cache lacks either, the fixture builds
+kubectl alone (a few minutes, the first time only).
+
+What the schemas cannot say is checked against the code: every SWARMREC_* variable is a setting
+the services read, each robot's environment loads with the services' own settings loader, the
+robot StatefulSets agree with SWARMREC_N_ROBOTS, the images are the package's version, and the
+selectors, references and volumes fit together. ``tests/e2e/test_k8s_cluster.py`` applies the
+local overlay to a real cluster (server-side dry run first, then for real).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+from collections.abc import Iterator
+from dataclasses import fields
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import swarmrec
+from swarmrec.services import SERVICES
+from swarmrec.services.config import ENV_PREFIX, ServiceSettings, load_settings
+from tests.conftest import REPO
+
+OVERLAYS = ("local", "production")
+ROBOT_KINDS = ("index-shard", "verifier", "descriptor", "detector")
+STATEFUL_KINDS = ("index-shard", "verifier", "descriptor")
+HEALTHCHECK = ["python", "-m", "swarmrec.healthcheck"]
+EXAMPLES = sorted((REPO / "k8s" / "examples").glob("*.yaml"))
+
+Obj = dict[str, Any]
+
+
+# --- the cluster's paths and tools (deploy/k8s/env.sh is the one place they are written) ---------------
+
+
+@cache
+def cluster_env() -> dict[str, str]:
+    """deploy/k8s/env.sh's variables, as bash evaluates them here."""
+    names = [
+        "K8S_VERSION",
+        "K8S_BIN",
+        "K8S_SRC",
+        "K8S_STATE",
+        "K8S_VOLUMES",
+        "KUBECONFIG_ADMIN",
+        "SERVICE_CIDR",
+    ]
+    script = f". {REPO / 'deploy/k8s/env.sh'}; " + "; ".join(f'echo "${n}"' for n in names)
+    out = subprocess.run(["bash", "-c", script], capture_output=True, text=True, check=True).stdout
+    return dict(zip(names, out.splitlines(), strict=True))
+
+
+def ensure_kubectl() -> Path:
+    """The cluster's kubectl and the release's source (its OpenAPI documents), built when missing."""
+    env = cluster_env()
+    kubectl = Path(env["K8S_BIN"]) / "kubectl"
+    if not kubectl.is_file() or not (Path(env["K8S_SRC"]) / "api" / "openapi-spec" / "v3").is_dir():
+        done = subprocess.run(
+            [str(REPO / "deploy/k8s/build-binaries.sh"), "kubectl"],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        if done.returncode != 0:
+            pytest.fail(f"deploy/k8s/build-binaries.sh kubectl failed:\n{done.stderr[-3000:]}")
+    return kubectl
+
+
+def kubectl_run(*args: str, stdin: str | None = None, timeout_s: float = 120.0) -> str:
+    """kubectl with no cluster at all (a kubeconfig that does not exist): rendering and conversion only."""
+    done = subprocess.run(
+        [str(ensure_kubectl()), *args],
+        input=stdin,
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        check=False,
+        env={**os.environ, "KUBECONFIG": "/nonexistent"},
+    )
+    if done.returncode != 0:
+        raise AssertionError(f"kubectl {' '.join(args)} failed:\n{done.stderr}")
+    return done.stdout
+
+
+def yaml_to_objects(text: str) -> list[Obj]:
+    """Kubernetes YAML as JSON objects, converted by kubectl (the project has no YAML library)."""
+    out = kubectl_run("patch", "--local", "-f", "-", "-p", "{}", "--type", "merge", "-o", "json", stdin=text)
+    decoder, objects, i = json.JSONDecoder(), [], 0
+    while True:
+        while i < len(out) and out[i].isspace():
+            i += 1
+        if i == len(out):
+            return objects
+        obj, i = decoder.raw_decode(out, i)
+        objects.extend(obj["items"] if obj.get("kind") == "List" else [obj])
+
+
+@cache
+def rendered(overlay: str) -> tuple[Obj, ...]:
+    """``kubectl kustomize k8s/overlays/<overlay>``, as objects."""
+    return tuple(yaml_to_objects(kubectl_run("kustomize", str(REPO / "k8s" / "overlays" / overlay))))
+
+
+# --- Kubernetes' OpenAPI v3 schemas, and a validator of what the apiserver checks structurally ----------
+
+
+@cache
+def openapi() -> tuple[dict[str, Obj], dict[tuple[str, str, str], str]]:
+    """Every component schema of the release's OpenAPI v3 documents, and the schema of each kind."""
+    ensure_kubectl()
+    schemas: dict[str, Obj] = {}
+    for path in sorted((Path(cluster_env()["K8S_SRC"]) / "api" / "openapi-spec" / "v3").glob("*.json")):
+        schemas.update(json.loads(path.read_text()).get("components", {}).get("schemas", {}))
+    by_kind = {
+        (gvk["group"], gvk["version"], gvk["kind"]): name
+        for name, schema in schemas.items()
+        for gvk in schema.get("x-kubernetes-group-version-kind", [])
+    }
+    return schemas, by_kind
+
+
+def _resolve(schema: Obj, schemas: dict[str, Obj]) -> Obj:
+    """A schema with its $ref (the documents wrap them in a one-item allOf) followed."""
+    while True:
+        if "$ref" in schema:
+            schema = schemas[schema["$ref"].rsplit("/", 1)[1]]
+        elif "allOf" in schema and len(schema["allOf"]) == 1 and not schema.get("properties"):
+            schema = schema["allOf"][0]
+        else:
+            return schema
+
+
+def schema_errors(value: Any, schema: Obj, where: str, schemas: dict[str, Obj]) -> Iterator[str]:
+    """Where ``value`` breaks ``schema``: types, required and unknown fields (the apiserver's strict
+    field validation, kubectl's default), enums, int-or-string, formats of the quantity kind."""
+    schema = _resolve(schema, schemas)
+    if schema.get("x-kubernetes-preserve-unknown-fields") or not schema:
+        return
+    if schema.get("x-kubernetes-int-or-string"):
+        if not isinstance(value, int | str) or isinstance(value, bool):
+            yield f"{where}: {value!r} is neither an integer nor a string"
+        return
+    for alternatives in ("oneOf", "anyOf"):
+        if alternatives in schema:
+            options = [list(schema_errors(value, s, where, schemas)) for s in schema[alternatives]]
+            if all(options):
+                yield f"{where}: {value!r} matches none of {alternatives}"
+            return
+    kind = schema.get("type")
+    if kind == "object" or "properties" in schema:
+        if not isinstance(value, dict):
+            yield f"{where}: expected an object, got {value!r}"
+            return
+        for name in schema.get("required", []):
+            if name not in value:
+                yield f"{where}: missing required field {name!r}"
+        properties, extra = schema.get("properties", {}), schema.get("additionalProperties")
+        for name, item in value.items():
+            if name in properties:
+                yield from schema_errors(item, properties[name], f"{where}.{name}", schemas)
+            elif isinstance(extra, dict):
+                yield from schema_errors(item, extra, f"{where}.{name}", schemas)
+            elif extra is not True:
+                yield f"{where}: unknown field {name!r}"
+    elif kind == "array":
+        if not isinstance(value, list):
+            yield f"{where}: expected a list, got {value!r}"
+            return
+        for i, item in enumerate(value):
+            yield from schema_errors(item, schema.get("items", {}), f"{where}[{i}]", schemas)
+    elif kind == "string":
+        if not isinstance(value, str):
+            yield f"{where}: expected a string, got {value!r}"
+        elif "enum" in schema and value not in schema["enum"]:
+            yield f"{where}: {value!r} is not one of {schema['enum']}"
+    elif kind == "integer":
+        if not isinstance(value, int) or isinstance(value, bool):
+            yield f"{where}: expected an integer, got {value!r}"
+    elif kind == "number":
+        if not isinstance(value, int | float) or isinstance(value, bool):
+            yield f"{where}: expected a number, got {value!r}"
+    elif kind == "boolean" and not isinstance(value, bool):
+        yield f"{where}: expected a boolean, got {value!r}"
+
+
+def validate(obj: Obj) -> list[str]:
+    schemas, by_kind = openapi()
+    group, _, version = obj["apiVersion"].rpartition("/")
+    name = by_kind.get((group, version, obj["kind"]))
+    where = f"{obj['kind']}/{obj['metadata'].get('name')}"
+    if name is None:
+        release = cluster_env()["K8S_VERSION"]
+        return [f"{where}: {obj['apiVersion']} {obj['kind']} is not a kind of Kubernetes {release}"]
+    return list(schema_errors(obj, schemas[name], where, schemas))
+
+
+# --- helpers on the rendered objects ----------------------------------------------------------------
+
+
+def find(objs: tuple[Obj, ...], kind: str, name: str) -> Obj:
+    (found,) = [o for o in objs if o["kind"] == kind and o["metadata"]["name"] == name]
+    return found
+
+
+def workloads(objs: tuple[Obj, ...]) -> list[Obj]:
+    return [o for o in objs if o["kind"] in ("Deployment", "StatefulSet")]
+
+
+def pod_containers(workload: Obj) -> list[Obj]:
+    spec = workload["spec"]["template"]["spec"]
+    return list(spec.get("initContainers", [])) + list(spec["containers"])
+
+
+def service_container(workload: Obj) -> Obj:
+    (container,) = [c for c in workload["spec"]["template"]["spec"]["containers"] if c["name"] == "service"]
+    return container
+
+
+def swarm_config(objs: tuple[Obj, ...]) -> dict[str, str]:
+    """The generated ConfigMap every robot service takes its settings from."""
+    (cm,) = [o for o in objs if o["kind"] == "ConfigMap" and o["metadata"]["name"].startswith("swarm-")]
+    return dict(cm["data"])
+
+
+def robot_environment(objs: tuple[Obj, ...], kind: str, robot: int) -> dict[str, str]:
+    """The SWARMREC_* environment of robot ``robot``'s ``kind`` pod, as the kubelet would make it."""
+    container = service_container(find(objs, "StatefulSet", kind))
+    env = swarm_config(objs) if container.get("envFrom") else {}
+    for var in container.get("env", []):
+        if "value" in var:
+            env[var["name"]] = var["value"]
+        elif (
+            var["valueFrom"].get("fieldRef", {}).get("fieldPath")
+            == "metadata.labels['apps.kubernetes.io/pod-index']"
+        ):
+            env[var["name"]] = str(robot)  # the StatefulSet controller's pod-index label
+    return env
+
+
+VERSIONED_IMAGES = {f"swarmrec:{swarmrec.__version__}", f"swarmrec-prometheus:{swarmrec.__version__}"}
+SETTING_VARIABLES = {ENV_PREFIX + f.name.upper() for f in fields(ServiceSettings)}
+
+
+# --- the tests -----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_every_rendered_object_is_valid_against_the_kubernetes_openapi_schemas(overlay: str) -> None:
+    objs = rendered(overlay)
+    assert len(objs) >= 20
+    errors = [e for o in objs for e in validate(o)]
+    assert errors == []
+
+
+@pytest.mark.parametrize("example", EXAMPLES, ids=[p.name for p in EXAMPLES])
+def test_the_example_manifests_are_valid_against_the_kubernetes_openapi_schemas(example: Path) -> None:
+    objs = yaml_to_objects(example.read_text())
+    assert objs and [e for o in objs for e in validate(o)] == []
+
+
+def test_the_validator_rejects_what_the_apiserver_rejects() -> None:
+    # The schema check is only worth something if it fails: an unknown field, a wrong type, a
+    # missing required field. (Enum values are not in the published schemas; the apiserver checks
+    # them, and tests/e2e/test_k8s_cluster.py has it check this overlay with a server-side dry run.)
+    good = find(rendered("local"), "Deployment", "router")
+    bad = json.loads(json.dumps(good))
+    bad["spec"]["replicas"] = "1"
+    container = bad["spec"]["template"]["spec"]["containers"][0]
+    container["ports"][0]["containerPort"] = "7447"
+    container["livenessProbe"]["exec"]["comand"] = ["true"]
+    del container["name"]
+    errors = validate(bad)
+    assert validate(good) == []
+    assert sorted(errors) == sorted(
+        [
+            "Deployment/router.spec.replicas: expected an integer, got '1'",
+            "Deployment/router.spec.template.spec.containers[0]: missing required field 'name'",
+            "Deployment/router.spec.template.spec.containers[0].livenessProbe.exec: unknown field 'comand'",
+            "Deployment/router.spec.template.spec.containers[0].ports[0].containerPort: "
+            "expected an integer, got '7447'",
+        ]
+    )
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_each_robot_statefulset_has_as_many_replicas_as_the_swarm_has_robots(overlay: str) -> None:
+    objs = rendered(overlay)
+    robots = int(swarm_config(objs)["SWARMREC_N_ROBOTS"])
+    assert {k: find(objs, "StatefulSet", k)["spec"]["replicas"] for k in ROBOT_KINDS} == dict.fromkeys(
+        ROBOT_KINDS, robots
+    )
+    # One object per service kind, never one per robot (the index will scale by replicas).
+    assert sorted(o["metadata"]["name"] for o in objs if o["kind"] == "StatefulSet") == sorted(ROBOT_KINDS)
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_every_swarmrec_variable_is_a_setting_the_services_read(overlay: str) -> None:
+    objs = rendered(overlay)
+    named = set(swarm_config(objs))
+    for w in workloads(objs):
+        for c in pod_containers(w):
+            named |= {v["name"] for v in c.get("env", [])}
+    assert {n for n in named if n.startswith(ENV_PREFIX)} - SETTING_VARIABLES == set()
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_each_robots_environment_loads_with_the_services_own_settings_loader(overlay: str) -> None:
+    objs = rendered(overlay)
+    robots = int(swarm_config(objs)["SWARMREC_N_ROBOTS"])
+    for kind in ROBOT_KINDS:
+        for robot in (0, robots - 1):
+            settings = load_settings(env=robot_environment(objs, kind, robot))
+            assert (settings.robot, settings.n_robots, settings.metrics_port) == (robot, robots, 9464)
+            assert settings.connect == ("tcp/router:7447",)
+            assert settings.metrics_host == "0.0.0.0"
+            if kind in STATEFUL_KINDS:
+                assert settings.data_dir == Path("/var/lib/swarmrec")
+    assert load_settings(env=robot_environment(objs, "detector", 0)).dataset == "/data/dataset"
+
+
+def test_the_robot_id_is_the_pods_statefulset_ordinal() -> None:
+    for kind in ROBOT_KINDS:
+        env = {v["name"]: v for v in service_container(find(rendered("local"), "StatefulSet", kind))["env"]}
+        assert env["SWARMREC_ROBOT"]["valueFrom"]["fieldRef"]["fieldPath"] == (
+            "metadata.labels['apps.kubernetes.io/pod-index']"
+        )
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_every_container_runs_the_images_compose_runs_at_the_package_version(overlay: str) -> None:
+    policy = {"local": "Never", "production": "IfNotPresent"}[overlay]
+    for w in workloads(rendered(overlay)):
+        for c in pod_containers(w):
+            assert c["image"] in VERSIONED_IMAGES, (w["metadata"]["name"], c["name"], c["image"])
+            assert c["imagePullPolicy"] == policy, (w["metadata"]["name"], c["name"])
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_every_service_runs_a_known_kind_and_is_probed_by_the_images_health_check(overlay: str) -> None:
+    for w in workloads(rendered(overlay)):
+        name = w["metadata"]["name"]
+        if name == "prometheus":
+            continue
+        container = w["spec"]["template"]["spec"]["containers"][0]
+        assert container["args"][0] in SERVICES
+        assert container["args"][0] == name  # the object is named after the kind it runs
+        for probe in ("startupProbe", "readinessProbe", "livenessProbe"):
+            assert container[probe]["exec"]["command"] == HEALTHCHECK, (name, probe)
+        assert {"name": "metrics", "containerPort": 9464} in container["ports"]
+        annotations = w["spec"]["template"]["metadata"]["annotations"]
+        assert annotations == {
+            "prometheus.io/scrape": "true",
+            "prometheus.io/port": "9464",
+            "prometheus.io/path": "/metrics",
+        }
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_every_container_has_requests_and_a_memory_limit_and_runs_unprivileged(overlay: str) -> None:
+    for w in workloads(rendered(overlay)):
+        pod = w["spec"]["template"]["spec"]
+        for c in pod_containers(w):
+            where = (w["metadata"]["name"], c["name"])
+            assert {"cpu", "memory"} <= set(c["resources"]["requests"]), where
+            assert "memory" in c["resources"]["limits"], where
+            assert c["securityContext"]["allowPrivilegeEscalation"] is False, where
+            assert c["securityContext"]["capabilities"]["drop"] == ["ALL"], where
+            # Only the local overlay's chown runs as root, with CAP_CHOWN alone.
+            if c["name"] == "data-owner":
+                assert overlay == "local" and c["securityContext"]["capabilities"]["add"] == ["CHOWN"]
+            else:
+                assert c["securityContext"].get("runAsNonRoot", pod["securityContext"]["runAsNonRoot"]), where
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_selectors_and_references_fit_together(overlay: str) -> None:
+    objs = rendered(overlay)
+    pod_labels = {w["metadata"]["name"]: w["spec"]["template"]["metadata"]["labels"] for w in workloads(objs)}
+
+    def selects(selector: dict[str, str]) -> list[str]:
+        return [n for n, labels in pod_labels.items() if selector.items() <= labels.items()]
+
+    for w in workloads(objs):
+        assert selects(w["spec"]["selector"]["matchLabels"]) == [w["metadata"]["name"]]
+    for svc in (o for o in objs if o["kind"] == "Service"):
+        assert selects(svc["spec"]["selector"]) == [svc["metadata"]["name"]]
+        targets = {
+            p["name"]
+            for w in workloads(objs)
+            if w["metadata"]["name"] == svc["metadata"]["name"]
+            for c in w["spec"]["template"]["spec"]["containers"]
+            for p in c.get("ports", [])
+        }
+        assert {p["targetPort"] for p in svc["spec"]["ports"]} <= targets
+    for pdb in (o for o in objs if o["kind"] == "PodDisruptionBudget"):
+        assert selects(pdb["spec"]["selector"]["matchLabels"]) == [pdb["metadata"]["name"]]
+    for sts in (o for o in objs if o["kind"] == "StatefulSet"):
+        assert find(objs, "Service", sts["spec"]["serviceName"])["spec"]["clusterIP"] == "None"
+    config_maps = {o["metadata"]["name"] for o in objs if o["kind"] == "ConfigMap"}
+    claims = {o["metadata"]["name"] for o in objs if o["kind"] == "PersistentVolumeClaim"}
+    for w in workloads(objs):
+        pod = w["spec"]["template"]["spec"]
+        for c in pod_containers(w):
+            refs = [e["configMapRef"]["name"] for e in c.get("envFrom", [])]
+            refs += [
+                v["valueFrom"]["configMapKeyRef"]["name"]
+                for v in c.get("env", [])
+                if "configMapKeyRef" in v.get("valueFrom", {})
+            ]
+            assert set(refs) <= config_maps, (w["metadata"]["name"], refs)
+        for v in pod.get("volumes", []):
+            if "configMap" in v:
+                assert v["configMap"]["name"] in config_maps
+            if "persistentVolumeClaim" in v:
+                assert v["persistentVolumeClaim"]["claimName"] in claims
+    assert len({o["metadata"].get("namespace") for o in objs if o["kind"] != "Namespace"}) == 1
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_the_stateful_services_keep_their_records_on_a_volume_of_their_own(overlay: str) -> None:
+    objs = rendered(overlay)
+    for kind in ROBOT_KINDS:
+        sts = find(objs, "StatefulSet", kind)
+        mounts = {m["mountPath"]: m for m in service_container(sts).get("volumeMounts", [])}
+        if kind not in STATEFUL_KINDS:
+            assert "/var/lib/swarmrec" not in mounts
+            continue
+        mount = mounts["/var/lib/swarmrec"]
+        if overlay == "local":
+            # One folder per pod on the node, under the folder the cluster scripts name (and remove).
+            assert "volumeClaimTemplates" not in sts["spec"]
+            (volume,) = [v for v in sts["spec"]["template"]["spec"]["volumes"] if v["name"] == mount["name"]]
+            assert volume["hostPath"]["path"] == "/var/lib/swarmrec-k8s/volumes"
+            assert mount["subPathExpr"] == "$(POD_NAMESPACE)/$(POD_NAME)"
+            init = {
+                m["mountPath"]: m
+                for c in sts["spec"]["template"]["spec"]["initContainers"]
+                for m in c["volumeMounts"]
+            }
+            assert init["/var/lib/swarmrec"]["subPathExpr"] == mount["subPathExpr"]
+        else:
+            (claim,) = sts["spec"]["volumeClaimTemplates"]
+            assert claim["metadata"]["name"] == mount["name"]
+            assert claim["spec"]["storageClassName"]
+        assert sts["spec"]["persistentVolumeClaimRetentionPolicy"]["whenScaled"] == "Retain"
+
+
+def test_the_local_volume_folder_is_the_default_the_cluster_scripts_use() -> None:
+    env_sh = (REPO / "deploy/k8s/env.sh").read_text()
+    assert "K8S_STATE=${SWARMREC_K8S_STATE:-/var/lib/swarmrec-k8s}" in env_sh
+    assert "K8S_VOLUMES=$K8S_STATE/volumes" in env_sh
+
+
+def test_production_spreads_each_kind_over_nodes_and_guarantees_its_memory() -> None:
+    objs = rendered("production")
+    for kind in ROBOT_KINDS:
+        pod = find(objs, "StatefulSet", kind)["spec"]["template"]["spec"]
+        keys = {c["topologyKey"] for c in pod["topologySpreadConstraints"]}
+        assert keys == {"kubernetes.io/hostname", "topology.kubernetes.io/zone"}
+        assert all(
+            c["matchLabelKeys"] == ["app.kubernetes.io/component"] for c in pod["topologySpreadConstraints"]
+        )
+        anti = pod["affinity"]["podAntiAffinity"]["preferredDuringSchedulingIgnoredDuringExecution"]
+        assert anti[0]["podAffinityTerm"]["matchLabelKeys"] == ["app.kubernetes.io/component"]
+        resources = service_container(find(objs, "StatefulSet", kind))["resources"]
+        assert resources["requests"]["memory"] == resources["limits"]["memory"]
+    assert swarm_config(objs)["SWARMREC_LOCKSTEP"] == "false"
+    assert {o["metadata"]["name"] for o in objs if o["kind"] == "PodDisruptionBudget"} == set(ROBOT_KINDS)
+
+
+def test_prometheus_discovers_every_service_kind_and_labels_it_as_the_compose_targets() -> None:
+    objs = rendered("local")
+    (cm,) = [o for o in objs if o["kind"] == "ConfigMap" and o["metadata"]["name"].startswith("prometheus-")]
+    config = cm["data"]["prometheus.yml"]
+    # The labels the report reads (swarmrec/swarm/scrape.py): job swarmrec, service and robot.
+    assert re.search(r"job_name: swarmrec\n", config)
+    for label in ("service", "robot", "namespace", "pod"):
+        assert f"target_label: {label}\n" in config
+    # One SRV name per Service with a port named metrics: every kind the swarm runs.
+    names = set(re.findall(r"- _metrics\._tcp\.([a-z-]+)\n", config))
+    with_metrics = {
+        o["metadata"]["name"]
+        for o in objs
+        if o["kind"] == "Service" and any(p["name"] == "metrics" for p in o["spec"]["ports"])
+    }
+    assert names == with_metrics == {"router", *ROBOT_KINDS}
+    for kind in ROBOT_KINDS:
+        assert find(objs, "Service", kind)["spec"]["publishNotReadyAddresses"] is True
+
+
+def test_the_hpa_example_scales_the_shard_statefulset_on_its_partial_query_rate() -> None:
+    (hpa,) = yaml_to_objects((REPO / "k8s/examples/hpa-index-shard.yaml").read_text())
+    assert hpa["spec"]["scaleTargetRef"] == {
+        "apiVersion": "apps/v1",
+        "kind": "StatefulSet",
+        "name": "index-shard",
+    }
+    find(rendered("local"), "StatefulSet", "index-shard")
+    (metric,) = hpa["spec"]["metrics"]
+    assert metric["pods"]["metric"]["name"] == "swarmrec_shard_partial_queries_per_second"
