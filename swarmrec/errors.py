@@ -8,7 +8,11 @@ so a caller can catch the whole family in one place::
     ├── DatasetError           input data cannot be read (names the file and line)
     │   ├── MalformedLineError a line of a text file does not parse
     │   ├── UnknownLabelError  a label is not in the label list
-    │   └── datasets.tum_rgbd.RgbdImageError  a frame's RGB or depth image is missing, corrupt or mismatched
+    │   ├── datasets.tum_rgbd.RgbdImageError  a frame's RGB or depth image is missing, corrupt or mismatched
+    │   └── slam.G2oError                    a g2o file or robot folder cannot be used
+    │       ├── G2oQuaternionError           a quaternion too far from unit norm (norm)
+    │       ├── G2oInformationError          an information matrix not symmetric positive definite
+    │       └── G2oKeyError                  a vertex declared twice or an edge to no vertex (key)
     ├── WireError              a message on the bus does not decode or validate
     ├── detection.DetectionError   an image, a model or its output cannot be used
     │   ├── ModelError             the ONNX model cannot be loaded or has unusable inputs/outputs
@@ -18,11 +22,15 @@ so a caller can catch the whole family in one place::
     │   └── ClassifierModelError            its ONNX file is missing, does not load or is not a 19-way softmax
     ├── services.fusion.RoundError a fusion round that cannot start (answered INVALID_ARGUMENT)
     ├── models.ModelNotFound       a shipped model is in none of the places models are looked up
+    ├── slam.SlamError             a pose graph or message the SLAM back end cannot use
+    │   ├── GraphError             a graph that cannot be solved as given (disconnected, no anchor)
+    │   ├── MessageError           a distributed Gauss-Seidel message that does not fit its receiver
+    │   └── AlignmentError         points that cannot be rigidly aligned
     └── swarm.compose.ComposeError the compose tool failed or containers did not become healthy
 
 The families below the first four live beside the code that raises them
 (``swarmrec.detection.errors``, ``swarmrec.fusion``, ``swarmrec.services.fusion``,
-``swarmrec.models``, ``swarmrec.swarm.compose``).
+``swarmrec.models``, ``swarmrec.swarm.compose``, ``swarmrec.slam.errors``).
 """
 
 from __future__ import annotations
