@@ -23,7 +23,9 @@ def pose(yaw: float, x: float, y: float, z: float = 0.0, roll: float = 0.0) -> P
 
 
 def perturbed(p: Pose, rng: np.random.Generator, sigma_r: float, sigma_t: float) -> Pose:
-    return Pose(p.rotation @ so3_exp(rng.normal(0.0, sigma_r, 3)), p.translation + rng.normal(0.0, sigma_t, 3))
+    return Pose(
+        p.rotation @ so3_exp(rng.normal(0.0, sigma_r, 3)), p.translation + rng.normal(0.0, sigma_t, 3)
+    )
 
 
 def information(sigma_r: float = 0.05, sigma_t: float = 0.1) -> np.ndarray:
@@ -35,8 +37,13 @@ def chain_truth(robots: int, poses_per_robot: int) -> dict[int, Pose]:
     truth = {}
     for r in range(robots):
         for i in range(poses_per_robot):
-            truth[pose_key(r, i)] = pose(0.3 * i + 0.2 * r, 1.0 * i + 0.1 * r, 1.0 * r + 0.2 * math.sin(i),
-                                         0.1 * math.cos(i + r), 0.05 * i)
+            truth[pose_key(r, i)] = pose(
+                0.3 * i + 0.2 * r,
+                1.0 * i + 0.1 * r,
+                1.0 * r + 0.2 * math.sin(i),
+                0.1 * math.cos(i + r),
+                0.05 * i,
+            )
     return truth
 
 
@@ -59,7 +66,9 @@ def make_graph(
     truth = chain_truth(robots, poses_per_robot)
     pairs = [(pose_key(r, i), pose_key(r, i + 1)) for r in range(robots) for i in range(poses_per_robot - 1)]
     if separators is None:
-        separators = [(pose_key(r, i), pose_key(r + 1, i)) for r in range(robots - 1) for i in (0, poses_per_robot - 1)]
+        separators = [
+            (pose_key(r, i), pose_key(r + 1, i)) for r in range(robots - 1) for i in (0, poses_per_robot - 1)
+        ]
     pairs += list(separators)
     edges = []
     for a, b in pairs:
@@ -67,5 +76,7 @@ def make_graph(
         if sigma_r or sigma_t:
             z = perturbed(z, rng, sigma_r, sigma_t)
         edges.append(Edge(a, b, z, information(max(sigma_r, 0.05), max(sigma_t, 0.1))))
-    initial = {k: perturbed(p, rng, initial_noise, initial_noise) if initial_noise else p for k, p in truth.items()}
+    initial = {
+        k: perturbed(p, rng, initial_noise, initial_noise) if initial_noise else p for k, p in truth.items()
+    }
     return PoseGraph(initial, tuple(edges)), truth

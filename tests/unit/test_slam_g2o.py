@@ -1,4 +1,4 @@
-"""The g2o reader and writer: round trips, gtsam's reader as a cross-check, and every refusal with file:line."""
+"""The g2o reader and writer: round trips, gtsam's reader as a cross-check, refusals with file:line."""
 
 from __future__ import annotations
 
@@ -35,7 +35,9 @@ def assert_same_graph(a: PoseGraph, b: PoseGraph) -> None:
         assert a.poses[key].rotation == pytest.approx(b.poses[key].rotation, abs=1e-12)
         assert a.poses[key].translation == pytest.approx(b.poses[key].translation, abs=1e-12)
     assert len(a.edges) == len(b.edges)
-    for x, y in zip(sorted(a.edges, key=lambda e: e.keys), sorted(b.edges, key=lambda e: e.keys), strict=True):
+    for x, y in zip(
+        sorted(a.edges, key=lambda e: e.keys), sorted(b.edges, key=lambda e: e.keys), strict=True
+    ):
         assert (x.source, x.target) == (y.source, y.target)
         assert x.measurement.rotation == pytest.approx(y.measurement.rotation, abs=1e-12)
         assert x.measurement.translation == pytest.approx(y.measurement.translation, abs=1e-12)
@@ -48,8 +50,10 @@ def test_write_then_read_gives_back_the_same_graph(tmp_path: Path) -> None:
     rng = np.random.default_rng(3)
     root = rng.normal(size=(6, 6))
     full = root @ root.T + 6 * np.eye(6)
-    edges = (*graph.edges[:-1], Edge(graph.edges[-1].source, graph.edges[-1].target,
-                                     graph.edges[-1].measurement, full))
+    edges = (
+        *graph.edges[:-1],
+        Edge(graph.edges[-1].source, graph.edges[-1].target, graph.edges[-1].measurement, full),
+    )
     graph = graph.with_edges(edges)
     assert_same_graph(read_g2o(write_g2o(tmp_path / "out.g2o", graph)), graph)
 
@@ -96,16 +100,22 @@ def test_a_slightly_unnormalised_quaternion_is_normalised(tmp_path: Path) -> Non
         (f"VERTEX_SE3:QUAT {A0} 0 0 0 0 0 0", G2oError, "needs a key and 7 numbers, got 7 fields"),
         (f"VERTEX_SE3:QUAT {A5} 0 zero 0 0 0 0 1", G2oError, "'zero' is not a number"),
         (f"VERTEX_SE3:QUAT {A5} 0 nan 0 0 0 0 1", G2oError, "not finite"),
-        (f"VERTEX_SE3:QUAT -4 0 0 0 0 0 0 1", G2oError, "outside"),
+        ("VERTEX_SE3:QUAT -4 0 0 0 0 0 0 1", G2oError, "outside"),
         (f"VERTEX_SE3:QUAT {A5} 0 0 0 0 0 0.6 0.7", G2oQuaternionError, "norm 0.921954, 0.078 from 1"),
         (f"VERTEX_SE2 {A0} 0 0 0", G2oError, "unsupported g2o tag 'VERTEX_SE2'"),
         (f"EDGE_SE3:QUAT {A0} {A1} 1 0 0 0 0 0 1 1 0 0", G2oError, "got 12 fields"),
         (f"EDGE_SE3:QUAT {A0} {A0} 1 0 0 0 0 0 1 {UNIT_INFO}", G2oKeyError, "to itself"),
-        (f"EDGE_SE3:QUAT {A0} {B0} 1 0 0 0 0 0 1 {UNIT_INFO}", G2oKeyError, "uses b0, a vertex no file declares"),
+        (
+            f"EDGE_SE3:QUAT {A0} {B0} 1 0 0 0 0 0 1 {UNIT_INFO}",
+            G2oKeyError,
+            "uses b0, a vertex no file declares",
+        ),
         (f"VERTEX_SE3:QUAT {A1} 1 0 0 0 0 0 1", G2oKeyError, "a1 already declared on line 2"),
     ],
 )
-def test_bad_lines_are_refused_with_file_and_line(tmp_path: Path, line: str, error: type, message: str) -> None:
+def test_bad_lines_are_refused_with_file_and_line(
+    tmp_path: Path, line: str, error: type, message: str
+) -> None:
     path = write(tmp_path, VERTEX_A0, VERTEX_A1, "# a comment and a blank line", "", line)
     with pytest.raises(error) as caught:
         read_g2o(path)
@@ -171,17 +181,19 @@ def test_full_graph_with_plain_keys_is_checked_against_the_robot_files(tmp_path:
     def symbol(key: int) -> int:
         return pose_key(graph.robot_of(key), index[key])
 
-    team = PoseGraph({symbol(k): p for k, p in graph.poses.items()},
-                     tuple(Edge(symbol(e.source), symbol(e.target), e.measurement, e.information)
-                           for e in graph.edges))
-    plain = PoseGraph({index[k]: p for k, p in graph.poses.items()},
-                      tuple(Edge(index[e.source], index[e.target], e.measurement, e.information)
-                            for e in graph.edges))
+    team = PoseGraph(
+        {symbol(k): p for k, p in graph.poses.items()},
+        tuple(Edge(symbol(e.source), symbol(e.target), e.measurement, e.information) for e in graph.edges),
+    )
+    plain = PoseGraph(
+        {index[k]: p for k, p in graph.poses.items()},
+        tuple(Edge(index[e.source], index[e.target], e.measurement, e.information) for e in graph.edges),
+    )
     folder = write_folder(tmp_path, team)
     write_g2o(folder / "fullGraph.g2o", plain)
     assert read_robot_folder(folder).full_graph == folder / "fullGraph.g2o"
     write_g2o(folder / "fullGraph.g2o", plain.with_edges(plain.edges[:-1]))
-    with pytest.raises(G2oError, match="fullGraph.g2o: 5 edges, the robot files hold 6"):
+    with pytest.raises(G2oError, match=r"fullGraph\.g2o: 5 edges, the robot files hold 6"):
         read_robot_folder(folder)
 
 
@@ -189,9 +201,12 @@ def test_separators_that_differ_between_the_two_files_are_refused(tmp_path: Path
     graph, _ = make_graph(2, 3)
     folder = write_folder(tmp_path, graph)
     separator = graph.separators()[0]
-    changed = Edge(separator.source, separator.target,
-                   Pose(separator.measurement.rotation @ so3_exp([0.0, 0.0, 0.1]), separator.measurement.translation),
-                   separator.information)
+    changed = Edge(
+        separator.source,
+        separator.target,
+        Pose(separator.measurement.rotation @ so3_exp([0.0, 0.0, 0.1]), separator.measurement.translation),
+        separator.information,
+    )
     edges = [changed if e is separator else e for e in graph.robot_edges(1)]
     write_g2o(folder / "1.g2o", graph, keys=graph.robot_keys(1), edges=edges)
     with pytest.raises(G2oError, match=r"1\.g2o:\d+: separator a0-b0 differs from the one in .*0\.g2o:\d+"):
@@ -202,12 +217,12 @@ def test_robot_folder_refusals(tmp_path: Path) -> None:
     graph, _ = make_graph(2, 3)
     folder = write_folder(tmp_path, graph)
     (folder / "3.g2o").write_text("")
-    with pytest.raises(G2oError, match="2.g2o is missing"):
+    with pytest.raises(G2oError, match=r"2\.g2o is missing"):
         read_robot_folder(folder)
     (folder / "3.g2o").unlink()
     # Robot 1's file declaring one of robot 0's keys.
     write_g2o(folder / "1.g2o", graph, keys=[*graph.robot_keys(1), A0], edges=graph.robot_edges(1))
-    with pytest.raises(G2oKeyError, match="1.g2o:1: vertex a0 is not a key of robot 1"):
+    with pytest.raises(G2oKeyError, match=r"1\.g2o:1: vertex a0 is not a key of robot 1"):
         read_robot_folder(folder)
     with pytest.raises(G2oError, match="no robot files"):
         read_robot_folder(tmp_path)

@@ -8,7 +8,15 @@ import gtsam
 import numpy as np
 import pytest
 
-from swarmrec.slam.keys import describe_key, landmark_key, pose_key, robot_of_key, symbol_chr, symbol_index, symbol_key
+from swarmrec.slam.keys import (
+    describe_key,
+    landmark_key,
+    pose_key,
+    robot_of_key,
+    symbol_chr,
+    symbol_index,
+    symbol_key,
+)
 from swarmrec.slam.lie import (
     Pose,
     hat,
@@ -50,7 +58,9 @@ def test_right_jacobian_inverse_matches_finite_differences(omega: np.ndarray) ->
     for k in range(3):
         d = np.zeros(3)
         d[k] = h
-        numeric[:, k] = (so3_log(so3_exp(omega) @ so3_exp(d)) - so3_log(so3_exp(omega) @ so3_exp(-d))) / (2 * h)
+        numeric[:, k] = (so3_log(so3_exp(omega) @ so3_exp(d)) - so3_log(so3_exp(omega) @ so3_exp(-d))) / (
+            2 * h
+        )
     assert right_jacobian_inverse(omega) == pytest.approx(numeric, abs=1e-6)
 
 
