@@ -165,13 +165,15 @@ class PoseGraph:
         return counts
 
     def anchor_key(self) -> int:
-        """The key the gauge is fixed at: the smallest key of the lowest robot (robot 0's first pose).
+        """The key the gauge is fixed at: the lowest robot's first pose (robot 0's, ``a0``, usually).
 
         The public distributed Gauss-Seidel puts its prior on the first key of
-        robot 0's sorted values; for a graph of plain keys, the smallest key.
+        robot 0's sorted values; objects (upper-case keys, which sort first)
+        are skipped so the anchor is a robot pose. For plain keys, the smallest key.
         """
         robots = self.robots
         candidates = self.robot_keys(robots[0]) if robots else self.keys
+        candidates = tuple(k for k in candidates if not is_landmark_key(k)) or candidates
         if not candidates:
             raise GraphError("the graph has no vertex to anchor")
         return candidates[0]
