@@ -36,6 +36,7 @@ from swarmrec.slam.two_stage import (
 
 __all__ = [
     "ANCHOR_SIGMA",
+    "METHODS",
     "CentralizedResult",
     "Method",
     "TwoStageResult",

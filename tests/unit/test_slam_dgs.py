@@ -217,3 +217,16 @@ def test_graphs_the_team_cannot_solve_are_refused() -> None:
 def test_settings_are_validated(field: str, value: object, message: str) -> None:
     with pytest.raises(ConfigError, match=message):
         DgsSettings(**{field: value})  # type: ignore[arg-type]
+
+
+def test_default_over_relaxation_depends_on_the_mode_and_paper_settings_are_plain() -> None:
+    assert DgsSettings().over_relaxation == 1.9
+    assert DgsSettings(mode="jacobi").over_relaxation == 1.0
+    assert DgsSettings(gamma=1.3, mode="jacobi").over_relaxation == 1.3
+    paper = DgsSettings.paper()
+    assert (paper.over_relaxation, paper.eta_rotation, paper.eta_pose, paper.pose_linearisations) == (
+        1.0,
+        0.1,
+        0.1,
+        1,
+    )
