@@ -424,6 +424,17 @@ def table3(frames: int) -> dict[str, Any]:
     }
 
 
+def _finite(value: Any) -> Any:
+    """NaN (a precision with nothing rejected, no objects) as null, so the file is strict JSON."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    return value
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "slam.json")
@@ -465,7 +476,7 @@ def main() -> None:
         progress("table 3")
     results["seconds"] = time.perf_counter() - start
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(results, indent=1, default=float) + "\n")
+    args.out.write_text(json.dumps(_finite(results), indent=1, default=float, allow_nan=False) + "\n")
     print(f"written {args.out}")
 
 
