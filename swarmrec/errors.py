@@ -8,7 +8,11 @@ so a caller can catch the whole family in one place::
     ├── DatasetError               input data cannot be read (names the file and line)
     │   ├── MalformedLineError     a line of a text file does not parse
     │   ├── UnknownLabelError      a label is not in the label list
-    │   └── datasets.tum_rgbd.RgbdImageError  a frame's RGB or depth image is missing, corrupt or mismatched
+    │   ├── datasets.tum_rgbd.RgbdImageError  a frame's RGB or depth image is missing, corrupt or mismatched
+    │   └── slam.G2oError                    a g2o file or robot folder cannot be used
+    │       ├── G2oQuaternionError           a quaternion too far from unit norm (norm)
+    │       ├── G2oInformationError          an information matrix not symmetric positive definite
+    │       └── G2oKeyError                  a vertex declared twice or an edge to no vertex (key)
     ├── WireError                  a message on the bus does not decode or validate   [INVALID_ARGUMENT]
     │   ├── MalformedMessageError  the bytes do not parse as the expected message     [MALFORMED]
     │   ├── MessageTooLargeError   the payload exceeds the receiver's size limit      [TOO_LARGE]
@@ -37,13 +41,17 @@ so a caller can catch the whole family in one place::
     ├── fusion.classifier.ClassifierError   views the landmark classifier cannot take
     │   └── ClassifierModelError            its ONNX file is missing, does not load or is not a 19-way softmax
     ├── models.ModelNotFound       a shipped model is in none of the places models are looked up
+    ├── slam.SlamError             a pose graph or message the SLAM back end cannot use
+    │   ├── GraphError             a graph that cannot be solved as given (disconnected, no anchor)
+    │   ├── MessageError           a distributed Gauss-Seidel message that does not fit its receiver
+    │   └── AlignmentError         points that cannot be rigidly aligned
     └── deployments.DeploymentError        a deployment could not start, reach or stop its swarm
         ├── SwarmStartError                a service process exited or never became ready
         └── ComposeError                   the compose tool failed or containers did not become healthy
 
 The families below the bus errors live beside the code that raises them
 (``swarmrec.detection.errors``, ``swarmrec.fusion``, ``swarmrec.models``,
-``swarmrec.deployments``); a test checks that every subclass of
+``swarmrec.deployments``, ``swarmrec.slam.errors``); a test checks that every subclass of
 :class:`SwarmrecError` in the package is named in this tree.
 
 Errors a service answers with carry their wire code (:class:`ErrorCode`, the
