@@ -39,6 +39,8 @@ _NAME = re.compile(r"^[a-z0-9](?:[a-z0-9-]{0,30}[a-z0-9])?$")
 _ROBOT = re.compile(r"^r(0|[1-9][0-9]{0,5})$")
 _ROBOTS = re.compile(r"^r(0|[1-9][0-9]{0,5})(?:-(0|[1-9][0-9]{0,5}))?$")
 MAX_ROBOT = 999_999
+#: X.509's upper bound on a common name (RFC 5280 ub-common-name).
+MAX_COMMON_NAME = 64
 
 
 @dataclass(frozen=True)
@@ -56,6 +58,14 @@ class Identity:
 
     def __post_init__(self) -> None:
         keys.validate_swarm_name(self.swarm)
+        self._check_role()
+        if len(self.common_name) > MAX_COMMON_NAME:
+            raise ConfigError(
+                f"common name {self.common_name!r} is {len(self.common_name)} characters, X.509 allows "
+                f"{MAX_COMMON_NAME}: use a shorter swarm (or client) name"
+            )
+
+    def _check_role(self) -> None:
         if self.role == "service":
             if self.kind not in SERVICE_KINDS:
                 raise ConfigError(f"service kind must be one of {SERVICE_KINDS}, got {self.kind!r}")

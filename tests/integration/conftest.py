@@ -9,6 +9,7 @@ fixtures use it directly; :func:`local_swarm` is the per-test router).
 
 from __future__ import annotations
 
+import hashlib
 import re
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -18,13 +19,19 @@ import pytest
 
 from swarmrec.client import ZenohClient
 from swarmrec.deployments.base import SwarmSpec
+from swarmrec.deployments.identities import Security
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.runtime.settings import BusSettings, Component
 from swarmrec.services.registry import WORKLOADS
 
 
 def swarm_name(request: pytest.FixtureRequest) -> str:
-    return re.sub(r"[^A-Za-z0-9_-]", "-", request.node.name)[:60]
+    """A swarm name unique to the test, short enough for certificate common names
+    (``r<robot>.<kind>.<swarm>`` fits X.509's 64 characters)."""
+    name = re.sub(r"[^A-Za-z0-9_-]", "-", request.node.name)
+    if len(name) <= 32:
+        return name
+    return f"{name[:24]}-{hashlib.sha1(name.encode()).hexdigest()[:7]}"
 
 
 @contextmanager
@@ -39,13 +46,14 @@ def running_swarm(
     timeout_s: float = 90.0,
     swarm_kinds: Sequence[str] = ("gateway",),
     hosting: str = "service",
+    security: Security = "mtls",
     **bus: object,
 ) -> Iterator[LocalDeployment]:
     """A local swarm of ``robots`` robots running ``kinds`` with ``components``; with
     ``start`` False only its router runs (the test starts what it needs)."""
     settings = BusSettings(swarm=swarm, n_robots=robots, request_timeout_s=request_timeout_s, **bus)  # type: ignore[arg-type]
     spec = SwarmSpec(settings, tuple(kinds), components, swarm_kinds=tuple(swarm_kinds))
-    deployment = LocalDeployment(data_dir=tmp / "data", log_dir=tmp / "logs", hosting=hosting)
+    deployment = LocalDeployment(data_dir=tmp / "data", log_dir=tmp / "logs", hosting=hosting, security=security)
     try:
         if start:
             deployment.start(spec, timeout_s=timeout_s)

@@ -14,7 +14,9 @@ crashed, but
   ids now count modulo 2^32 and a new one is at most ``fusion_max_round_jump`` ahead.
 
 The places swarm here runs free (no lock-step), with the default limits, as a
-deployed swarm does. Figures are printed (``pytest -s``) for the record.
+deployed swarm does. Figures are printed (``pytest -s``) for the record. It runs in
+the explicit insecure mode, as test_bad_input.py does (the attacks reach every
+endpoint; the access control is tested on its own).
 """
 
 from __future__ import annotations
@@ -206,7 +208,9 @@ UNIFORM = [1 / N_CLASSES] * N_CLASSES
 @pytest.fixture
 def fusion(tmp_path: Path) -> Iterator[tuple[LocalDeployment, ZenohClient]]:
     with (
-        running_swarm(tmp_path, "hostile-fusion", robots=2, kinds=["fusion"], timeout_s=60.0) as local,
+        running_swarm(
+            tmp_path, "hostile-fusion", robots=2, kinds=["fusion"], timeout_s=60.0, security="insecure"
+        ) as local,
         local.client(5.0) as client,
     ):
         client.wait_for({("fusion", 0), ("fusion", 1)})
