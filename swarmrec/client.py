@@ -59,6 +59,7 @@ from swarmrec.runtime.rpc import Caller
 from swarmrec.runtime.tls import TlsFiles, configure_client_tls, configure_insecure
 from swarmrec.services.protocol import QueryPlan, two_step_query
 from swarmrec.services.registry import kind_of_wire
+from swarmrec.services.routing import Routing, newest_placement
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import constellation_to_proto
 from swarmrec.wire.gen.swarmrec.v1 import gateway_pb2, gateway_pb2_grpc
@@ -314,16 +315,34 @@ class ZenohClient(SwarmClient):
         return [member_of(info) for info in self.member_infos(timeout_s)]
 
     def plan(self, preset: str = "paper", *, timeout_s: float | None = None) -> QueryPlan:
-        """What a query needs to know, from the live shards' label ranges."""
-        shards = [m for m in self.members(timeout_s) if m.kind == "index-shard"]
-        if not shards:
-            raise NoReply(f"{keys.PREFIX}/{self.swarm}", "no index shard is alive")
-        n_robots = max(m.robot for m in shards) + 1
-        bounds = np.zeros(n_robots + 1, np.int64)
-        for m in shards:
-            assert m.label_range is not None
-            bounds[m.robot], bounds[m.robot + 1] = m.label_range
-        return QueryPlan(self.swarm, n_robots, bounds, shards[0].n_labels, get_preset(preset))
+        """What a query needs to know: the index placement the live shards follow (the
+        newest a confirmed shard follows), so each slice goes to an owner of its group."""
+        pending = self._caller().start(
+            keys.endpoint(self.swarm, "index-shard", "*", "placement"),
+            pb.PlacementRequest(),
+            target_robot=None,
+            endpoint="placement",
+            scatter=True,
+            timeout_s=timeout_s,
+        )
+        states = [o.reply for o in pending.gather(pb.ShardState) if o.reply is not None]
+        placement = newest_placement(states)
+        if placement is None:
+            raise NoReply(
+                f"{keys.PREFIX}/{self.swarm}", "no index shard is alive (with a confirmed placement)"
+            )
+        groups = placement.groups
+        routing = Routing(
+            self.swarm,
+            placement.n_labels,
+            groups,
+            replicas=placement.replicas,
+            n_shards=len(placement.members),
+            placement=placement,
+        )
+        n_robots = max(len(groups), max(placement.members) + 1)
+        bounds = np.asarray([lo for lo, _ in groups] + [groups[-1][1]], np.int64)
+        return QueryPlan(self.swarm, n_robots, bounds, placement.n_labels, get_preset(preset), routing)
 
     # --- requests -----------------------------------------------------------
 

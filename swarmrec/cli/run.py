@@ -11,6 +11,7 @@ from swarmrec.deployments.compose import ComposeDeployment
 from swarmrec.deployments.links import LinkSpec
 from swarmrec.experiments.places import PixelSettings, PlacesSettings, PlacesSummary, main
 from swarmrec.experiments.places.report import DetectorFigures
+from swarmrec.services.settings import IndexSettings
 
 __all__ = ["add", "print_summary", "run"]
 
@@ -82,6 +83,21 @@ def add(sub: Subparsers) -> None:
         default="mm",
         help="object positions on the wire: mm (about 2 bytes a coordinate, default) or exact doubles "
         "(8 bytes; the swarm's pair scores are then the published scripts' to the last bit)",
+    )
+    index = p.add_argument_group("elastic index", "label groups on index shards (docs/elastic-index.md)")
+    index.add_argument(
+        "--replicas",
+        type=int,
+        default=IndexSettings.replicas,
+        help=f"index shards that hold each label group (default {IndexSettings.replicas}; 1 is the paper's "
+        "one range a shard, no shard may then be lost)",
+    )
+    index.add_argument(
+        "--rebalance-target",
+        type=float,
+        default=IndexSettings.rebalance_target,
+        help="the coordinator adds and moves replicas while the busiest shard serves more than this "
+        f"times the mean (default {IndexSettings.rebalance_target})",
     )
     pixels = p.add_argument_group(
         "from pixels",
@@ -166,6 +182,7 @@ def run(args: argparse.Namespace) -> int:
             schedule=args.link_schedule,
             schedule_unit=args.schedule_unit,
             security="insecure" if args.insecure else "mtls",
+            index=IndexSettings(replicas=args.replicas, rebalance_target=args.rebalance_target),
             pixels=PixelSettings(
                 from_pixels=args.from_pixels,
                 rgbd=args.rgbd,

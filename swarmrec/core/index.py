@@ -94,6 +94,16 @@ class RangeIndex:
         row = self._row.get(_key(robot, frame))
         return None if row is None else self._counts[row].copy()
 
+    def rows(self, start: int, stop: int) -> list[tuple[int, int, FloatArray]]:
+        """Stored rows ``[start, stop)`` in arrival order, as (robot, frame, slice copy): what a
+        new replica copies, page by page (rows only ever get appended, so a copy that pages
+        to :attr:`size` has everything stored before it asked)."""
+        stop = min(stop, self.size)
+        return [
+            (int(self._robot[r]), int(self._frame[r]), self._counts[r].copy())
+            for r in range(max(start, 0), stop)
+        ]
+
     def _grow(self, rows: int) -> None:
         cap = self._counts.shape[0]
         if rows <= cap:

@@ -24,6 +24,21 @@ decides *where* groups live; nothing here touches a score.
 Every placement has a ``version``; a shard answers only requests of its current
 version (a stale sender is told to refresh), so no query is answered from a table
 the shard no longer follows.
+
+Changing owners is a handoff in two versions, so that no stored descriptor is ever
+missing from a shard that answers for its group:
+
+* :func:`transition` (version ``v + 1``): the shards a group gains are its
+  *learners* (they take every new store of the group, and copy what the owners
+  hold, but answer no query yet); the shards it will lose are *leaving* (they still
+  answer). Owners that are gone are dropped at once: the other replicas answer.
+* :func:`promote` (version ``v + 2``), once every live learner has copied its groups:
+  learners become owners and the leaving owners let go.
+
+A store goes to every owner and learner of its group (:meth:`Placement.store_targets`);
+a shard switches version under the same lock its stores take, and serves a copy only
+once it follows the new version, so a store acknowledged under the old version is in
+the copy and one under the new version reached the learner directly.
 """
 
 from __future__ import annotations
@@ -41,10 +56,13 @@ __all__ = [
     "group_of_label",
     "groups_from_bounds",
     "place",
+    "promote",
     "rebalance",
+    "ring",
     "serving_owner",
     "shard_loads",
     "stable_hash",
+    "transition",
 ]
 
 _MASK = (1 << 64) - 1
@@ -82,11 +100,22 @@ class Placement:
     owners: tuple[tuple[int, ...], ...]
     members: tuple[int, ...]
     replicas: int = 2
+    #: Per group, shards copying it before they own it (empty tuples: none); see :func:`transition`.
+    learners: tuple[tuple[int, ...], ...] = ()
+    #: Per group, owners that let go of it at the next :func:`promote`.
+    leaving: tuple[tuple[int, ...], ...] = ()
 
     def __post_init__(self) -> None:
+        n = len(self.groups)
+        if not self.learners:
+            object.__setattr__(self, "learners", ((),) * n)
+        if not self.leaving:
+            object.__setattr__(self, "leaving", ((),) * n)
         problems = []
-        if len(self.owners) != len(self.groups):
+        if len(self.owners) != n:
             problems.append(f"{len(self.groups)} groups but {len(self.owners)} owner lists")
+        if len(self.learners) != n or len(self.leaving) != n:
+            problems.append("learners and leaving must list every group")
         if self.version < 0:
             problems.append(f"version must be >= 0, got {self.version}")
         prev = 0
@@ -104,6 +133,12 @@ class Placement:
                 problems.append(f"group {g} lists an owner twice")
             if not set(own) <= members:
                 problems.append(f"group {g} is owned by non-members {sorted(set(own) - members)}")
+        for g, (learn, leave) in enumerate(zip(self.learners, self.leaving, strict=False)):
+            owned: set[int] = set(self.owners[g]) if g < len(self.owners) else set()
+            if set(learn) & owned or not set(learn) <= members or len(set(learn)) != len(learn):
+                problems.append(f"group {g}'s learners must be members that do not own it yet")
+            if not set(leave) <= owned or (owned and set(leave) == owned and not learn):
+                problems.append(f"group {g}'s leaving owners must be owners, and not all of them")
         if problems:
             raise ConfigError("invalid placement: " + "; ".join(problems))
 
@@ -112,8 +147,28 @@ class Placement:
         return self.groups[-1][1] if self.groups else 0
 
     def groups_of(self, shard: int) -> list[int]:
-        """The groups ``shard`` holds."""
+        """The groups ``shard`` owns (answers queries for)."""
         return [g for g, own in enumerate(self.owners) if shard in own]
+
+    def learning(self, shard: int) -> list[int]:
+        """The groups ``shard`` is copying (stores them, answers no query for them)."""
+        return [g for g, learn in enumerate(self.learners) if shard in learn]
+
+    def store_targets(self, group: int) -> tuple[int, ...]:
+        """Every shard that must store a descriptor of ``group``: owners, then learners."""
+        return self.owners[group] + self.learners[group]
+
+    @property
+    def settled(self) -> bool:
+        """No handoff in progress (no learner, no leaving owner)."""
+        return not any(self.learners) and not any(self.leaving)
+
+    def group_of_range(self, lo: int, hi: int) -> int | None:
+        """The group whose label range is exactly ``[lo, hi)``, or None."""
+        for g, rng in enumerate(self.groups):
+            if rng == (lo, hi):
+                return g
+        return None
 
     def moved(self, other: Placement) -> dict[int, tuple[set[int], set[int]]]:
         """Per group, the shards that gain it and that lose it going from ``self`` to ``other``."""
@@ -151,6 +206,87 @@ def place(
     r = min(replicas, len(ids))
     owners = tuple(tuple(_rendezvous(g, ids, r)) for g in range(len(groups)))
     return Placement(version, tuple(groups), owners, ids, replicas)
+
+
+def ring(groups: Sequence[tuple[int, int]], members: Sequence[int], *, replicas: int = 2) -> Placement:
+    """Version 0, the placement every shard of a new swarm starts from without asking
+    anyone: group ``g`` on members ``g, g + 1, ...`` (``replicas`` of them, wrapping). With
+    one group per member and one replica, shard ``k`` holds label range ``k``: the
+    paper's layout."""
+    ids = tuple(sorted(set(members)))
+    if not ids:
+        raise ConfigError("a placement needs at least one member")
+    if replicas < 1:
+        raise ConfigError(f"replicas must be >= 1, got {replicas}")
+    r = min(replicas, len(ids))
+    owners = tuple(tuple(ids[(g + i) % len(ids)] for i in range(r)) for g in range(len(groups)))
+    return Placement(0, tuple(groups), owners, ids, replicas)
+
+
+def transition(current: Placement, target: Placement) -> Placement | None:
+    """The first step from the settled ``current`` towards ``target``'s owners (same
+    groups): version ``current.version + 1`` where every group's owners that ``target``
+    keeps or that are no member any more go (a gone owner answers nothing), the owners
+    ``target`` adds are learners and those it drops are leaving. A group whose every owner
+    is gone keeps them listed (they come back with their stored records) and learns
+    from nobody. None when there is nothing to do."""
+    if not current.settled:
+        raise ConfigError("a handoff is in progress: promote it first")
+    if current.groups != target.groups:
+        raise ConfigError("a placement keeps its groups")
+    live = set(target.members)
+    owners: list[tuple[int, ...]] = []
+    learners: list[tuple[int, ...]] = []
+    leaving: list[tuple[int, ...]] = []
+    for g, own in enumerate(current.owners):
+        kept = tuple(m for m in own if m in live)
+        if not kept:
+            # Every owner gone: nobody to copy from; keep listing them until one comes back.
+            owners.append(own)
+            learners.append(())
+            leaving.append(())
+            continue
+        want = target.owners[g]
+        owners.append(kept)
+        learners.append(tuple(m for m in want if m not in kept))
+        leaving.append(tuple(m for m in kept if m not in want))
+    members = tuple(sorted(live | {m for own in owners for m in own}))
+    if (
+        tuple(owners) == current.owners
+        and members == current.members
+        and not any(learners)
+        and not any(leaving)
+    ):
+        return None
+    return Placement(
+        current.version + 1,
+        current.groups,
+        tuple(owners),
+        members,
+        current.replicas,
+        tuple(learners),
+        tuple(leaving),
+    )
+
+
+def promote(current: Placement, ready: Mapping[int, Iterable[int]], alive: Iterable[int]) -> Placement | None:
+    """The second step of a handoff, once every live learner is ``ready`` (shard ->
+    the groups it has copied): learners become owners, leaving owners let go (never the
+    last one that answers), gone learners are forgotten. None while a live learner is
+    still copying, or when ``current`` is settled."""
+    if current.settled:
+        return None
+    live = set(alive)
+    done = {m: set(gs) for m, gs in ready.items()}
+    owners = []
+    for g, own in enumerate(current.owners):
+        learn = [m for m in current.learners[g] if m in live]
+        if any(g not in done.get(m, set()) for m in learn):
+            return None
+        new = tuple(m for m in own if m not in current.leaving[g]) + tuple(learn)
+        owners.append(new or own)
+    members = tuple(sorted(live | {m for own in owners for m in own}))
+    return Placement(current.version + 1, current.groups, tuple(owners), members, current.replicas)
 
 
 def follow_members(current: Placement, members: Iterable[int]) -> Placement:

@@ -54,9 +54,9 @@ def endpoint(swarm: str, kind: str, robot: int | str, name: str) -> str:
     return f"{PREFIX}/{swarm}/{kind}/{_robot(robot)}/{name}"
 
 
-def alive(swarm: str, kind: str, robot: int) -> str:
-    """Key of a service's liveliness token."""
-    return f"{PREFIX}/{swarm}/alive/{kind}/{robot}"
+def alive(swarm: str, kind: str, robot: int | str) -> str:
+    """Key of a service's liveliness token (``robot`` ``"*"``: of every robot's)."""
+    return f"{PREFIX}/{swarm}/alive/{kind}/{_robot(robot)}"
 
 
 def alive_all(swarm: str) -> str:

@@ -94,6 +94,25 @@ class RecordLog:
             if self.fsync:
                 os.fsync(self._file.fileno())
 
+    def rewrite(self, records: list[bytes]) -> None:
+        """Replace every record with ``records`` (compaction): written to a new file, synced,
+        then renamed over the log, so a crash leaves the old log or the new one whole."""
+        with self._lock:
+            if self.path is None:
+                return
+            tmp = self.path.with_name(self.path.name + ".tmp")
+            with tmp.open("wb") as f:
+                for record in records:
+                    if len(record) > _MAX_RECORD:
+                        raise ValueError(f"record of {len(record)} bytes is over {_MAX_RECORD}")
+                    f.write(_HEADER.pack(len(record)) + record)
+                f.flush()
+                os.fsync(f.fileno())
+            if self._file is not None:
+                self._file.close()
+            os.replace(tmp, self.path)
+            self._file = self.path.open("ab")
+
     def close(self) -> None:
         with self._lock:
             if self._file is not None:

@@ -71,10 +71,18 @@ _QUERIES: dict[str, tuple[tuple[str, str, str], ...]] = {
     "detector": (("descriptor", "self", "process"), ("fusion", "self", "start_round")),
     "descriptor": (
         ("index-shard", "*", "query"),
+        ("index-shard", "*", "store"),
+        ("index-shard", "*", "placement"),
         ("verifier", "*", "verify"),
         ("verifier", "self", "store"),
     ),
-    "index-shard": (),
+    # The elastic index: shards read each other's placement, the coordinator sends
+    # placements, a shard copying a group pages through an owner's copy.
+    "index-shard": (
+        ("index-shard", "*", "placement"),
+        ("index-shard", "*", "adopt"),
+        ("index-shard", "*", "transfer"),
+    ),
     "verifier": (),
     "fusion": (),
 }
@@ -82,6 +90,7 @@ _QUERIES: dict[str, tuple[tuple[str, str, str], ...]] = {
 # Read-only endpoints every client may query (shards' are added per call).
 _CLIENT_QUERIES = (
     ("*", "info"),
+    ("index-shard", "placement"),
     ("verifier", "verify"),
     ("descriptor", "loop_closures"),
     ("fusion", "posterior"),
@@ -141,6 +150,15 @@ def grants(
         queries = tuple(keys.endpoint(s, k, _robot(rob, r), ep) for k, rob, ep in _QUERIES[kind])
         if queries:
             out.append(Grant("ingress", ("query",), queries))
+        if kind in ("descriptor", "index-shard"):
+            # Which shards are alive: descriptors route around gone ones, the coordinator follows them.
+            out.append(
+                Grant(
+                    "ingress",
+                    ("declare_liveliness_subscriber", "liveliness_query"),
+                    (keys.alive(s, "index-shard", "*"),),
+                )
+            )
         if kind == "fusion":
             # Flooding puts onto the neighbours' inboxes; who is a neighbour
             # changes with the radio graph, so every other robot of the swarm.

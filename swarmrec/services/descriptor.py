@@ -5,7 +5,11 @@ Endpoints:
 * ``process``: a :class:`Constellation` of this robot -> :class:`QueryReport`.
   The frame is stored in the robot's own verifier first and, when it has at
   least ``min_objects`` objects, then queried with the two-step protocol
-  (:mod:`swarmrec.services.protocol`); its slices are stored by the shards.
+  (:mod:`swarmrec.services.protocol`); its slices are stored by every owner and
+  learner of their label groups (the index placement, :mod:`swarmrec.services.routing`).
+  A slice some shard did not acknowledge is kept on disk and retried in the
+  background until every shard that must hold it has (:mod:`swarmrec.services.pending`);
+  with ``pending_capacity`` slices waiting, new frames are refused (UNAVAILABLE).
   The verifier is the authority on what frame ``t`` of this robot is: a frame
   it refuses (ALREADY_EXISTS: stored with other content) is refused here before
   any shard stores a slice of it, and the same frame again is processed again
@@ -24,13 +28,16 @@ import math
 import threading
 import time
 
+from swarmrec.core.placement import groups_from_bounds
 from swarmrec.core.presets import get_preset
 from swarmrec.errors import AlreadyExists, CallError, ErrorCode, InvalidArgument, RemoteError, Unavailable
 from swarmrec.runtime import Endpoint, RequestContext, ServiceBase, ServiceContext, keys
 from swarmrec.services.limits import MAX_FRAME_INDEX
 from swarmrec.services.metrics import DescriptorMetrics
+from swarmrec.services.pending import PendingStores
 from swarmrec.services.protocol import QueryPlan, two_step_query
-from swarmrec.services.settings import PlaceSettings
+from swarmrec.services.routing import LiveShards, Routing
+from swarmrec.services.settings import IndexSettings, PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import check_fields, constellation_from_proto, encode
 
@@ -44,14 +51,30 @@ class Descriptor(ServiceBase):
         self.places = ctx.settings(PlaceSettings)
         self.metrics = ctx.metric_set(DescriptorMetrics)
         self.preset = get_preset(self.places.preset)
+        self.index = ctx.settings(IndexSettings)
+        bounds = self.places.bounds(self.bus)
+        self.routing = Routing(
+            self.bus.swarm,
+            self.places.n_labels,
+            groups_from_bounds(bounds.tolist()),
+            replicas=self.index.replicas,
+            n_shards=self.bus.n_robots,
+            live=LiveShards(ctx.session, self.bus.swarm),
+            suspect_s=self.index.suspect_s,
+            on_refresh=self.metrics.placement_refreshes.inc,
+        )
         self.plan = QueryPlan(
             self.bus.swarm,
             self.bus.n_robots,
-            self.places.bounds(self.bus),
+            bounds,
             self.places.n_labels,
             self.preset,
+            self.routing,
             self.preset.n_ret,
         )
+        self.pending = PendingStores(ctx.open_log("pending-stores"), self.index.pending_capacity)
+        self.metrics.pending_stores.set(len(self.pending))
+        self._retrier: threading.Thread | None = None
         self.lock = threading.Lock()
         self.closure_log = ctx.open_log("loop-closures")
         self.closures = [pb.LoopClosure.FromString(r) for r in self.closure_log.records()]
@@ -59,7 +82,69 @@ class Descriptor(ServiceBase):
         self.closed = {c.query_frame_index for c in self.closures}
 
     def member_info(self) -> pb.MemberInfo:
-        return pb.MemberInfo(n_labels=self.places.n_labels)
+        return pb.MemberInfo(n_labels=self.places.n_labels, pending_items=len(self.pending))
+
+    def serving(self, ready: bool) -> None:
+        if ready and self._retrier is None:
+            # Learn the swarm's placement (a descriptor joining a running swarm starts at 0).
+            self.routing.refresh(self.ctx.caller)
+            self._retrier = threading.Thread(target=self._retry_pending, name="pending-stores", daemon=True)
+            self._retrier.start()
+
+    def close(self) -> None:
+        self.routing.close()
+
+    def _retry_pending(self) -> None:
+        """Send every waiting slice to every shard that must hold it under the current
+        placement, until all of them have acknowledged it."""
+        interval = self.index.retry_interval_s
+        while not self.ctx.stop.wait(interval):
+            try:
+                self._retry_once()
+            except Exception:
+                self.ctx.log.exception("retrying pending stores failed")
+
+    def _retry_once(self, batch: int = 256) -> None:
+        waiting = self.pending.snapshot(batch)
+        if not waiting:
+            return
+        placement = self.routing.placement
+        caller = self.ctx.caller
+        sent = []
+        for desc in waiting:
+            g = placement.group_of_range(desc.label_lo, desc.label_hi)
+            if g is None:
+                self.pending.done(desc)  # of groups the swarm no longer has: nowhere to store it
+                continue
+            msg = pb.ShardStore(descriptor=desc, placement_version=placement.version)
+            asked = [
+                caller.start(
+                    keys.endpoint(self.bus.swarm, "index-shard", shard, "store"),
+                    msg,
+                    target_robot=shard,
+                    endpoint="shard_store",
+                )
+                for shard in placement.store_targets(g)
+            ]
+            sent.append((desc, asked))
+        stale = False
+        for desc, asked in sent:
+            acked = True
+            for pending in asked:
+                self.metrics.store_retries.inc()
+                try:
+                    pending.result(pb.StoreReply)
+                except RemoteError as e:
+                    if e.code == ErrorCode.FAILED_PRECONDITION:
+                        stale = True
+                    acked = acked and e.code == ErrorCode.ALREADY_EXISTS
+                except CallError:
+                    acked = False
+            if acked:
+                self.pending.done(desc)
+        if stale:
+            self.routing.refresh(caller)
+        self.metrics.pending_stores.set(len(self.pending))
 
     def process(self, msg: pb.Constellation, _ctx: RequestContext) -> pb.QueryReport:
         check_fields(msg, "robot_id", "frame_index")
@@ -71,6 +156,11 @@ class Descriptor(ServiceBase):
         if msg.frame_index >= MAX_FRAME_INDEX:
             raise InvalidArgument(f"frame index must be below {MAX_FRAME_INDEX}, got {msg.frame_index}")
         c = constellation_from_proto(msg, self.places.n_labels, self.places.frame_limits())
+        if self.pending.room() < len(self.routing.groups):
+            raise Unavailable(
+                f"{len(self.pending)} stores are waiting for index shards to acknowledge them: "
+                "refusing new frames until they are (the shards are gone or unreachable)"
+            )
         t0 = time.perf_counter()
         caller = self.ctx.caller
         try:
@@ -89,7 +179,17 @@ class Descriptor(ServiceBase):
             # Without its own verifier the robot cannot answer for this frame later.
             raise Unavailable(f"own verifier did not store the frame: {e}") from None
         if len(c) >= self.preset.min_objects:
-            report = two_step_query(caller, self.plan, c, msg, query_id=0, read_only=False, self_robot=robot)
+            report = two_step_query(
+                caller,
+                self.plan,
+                c,
+                msg,
+                query_id=0,
+                read_only=False,
+                self_robot=robot,
+                on_unstored=self.pending.add,
+            )
+            self.metrics.pending_stores.set(len(self.pending))
         else:
             report = pb.QueryReport(robot_id=robot, frame_index=msg.frame_index, queried=False)
         report.duration_us = min(int((time.perf_counter() - t0) * 1e6), 2**32 - 1)

@@ -36,6 +36,12 @@ class ShardMetrics(MetricSet):
 
     partial_queries: Counter
     stored_descriptors: Gauge
+    group_queries: Counter
+    placement_version: Gauge
+    groups: Gauge
+    refused: Counter
+    handoff_records: Counter
+    placements_published: Counter
 
     @classmethod
     def create(cls, registry: CollectorRegistry) -> ShardMetrics:
@@ -47,7 +53,41 @@ class ShardMetrics(MetricSet):
             ),
             stored_descriptors=Gauge(
                 "swarmrec_shard_stored_descriptors",
-                "Partial descriptors held by this index shard",
+                "Partial descriptors held by this index shard (every group it owns or copies)",
+                registry=registry,
+            ),
+            group_queries=Counter(
+                "swarmrec_shard_group_queries",
+                "Partial queries served by this index shard, by label group (the rebalancing load)",
+                ["group"],
+                registry=registry,
+            ),
+            placement_version=Gauge(
+                "swarmrec_shard_placement_version",
+                "Version of the placement this shard follows",
+                registry=registry,
+            ),
+            groups=Gauge(
+                "swarmrec_shard_groups",
+                "Label groups this shard owns or is copying",
+                ["role"],
+                registry=registry,
+            ),
+            refused=Counter(
+                "swarmrec_shard_refused",
+                "Requests refused because the sender routed with another placement (stale) or before "
+                "the shard's placement was confirmed (unconfirmed), or for a group it does not hold",
+                ["reason"],
+                registry=registry,
+            ),
+            handoff_records=Counter(
+                "swarmrec_shard_handoff_records",
+                "Partial descriptors copied into this shard from another one (handoffs)",
+                registry=registry,
+            ),
+            placements_published=Counter(
+                "swarmrec_shard_placements_published",
+                "Placements this shard published as the coordinator",
                 registry=registry,
             ),
         )
@@ -74,10 +114,28 @@ class DescriptorMetrics(MetricSet):
 
     loop_closures: Counter
     query_seconds: Histogram
+    pending_stores: Gauge
+    store_retries: Counter
+    placement_refreshes: Counter
 
     @classmethod
     def create(cls, registry: CollectorRegistry) -> DescriptorMetrics:
         return cls(
+            pending_stores=Gauge(
+                "swarmrec_descriptor_pending_stores",
+                "Descriptor slices not yet acknowledged by every shard that must hold them (kept on disk)",
+                registry=registry,
+            ),
+            store_retries=Counter(
+                "swarmrec_descriptor_store_retries",
+                "Stores sent again to a shard that had not acknowledged them",
+                registry=registry,
+            ),
+            placement_refreshes=Counter(
+                "swarmrec_descriptor_placement_refreshes",
+                "Times this descriptor fetched the index placement again (a shard said it was stale)",
+                registry=registry,
+            ),
             loop_closures=Counter(
                 "swarmrec_loop_closures", "Loop closures found by this robot", registry=registry
             ),

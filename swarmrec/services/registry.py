@@ -43,6 +43,7 @@ from swarmrec.services.settings import (
     DetectorSettings,
     FusionSettings,
     GatewaySettings,
+    IndexSettings,
     LandmarkSettings,
     PlaceSettings,
     RgbdSettings,
@@ -114,6 +115,8 @@ class ServiceSpec:
 
 
 _PLACES = (PlaceSettings,)
+# The shards and the descriptors that route to them share the elastic index's settings.
+_INDEXED = (PlaceSettings, IndexSettings)
 
 REGISTRY: dict[str, ServiceSpec] = {}
 
@@ -159,16 +162,17 @@ for _entry in (
         "swarmrec.services.descriptor:Descriptor",
         "the two-step query for each of its robot's frames; keeps the loop closures",
         stateful=True,
-        components=_PLACES,
+        components=_INDEXED,
         metrics=DescriptorMetrics,
     ),
     ServiceSpec(
         "index-shard",
         pb.ServiceKind.SERVICE_KIND_INDEX_SHARD,
         "swarmrec.services.index_shard:IndexShard",
-        "one label range of the swarm's descriptor index: candidates for partial queries",
+        "label groups of the swarm's descriptor index (replicated, handed off as shards come and go): "
+        "candidates for partial queries",
         stateful=True,
-        components=_PLACES,
+        components=_INDEXED,
         metrics=ShardMetrics,
     ),
     ServiceSpec(

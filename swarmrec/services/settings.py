@@ -35,6 +35,7 @@ __all__ = [
     "DetectorSettings",
     "FusionSettings",
     "GatewaySettings",
+    "IndexSettings",
     "LandmarkSettings",
     "PlaceSettings",
     "RgbdSettings",
@@ -135,6 +136,64 @@ class PlaceSettings(Component):
         if self.label_bounds:
             return np.asarray(self.label_bounds, np.int64)
         return label_bounds("even", self.n_labels, bus.n_robots)
+
+
+@dataclass(frozen=True)
+class IndexSettings(Component):
+    """The elastic index: replicas of each label group, handoffs and rebalancing
+    (docs/elastic-index.md), and how descriptors ride out shards that do not answer."""
+
+    title: ClassVar[str] = "elastic index"
+
+    replicas: int = setting(2, "index shards that hold each label group (1: the paper's one range a shard)")
+    placement_tick_s: float = setting(
+        1.0, "how often the coordinator (the lowest live shard) checks members, handoffs and load"
+    )
+    member_grace_s: float = setting(
+        5.0,
+        "a shard gone (or not yet started) this long loses its groups to the others' new replicas; "
+        "queries go to a group's other owners at once",
+    )
+    rebalance_target: float = setting(
+        1.5, "the coordinator moves and adds replicas while the busiest shard's load is above this x the mean"
+    )
+    rebalance_min_queries: int = setting(
+        200, "partial queries to observe (since the last rebalancing) before rebalancing on them"
+    )
+    transfer_page: int = setting(2000, "descriptors in one page of a handoff copy")
+    pending_capacity: int = setting(
+        100_000,
+        "stores a descriptor keeps to retry (on disk) while shards do not acknowledge them; "
+        "past it, new frames are refused (UNAVAILABLE) rather than stores dropped",
+    )
+    retry_interval_s: float = setting(0.5, "how often a descriptor retries its pending stores")
+    suspect_s: float = setting(
+        5.0, "a shard that timed out is asked last for this long (another owner answers first)"
+    )
+
+    def problems(self) -> list[str]:
+        problems = []
+        if not 1 <= self.replicas <= 16:
+            problems.append(f"replicas must be 1 to 16, got {self.replicas}")
+        for name in ("placement_tick_s", "retry_interval_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0.01 <= value <= 3600):
+                problems.append(f"{name} must be 0.01 to 3600 s, got {value}")
+        for name in ("suspect_s", "member_grace_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0 <= value <= 3600):
+                problems.append(f"{name} must be 0 to 3600 s, got {value}")
+        if not (math.isfinite(self.rebalance_target) and self.rebalance_target >= 1.0):
+            problems.append(
+                f"rebalance_target must be >= 1 (1 is perfect balance), got {self.rebalance_target}"
+            )
+        if self.rebalance_min_queries < 1:
+            problems.append(f"rebalance_min_queries must be >= 1, got {self.rebalance_min_queries}")
+        if not 1 <= self.transfer_page <= 100_000:
+            problems.append(f"transfer_page must be 1 to 100000, got {self.transfer_page}")
+        if self.pending_capacity < 1:
+            problems.append(f"pending_capacity must be >= 1, got {self.pending_capacity}")
+        return problems
 
 
 @dataclass(frozen=True)

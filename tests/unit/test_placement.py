@@ -11,10 +11,13 @@ from swarmrec.core.placement import (
     follow_members,
     groups_from_bounds,
     place,
+    promote,
     rebalance,
+    ring,
     serving_owner,
     shard_loads,
     stable_hash,
+    transition,
 )
 from swarmrec.core.ranges import even_ranges
 from swarmrec.errors import ConfigError
@@ -123,3 +126,80 @@ def test_a_placement_that_does_not_make_sense_is_refused(kwargs: dict[str, objec
     }
     with pytest.raises(ConfigError, match=match):
         Placement(**{**base, **kwargs})  # type: ignore[arg-type]
+
+
+# --- version 0 and handoffs -------------------------------------------------------
+
+
+def test_version_0_with_one_replica_is_the_papers_layout_and_with_two_a_ring() -> None:
+    one = ring(GROUPS, range(10), replicas=1)
+    assert one.version == 0 and one.owners == tuple((k,) for k in range(10))
+    two = ring(GROUPS, range(10), replicas=2)
+    assert two.owners[0] == (0, 1) and two.owners[9] == (9, 0)
+    assert two.settled and two.store_targets(9) == (9, 0)
+
+
+def test_a_new_owner_learns_first_and_owns_only_when_promoted() -> None:
+    # Three shards, groups on (0, 1), (1, 2), (2, 0); shard 3 joins and is to take group 1 from 1.
+    current = ring(GROUPS[:3], range(3), replicas=2)
+    target = Placement(0, GROUPS[:3], ((0, 1), (3, 2), (2, 0)), (0, 1, 2, 3), 2)
+    step = transition(current, target)
+    assert step is not None and step.version == 1
+    assert step.owners[1] == (1, 2)  # still answering
+    assert step.learners == ((), (3,), ())
+    assert step.leaving == ((), (1,), ())
+    assert step.store_targets(1) == (1, 2, 3)  # the learner takes every new store
+    assert step.groups_of(3) == [] and step.learning(3) == [1]
+    # Not before the learner has copied group 1.
+    assert promote(step, {3: []}, alive=range(4)) is None
+    done = promote(step, {3: [1]}, alive=range(4))
+    assert done is not None and done.version == 2 and done.settled
+    assert done.owners == ((0, 1), (2, 3), (2, 0))
+
+
+def test_a_gone_owner_is_dropped_at_once_and_replaced_by_a_learner() -> None:
+    current = ring(GROUPS[:3], range(3), replicas=2)
+    live = (0, 2)
+    target = follow_members(current, live)
+    step = transition(current, target)
+    assert step is not None
+    assert step.owners == ((0,), (2,), (2, 0))  # shard 1 answers nothing any more
+    assert step.learners == ((2,), (0,), ())  # each group back to two replicas
+    assert 1 not in step.members
+
+
+def test_a_group_whose_every_owner_is_gone_keeps_them_listed_and_learns_from_nobody() -> None:
+    current = ring(GROUPS[:3], range(3), replicas=2)  # (0, 1), (1, 2), (2, 0)
+    step = transition(current, follow_members(current, (0,)))
+    assert step is not None
+    assert step.owners == ((0,), (1, 2), (0,))
+    assert step.learners == ((), (), ())  # nobody holds group 1 to copy it from
+    assert set(step.members) == {0, 1, 2}
+    # With one replica there is nothing to do at all until the owner is back.
+    alone = ring(GROUPS[:3], range(3), replicas=1)
+    assert transition(alone, follow_members(alone, (0, 2))) is None
+
+
+def test_a_learner_that_is_gone_is_forgotten_at_promotion() -> None:
+    current = ring(GROUPS[:2], range(2), replicas=1)
+    target = Placement(0, GROUPS[:2], ((0, 2), (1,)), (0, 1, 2), 1)
+    step = transition(current, target)
+    assert step is not None and step.learners[0] == (2,)
+    done = promote(step, {}, alive=(0, 1))
+    assert done is not None and done.owners == ((0,), (1,))
+
+
+def test_a_handoff_in_progress_is_finished_before_another_starts() -> None:
+    current = ring(GROUPS[:3], range(3), replicas=2)
+    step = transition(current, follow_members(current, (0, 2)))
+    assert step is not None
+    with pytest.raises(ConfigError, match="in progress"):
+        transition(step, follow_members(step, (0, 2)))
+    assert transition(current, current) is None
+
+
+def test_learners_and_leaving_owners_are_checked() -> None:
+    with pytest.raises(ConfigError, match="learners"):
+        Placement(1, GROUPS[:1], ((0,),), (0, 1), 2, learners=((0,),))
+    with pytest.raises(ConfigError, match="leaving"):
+        Placement(1, GROUPS[:1], ((0,),), (0, 1), 2, leaving=((0,),))

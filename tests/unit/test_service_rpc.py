@@ -166,7 +166,16 @@ def test_a_shard_exports_shard_metrics_and_nothing_of_fusion() -> None:
     from swarmrec.services.registry import spec
 
     names = {m.name for m in spec("index-shard").metrics.describe()}  # type: ignore[union-attr]
-    assert names == {"swarmrec_shard_partial_queries_total", "swarmrec_shard_stored_descriptors"}
+    assert names == {
+        "swarmrec_shard_partial_queries_total",
+        "swarmrec_shard_stored_descriptors",
+        "swarmrec_shard_group_queries_total",
+        "swarmrec_shard_placement_version",
+        "swarmrec_shard_groups",
+        "swarmrec_shard_refused_total",
+        "swarmrec_shard_handoff_records_total",
+        "swarmrec_shard_placements_published_total",
+    }
     every = {m.name for m in ServiceMetrics.describe()}
     assert not any("fusion" in n or "detector" in n for n in every | names)
 

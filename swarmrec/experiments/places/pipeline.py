@@ -133,7 +133,7 @@ def prepare(settings: PlacesSettings, *, dataset_dir: Path) -> Prepared:
             DetectorSettings(detector_mode="replay", dataset=str(data.folder), labels_file=data.labels_file)
         ]
     places = settings.places(n_labels, tuple(int(b) for b in bounds))
-    spec = SwarmSpec(settings.bus(), WORKLOADS["places"], (places, *parts), workload="places")
+    spec = SwarmSpec(settings.bus(), WORKLOADS["places"], (places, settings.index, *parts), workload="places")
     return Prepared(spec, preset, bounds, split_frames(n_frames, settings.robots), seq, trajectory, px)
 
 
@@ -181,8 +181,9 @@ def _link_schedule(
 def _local(settings: PlacesSettings) -> LocalDeployment:
     """A fresh local swarm in the run's folder (stores and detections of an earlier run removed)."""
     out = settings.out
-    for old in (out / "data").glob("robot*/*/*.log"):
-        old.unlink()
+    for pattern in ("robot*/*/*.log", "robot*/*/placement.state"):
+        for old in (out / "data").glob(pattern):
+            old.unlink()
     for old in (out / "data").glob("robot*/detector/constellations/*.txt"):
         old.unlink()
     schedule = read_schedule(settings.schedule, unit=settings.schedule_unit) if settings.schedule else None

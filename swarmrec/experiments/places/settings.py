@@ -13,7 +13,7 @@ from swarmrec.datasets.tum import DEFAULT_MAX_DT
 from swarmrec.deployments.links import LinkSpec
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.settings import BusSettings
-from swarmrec.services.settings import PlaceSettings, WirePositions
+from swarmrec.services.settings import IndexSettings, PlaceSettings, WirePositions
 
 __all__ = ["PixelSettings", "PlacesSettings"]
 
@@ -84,6 +84,8 @@ class PlacesSettings:
     schedule_unit: Literal["s", "step"] = "step"
     #: A local swarm's links: mtls (mutual TLS and access control) or insecure (debugging).
     security: str = "mtls"
+    #: The elastic index: replicas per label group, rebalancing (docs/elastic-index.md).
+    index: IndexSettings = field(default_factory=IndexSettings)
 
     def __post_init__(self) -> None:
         if self.robots < 1:
@@ -151,6 +153,8 @@ class PlacesSettings:
             "swarm": self.swarm,
             "request_timeout_s": self.request_timeout_s,
             "wire_positions": self.wire_positions,
+            "replicas": self.index.replicas,
+            "rebalance_target": self.index.rebalance_target,
         }
 
     @classmethod
@@ -172,6 +176,10 @@ class PlacesSettings:
                 request_timeout_s=float(record["request_timeout_s"]),
                 pace="lockstep" if record.get("lockstep", True) else "fast",
                 wire_positions=record.get("wire_positions", "mm"),
+                index=IndexSettings(
+                    replicas=int(record.get("replicas", IndexSettings.replicas)),
+                    rebalance_target=float(record.get("rebalance_target", IndexSettings.rebalance_target)),
+                ),
             )
         except (KeyError, TypeError, ValueError) as e:
             raise ConfigError(f"the swarm file's experiment record is not a places run: {e}") from None

@@ -25,7 +25,7 @@ SERVICE_KIND_ROUTER: ServiceKind
 SERVICE_KIND_GATEWAY: ServiceKind
 
 class MemberInfo(_message.Message):
-    __slots__ = ("kind", "robot_id", "label_lo", "label_hi", "version", "n_labels", "metrics_url", "swarm", "stored_items")
+    __slots__ = ("kind", "robot_id", "label_lo", "label_hi", "version", "n_labels", "metrics_url", "swarm", "stored_items", "pending_items")
     KIND_FIELD_NUMBER: _ClassVar[int]
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     LABEL_LO_FIELD_NUMBER: _ClassVar[int]
@@ -35,6 +35,7 @@ class MemberInfo(_message.Message):
     METRICS_URL_FIELD_NUMBER: _ClassVar[int]
     SWARM_FIELD_NUMBER: _ClassVar[int]
     STORED_ITEMS_FIELD_NUMBER: _ClassVar[int]
+    PENDING_ITEMS_FIELD_NUMBER: _ClassVar[int]
     kind: ServiceKind
     robot_id: int
     label_lo: int
@@ -44,4 +45,5 @@ class MemberInfo(_message.Message):
     metrics_url: str
     swarm: str
     stored_items: int
-    def __init__(self, kind: _Optional[_Union[ServiceKind, str]] = ..., robot_id: _Optional[int] = ..., label_lo: _Optional[int] = ..., label_hi: _Optional[int] = ..., version: _Optional[str] = ..., n_labels: _Optional[int] = ..., metrics_url: _Optional[str] = ..., swarm: _Optional[str] = ..., stored_items: _Optional[int] = ...) -> None: ...
+    pending_items: int
+    def __init__(self, kind: _Optional[_Union[ServiceKind, str]] = ..., robot_id: _Optional[int] = ..., label_lo: _Optional[int] = ..., label_hi: _Optional[int] = ..., version: _Optional[str] = ..., n_labels: _Optional[int] = ..., metrics_url: _Optional[str] = ..., swarm: _Optional[str] = ..., stored_items: _Optional[int] = ..., pending_items: _Optional[int] = ...) -> None: ...

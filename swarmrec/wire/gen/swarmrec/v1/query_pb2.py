@@ -25,7 +25,7 @@ _sym_db = _symbol_database.Default()
 from . import descriptor_pb2 as swarmrec_dot_v1_dot_descriptor__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x17swarmrec/v1/query.proto\x12\x0bswarmrec.v1\x1a\x1cswarmrec/v1/descriptor.proto\"\x8e\x01\n\x0cPartialQuery\x12\x10\n\x08query_id\x18\x01 \x01(\r\x12\r\n\x05n_ret\x18\x02 \x01(\r\x12\x32\n\ndescriptor\x18\x03 \x01(\x0b\x32\x1e.swarmrec.v1.PartialDescriptor\x12\x11\n\tread_only\x18\x04 \x01(\x08\x12\x16\n\x0einclude_scores\x18\x05 \x01(\x08\"\x81\x01\n\x0f\x43\x61ndidatesReply\x12\x10\n\x08query_id\x18\x01 \x01(\r\x12\x10\n\x08label_lo\x18\x02 \x01(\r\x12\x10\n\x08label_hi\x18\x03 \x01(\r\x12\x11\n\trobot_ids\x18\x04 \x03(\r\x12\x15\n\rframe_indices\x18\x05 \x03(\r\x12\x0e\n\x06scores\x18\x06 \x03(\x02\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x17swarmrec/v1/query.proto\x12\x0bswarmrec.v1\x1a\x1cswarmrec/v1/descriptor.proto\"\xa9\x01\n\x0cPartialQuery\x12\x10\n\x08query_id\x18\x01 \x01(\r\x12\r\n\x05n_ret\x18\x02 \x01(\r\x12\x32\n\ndescriptor\x18\x03 \x01(\x0b\x32\x1e.swarmrec.v1.PartialDescriptor\x12\x11\n\tread_only\x18\x04 \x01(\x08\x12\x16\n\x0einclude_scores\x18\x05 \x01(\x08\x12\x19\n\x11placement_version\x18\x06 \x01(\x04\"\x81\x01\n\x0f\x43\x61ndidatesReply\x12\x10\n\x08query_id\x18\x01 \x01(\r\x12\x10\n\x08label_lo\x18\x02 \x01(\r\x12\x10\n\x08label_hi\x18\x03 \x01(\r\x12\x11\n\trobot_ids\x18\x04 \x03(\r\x12\x15\n\rframe_indices\x18\x05 \x03(\r\x12\x0e\n\x06scores\x18\x06 \x03(\x02\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -33,7 +33,7 @@ _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, __name__, _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_PARTIALQUERY']._serialized_start=71
-  _globals['_PARTIALQUERY']._serialized_end=213
-  _globals['_CANDIDATESREPLY']._serialized_start=216
-  _globals['_CANDIDATESREPLY']._serialized_end=345
+  _globals['_PARTIALQUERY']._serialized_end=240
+  _globals['_CANDIDATESREPLY']._serialized_start=243
+  _globals['_CANDIDATESREPLY']._serialized_end=372
 # @@protoc_insertion_point(module_scope)

@@ -8,18 +8,20 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 DESCRIPTOR: _descriptor.FileDescriptor
 
 class PartialQuery(_message.Message):
-    __slots__ = ("query_id", "n_ret", "descriptor", "read_only", "include_scores")
+    __slots__ = ("query_id", "n_ret", "descriptor", "read_only", "include_scores", "placement_version")
     QUERY_ID_FIELD_NUMBER: _ClassVar[int]
     N_RET_FIELD_NUMBER: _ClassVar[int]
     DESCRIPTOR_FIELD_NUMBER: _ClassVar[int]
     READ_ONLY_FIELD_NUMBER: _ClassVar[int]
     INCLUDE_SCORES_FIELD_NUMBER: _ClassVar[int]
+    PLACEMENT_VERSION_FIELD_NUMBER: _ClassVar[int]
     query_id: int
     n_ret: int
     descriptor: _descriptor_pb2.PartialDescriptor
     read_only: bool
     include_scores: bool
-    def __init__(self, query_id: _Optional[int] = ..., n_ret: _Optional[int] = ..., descriptor: _Optional[_Union[_descriptor_pb2.PartialDescriptor, _Mapping]] = ..., read_only: _Optional[bool] = ..., include_scores: _Optional[bool] = ...) -> None: ...
+    placement_version: int
+    def __init__(self, query_id: _Optional[int] = ..., n_ret: _Optional[int] = ..., descriptor: _Optional[_Union[_descriptor_pb2.PartialDescriptor, _Mapping]] = ..., read_only: _Optional[bool] = ..., include_scores: _Optional[bool] = ..., placement_version: _Optional[int] = ...) -> None: ...
 
 class CandidatesReply(_message.Message):
     __slots__ = ("query_id", "label_lo", "label_hi", "robot_ids", "frame_indices", "scores")

@@ -1,0 +1,291 @@
+"""The elastic index's coordinator: the lowest live index shard keeps the placement.
+
+Every shard runs one :class:`Coordinator`; it acts only while its shard is the
+lowest id among the live shards (liveliness tokens), so exactly one acts once
+membership has settled, and another takes over within a tick when it goes. Each
+tick (``placement_tick_s``) the acting coordinator:
+
+1. asks every live shard for its state (placement version, groups copied, load);
+2. on taking over, starts from the newest placement any shard follows;
+3. sends the placement to every shard that follows an older one (or has not
+   been confirmed since it restarted);
+4. with a handoff in progress, promotes it once every live learner has copied
+   its groups (:func:`~swarmrec.core.placement.promote`);
+5. otherwise follows membership (:func:`~swarmrec.core.placement.follow_members`:
+   a gone shard's groups stay answered by their other replicas and get new
+   ones) and, once ``rebalance_min_queries`` partial queries were served since
+   the last look, the observed load (:func:`~swarmrec.core.placement.rebalance`,
+   to ``rebalance_target``), and starts the handoff
+   (:func:`~swarmrec.core.placement.transition`).
+
+Every shard, coordinator or not, first checks on start that the swarm is not
+further along than the placement it loaded (:meth:`Coordinator.confirm_on_start`).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Protocol
+
+from swarmrec.core.placement import Placement, follow_members, promote, rebalance, shard_loads, transition
+from swarmrec.errors import CallError, WireError
+from swarmrec.runtime import ServiceContext, keys
+from swarmrec.runtime.settings import BusSettings
+from swarmrec.services.metrics import ShardMetrics
+from swarmrec.services.routing import LiveShards
+from swarmrec.services.settings import IndexSettings, PlaceSettings
+from swarmrec.wire import messages as pb
+from swarmrec.wire.placement import placement_from_proto, placement_to_proto
+
+
+class Shard(Protocol):
+    """What the coordinator needs of the shard it runs in (an IndexShard)."""
+
+    shard: int
+    bus: BusSettings
+    places: PlaceSettings
+    index_settings: IndexSettings
+    ctx: ServiceContext
+    metrics: ShardMetrics
+    groups: tuple[tuple[int, int], ...]
+    placement: Placement
+    confirmed: bool
+    ready: set[int]
+
+    def state(self) -> pb.ShardState: ...
+
+    def follow(self, placement: Placement, *, confirm: bool = True) -> bool: ...
+
+
+__all__ = ["Coordinator", "Shard"]
+
+
+class Coordinator:
+    """The coordinator loop of one shard (see the module docstring)."""
+
+    def __init__(self, shard: Shard) -> None:
+        self.shard = shard
+        self.settings = shard.index_settings
+        self.log = shard.ctx.log
+        self.live: LiveShards | None = None
+        self.acting = False
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        # The group loads summed over the shards at the last rebalancing look.
+        self._load_mark: dict[int, int] = {}
+        # When each shard was last seen alive (a member not seen yet counts from the start).
+        self._seen: dict[int, float] = {}
+        self._started = time.monotonic()
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self.live = LiveShards(self.shard.ctx.session, self.shard.bus.swarm)
+        self._thread = threading.Thread(target=self._run, name="index-coordinator", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=5.0)
+        if self.live is not None:
+            self.live.close()
+            self.live = None
+
+    def lowest_live(self) -> int:
+        """The lowest shard id this shard sees alive (itself included)."""
+        live = self.live.ids() if self.live is not None else set()
+        return min(live | {self.shard.shard})
+
+    def _stopping(self) -> bool:
+        return self._stop.is_set() or self.shard.ctx.stop.is_set()
+
+    def _run(self) -> None:
+        self.confirm_on_start()
+        # One tick before acting: the liveliness subscriber's view of the others (its history)
+        # arrives by then, so a shard does not take itself for the lowest while it is not.
+        self._stop.wait(self.settings.placement_tick_s)
+        while not self._stopping():
+            try:
+                self.tick()
+            except Exception:
+                self.log.exception("coordinator tick failed")
+            self._stop.wait(self.settings.placement_tick_s)
+
+    # --- talking to the shards ------------------------------------------------------------
+
+    def states(self) -> dict[int, pb.ShardState]:
+        """Every live shard's state, by shard id (one scatter request; this shard's own
+        state is read directly)."""
+        s = self.shard
+        out = {s.shard: s.state()}
+        pending = s.ctx.caller.start(
+            keys.endpoint(s.bus.swarm, "index-shard", "*", "placement"),
+            pb.PlacementRequest(),
+            target_robot=None,
+            endpoint="placement",
+            scatter=True,
+        )
+        for outcome in pending.gather(pb.ShardState):
+            if outcome.reply is not None and outcome.reply.shard_id != s.shard:
+                out[outcome.reply.shard_id] = outcome.reply
+        return out
+
+    def _placement_of(self, state: pb.ShardState) -> Placement | None:
+        if not state.HasField("placement"):
+            return None
+        try:
+            p = placement_from_proto(state.placement, self.shard.places.n_labels)
+        except WireError:
+            return None
+        return p if p.groups == self.shard.groups else None
+
+    def confirm_on_start(self) -> None:
+        """Answer only with the swarm's placement: if a live shard follows a newer one, wait
+        for the coordinator to send it; otherwise the one loaded (or version 0) is it."""
+        s = self.shard
+        try:
+            states = self.states()
+        except CallError:
+            states = {}
+        newest = max(
+            (
+                p.version
+                for st in states.values()
+                if st.confirmed and (p := self._placement_of(st)) is not None
+            ),
+            default=-1,
+        )
+        if newest <= s.placement.version:
+            s.follow(s.placement, confirm=True)
+            self.log.info("placement confirmed", extra={"fields": {"version": s.placement.version}})
+        else:
+            self.log.info(
+                "the swarm is further along: waiting for the coordinator",
+                extra={"fields": {"version": s.placement.version, "swarm_version": newest}},
+            )
+
+    def _adopt(self, shards: list[int], placement: Placement) -> None:
+        """Send ``placement`` to ``shards`` (all at once); a shard that does not answer gets
+        it again next tick."""
+        s = self.shard
+        msg = pb.AdoptRequest(placement=placement_to_proto(placement))
+        asked = [
+            (
+                m,
+                s.ctx.caller.start(
+                    keys.endpoint(s.bus.swarm, "index-shard", m, "adopt"),
+                    msg,
+                    target_robot=m,
+                    endpoint="adopt",
+                ),
+            )
+            for m in shards
+        ]
+        for m, pending in asked:
+            try:
+                pending.result(pb.ShardState)
+            except CallError as e:
+                self.log.info(f"shard {m} did not adopt placement {placement.version}: {e}")
+
+    def publish(self, placement: Placement, live: set[int]) -> None:
+        """Follow ``placement`` here, then send it to every other live shard."""
+        s = self.shard
+        s.follow(placement)
+        s.metrics.placements_published.inc()
+        fields = {
+            "version": placement.version,
+            "owners": [list(o) for o in placement.owners],
+            "learners": [list(x) for x in placement.learners],
+        }
+        self.log.info("placement published", extra={"fields": fields})
+        self._adopt(sorted(live - {s.shard}), placement)
+
+    # --- one tick -----------------------------------------------------------------------
+
+    def tick(self) -> None:
+        s = self.shard
+        assert self.live is not None
+        live = self.live.ids() | {s.shard}
+        now = time.monotonic()
+        for m in live:
+            self._seen[m] = now
+        if s.shard != min(live):
+            self.acting = False
+            return
+        states = {m: st for m, st in self.states().items() if m in live}
+        if not self.acting:
+            # Taking over: the newest placement any live shard follows is the swarm's.
+            newest = max(
+                (p for st in states.values() if st.confirmed and (p := self._placement_of(st)) is not None),
+                key=lambda p: p.version,
+                default=s.placement,
+            )
+            if newest.version > s.placement.version or not s.confirmed:
+                s.follow(newest)
+            self.acting = True
+            self.log.info(
+                "acting as the index coordinator", extra={"fields": {"version": s.placement.version}}
+            )
+        current = s.placement
+        # Members gone for less than the grace (or not started yet) still count: a shard
+        # restarting, or a swarm still starting, moves no group. Queries do not wait for
+        # this: they go to a group's other owners as soon as one does not answer.
+        grace = self.settings.member_grace_s
+        present = live | {m for m in current.members if now - self._seen.get(m, self._started) < grace}
+        behind = sorted(
+            m
+            for m, st in states.items()
+            if m != s.shard and (not st.confirmed or st.placement.version != current.version)
+        )
+        if behind:
+            self._adopt(behind, current)
+        if not current.settled:
+            ready = {
+                m: list(st.ready_groups)
+                for m, st in states.items()
+                if st.placement.version == current.version
+            }
+            ready[s.shard] = sorted(s.ready)
+            done = promote(current, ready, present)
+            if done is not None:
+                self.publish(done, live)
+            return
+        target = follow_members(current, present)
+        if target.owners == current.owners and set(target.members) == set(current.members):
+            target = self._rebalanced(current, states) or target
+        step = transition(current, target)
+        if step is not None:
+            self.publish(step, live)
+
+    def _rebalanced(self, current: Placement, states: dict[int, pb.ShardState]) -> Placement | None:
+        """A placement with a better balance, from the partial queries served since the last
+        look, once there are ``rebalance_min_queries`` of them; None otherwise."""
+        totals: dict[int, int] = {}
+        for st in states.values():
+            for g, n in enumerate(st.group_queries):
+                totals[g] = totals.get(g, 0) + int(n)
+        # A shard that restarted counts from 0 again: never a negative load.
+        window = {g: max(0, n - self._load_mark.get(g, 0)) for g, n in totals.items()}
+        if sum(window.values()) < self.settings.rebalance_min_queries:
+            return None
+        self._load_mark = totals
+        loads = shard_loads(current, {g: float(n) for g, n in window.items()})
+        balanced = rebalance(
+            current, {g: float(n) for g, n in window.items()}, target=self.settings.rebalance_target
+        )
+        if balanced.owners == current.owners:
+            return None
+        after = shard_loads(balanced, {g: float(n) for g, n in window.items()})
+        self.log.info(
+            "rebalancing",
+            extra={
+                "fields": {
+                    "queries": sum(window.values()),
+                    "busiest_before": max(loads.values()),
+                    "busiest_after": max(after.values()),
+                }
+            },
+        )
+        return balanced

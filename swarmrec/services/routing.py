@@ -1,0 +1,167 @@
+"""Where a querier sends each slice of a frame's descriptor: the index placement, kept fresh.
+
+A descriptor (or a client) holds the placement it routes with (:class:`Routing`):
+version 0 until it learns better, refreshed from the shards (the newest
+placement any confirmed shard follows) when a shard says the sender is stale.
+A group's query goes to one of its owners (:func:`~swarmrec.core.placement.serving_owner`,
+a stable choice that spreads a group's queries over its replicas), the other live
+owners next; a shard that timed out is asked last for ``suspect_s`` seconds, so a
+frozen shard costs one timeout, not one per query.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from collections.abc import Callable, Sequence
+
+import zenoh
+
+from swarmrec.core.placement import Placement, ring, serving_owner
+from swarmrec.errors import WireError
+from swarmrec.runtime import keys
+from swarmrec.runtime.rpc import Caller
+from swarmrec.wire import messages as pb
+from swarmrec.wire.placement import placement_from_proto
+
+__all__ = ["LiveShards", "Routing", "newest_placement"]
+
+
+class LiveShards:
+    """The ids of the swarm's live index shards, kept by a liveliness subscriber (with
+    the tokens already declared), so asking costs nothing."""
+
+    def __init__(self, session: zenoh.Session, swarm: str) -> None:
+        self._lock = threading.Lock()
+        self._alive: set[int] = set()
+        self._sub = session.liveliness().declare_subscriber(
+            keys.alive(swarm, "index-shard", "*"), self._on_token, history=True
+        )
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        parsed = keys.parse_alive(str(sample.key_expr))
+        if parsed is None:
+            return
+        _kind, shard = parsed
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._alive.add(shard)
+            else:
+                self._alive.discard(shard)
+
+    def ids(self) -> set[int]:
+        with self._lock:
+            return set(self._alive)
+
+    def close(self) -> None:
+        with contextlib.suppress(zenoh.ZError):  # the session closed first
+            self._sub.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
+
+
+def newest_placement(
+    states: Sequence[pb.ShardState], groups: Sequence[tuple[int, int]] | None = None
+) -> Placement | None:
+    """The newest placement among confirmed shards' states (of ``groups`` when given)."""
+    best: Placement | None = None
+    for st in states:
+        if not st.confirmed or not st.HasField("placement") or len(st.placement.group_bounds) < 2:
+            continue
+        try:
+            p = placement_from_proto(st.placement, st.placement.group_bounds[-1])
+        except WireError:
+            continue
+        if groups is not None and p.groups != tuple(groups):
+            continue
+        if best is None or p.version > best.version:
+            best = p
+    return best
+
+
+class Routing:
+    """The placement a querier routes with, and the order it asks a group's owners in."""
+
+    def __init__(
+        self,
+        swarm: str,
+        n_labels: int,
+        groups: Sequence[tuple[int, int]],
+        *,
+        replicas: int,
+        n_shards: int,
+        live: LiveShards | None = None,
+        suspect_s: float = 5.0,
+        on_refresh: Callable[[], None] | None = None,
+        placement: Placement | None = None,
+    ) -> None:
+        self.swarm, self.n_labels = swarm, n_labels
+        self.groups = tuple(groups)
+        self.live = live
+        self.suspect_s = suspect_s
+        self._lock = threading.Lock()
+        # Until it learns better: version 0, the table every shard of a new swarm starts from.
+        self._placement = placement or ring(self.groups, range(n_shards), replicas=replicas)
+        self._suspects: dict[int, float] = {}
+        self.refreshes = 0
+        self._on_refresh = on_refresh
+
+    @property
+    def placement(self) -> Placement:
+        with self._lock:
+            return self._placement
+
+    def update(self, placement: Placement) -> bool:
+        """Route with ``placement`` if it is newer; whether it was."""
+        with self._lock:
+            if placement.groups != self.groups or placement.version <= self._placement.version:
+                return False
+            self._placement = placement
+            return True
+
+    def refresh(self, caller: Caller, timeout_s: float | None = None) -> Placement:
+        """Ask every shard for its placement; route with the newest a confirmed shard follows."""
+        pending = caller.start(
+            keys.endpoint(self.swarm, "index-shard", "*", "placement"),
+            pb.PlacementRequest(),
+            target_robot=None,
+            endpoint="placement",
+            scatter=True,
+            timeout_s=timeout_s,
+        )
+        states = [o.reply for o in pending.gather(pb.ShardState) if o.reply is not None]
+        newest = newest_placement(states, self.groups)
+        self.refreshes += 1
+        if self._on_refresh is not None:
+            self._on_refresh()
+        if newest is not None:
+            self.update(newest)
+        return self.placement
+
+    def suspect(self, shard: int) -> None:
+        """``shard`` did not answer in time: ask it last for a while."""
+        with self._lock:
+            self._suspects[shard] = time.monotonic() + self.suspect_s
+
+    def _suspected(self, now: float) -> set[int]:
+        with self._lock:
+            for shard in [s for s, until in self._suspects.items() if until <= now]:
+                del self._suspects[shard]
+            return set(self._suspects)
+
+    def owners_in_order(self, placement: Placement, group: int, robot: int, frame: int) -> list[int]:
+        """``group``'s owners, the one that should answer this frame's query first: the
+        stable choice among live, unsuspected owners, then the other live ones, then the
+        suspected, then those not seen alive."""
+        owners = list(placement.owners[group])
+        live = self.live.ids() if self.live is not None else set(owners)
+        suspected = self._suspected(time.monotonic())
+        good = [o for o in owners if o in live and o not in suspected]
+        first = serving_owner(placement, group, robot, frame, good)
+        rest = [o for o in good if o != first]
+        rest += [o for o in owners if o in live and o in suspected]
+        rest += [o for o in owners if o not in live]
+        return ([first] if first is not None else []) + rest
+
+    def close(self) -> None:
+        if self.live is not None:
+            self.live.close()
