@@ -42,6 +42,7 @@ import zenoh
 # protobuf ships no type stubs (see swarmrec/runtime/rpc.py for the two codes).
 from google.protobuf.message import Message  # type: ignore[import-untyped, unused-ignore]
 
+from swarmrec.core.placement import Placement
 from swarmrec.core.presets import get_preset
 from swarmrec.core.types import Constellation
 from swarmrec.errors import (
@@ -68,6 +69,7 @@ __all__ = [
     "ERROR_CODE_METADATA",
     "GRPC_SCHEME",
     "GatewayClient",
+    "IndexState",
     "Member",
     "QueryResult",
     "SwarmClient",
@@ -99,6 +101,32 @@ class Member:
     metrics_url: str
     #: Partial descriptors (index shard) or constellations (verifier) held; 0 otherwise.
     stored_items: int = 0
+    #: A descriptor's slices not yet acknowledged by every shard that must hold them.
+    pending_items: int = 0
+
+
+@dataclass(frozen=True)
+class IndexState:
+    """The elastic index as the live shards report it."""
+
+    #: The newest placement a confirmed shard follows (None: no shard answered).
+    placement: Placement | None
+    #: Each live shard's placement version (-1: not confirmed yet).
+    versions: dict[int, int]
+    #: Slices the descriptors still have to store.
+    pending: int
+
+    @property
+    def settled(self) -> bool:
+        """Every shard follows the same settled placement and nothing waits to be stored."""
+        p = self.placement
+        return (
+            p is not None
+            and p.settled
+            and bool(self.versions)
+            and set(self.versions.values()) == {p.version}
+            and self.pending == 0
+        )
 
 
 def member_of(info: pb.MemberInfo) -> Member:
@@ -112,6 +140,7 @@ def member_of(info: pb.MemberInfo) -> Member:
         version=info.version,
         metrics_url=info.metrics_url,
         stored_items=info.stored_items,
+        pending_items=info.pending_items,
     )
 
 
@@ -314,9 +343,8 @@ class ZenohClient(SwarmClient):
         """Every live service with what it says about itself, by kind and robot."""
         return [member_of(info) for info in self.member_infos(timeout_s)]
 
-    def plan(self, preset: str = "paper", *, timeout_s: float | None = None) -> QueryPlan:
-        """What a query needs to know: the index placement the live shards follow (the
-        newest a confirmed shard follows), so each slice goes to an owner of its group."""
+    def shard_states(self, timeout_s: float | None = None) -> list[pb.ShardState]:
+        """Every live index shard's placement, groups held and load (``placement`` endpoint)."""
         pending = self._caller().start(
             keys.endpoint(self.swarm, "index-shard", "*", "placement"),
             pb.PlacementRequest(),
@@ -325,7 +353,29 @@ class ZenohClient(SwarmClient):
             scatter=True,
             timeout_s=timeout_s,
         )
-        states = [o.reply for o in pending.gather(pb.ShardState) if o.reply is not None]
+        return [o.reply for o in pending.gather(pb.ShardState) if o.reply is not None]
+
+    def index_state(self, timeout_s: float | None = None) -> IndexState:
+        """The placement the shards follow and the stores the descriptors still owe."""
+        states = self.shard_states(timeout_s)
+        pending = sum(m.pending_items for m in self.members(timeout_s) if m.kind == "descriptor")
+        versions = {st.shard_id: (st.placement.version if st.confirmed else -1) for st in states}
+        return IndexState(newest_placement(states), versions, pending)
+
+    def wait_index_settled(self, timeout_s: float = 30.0, poll_s: float = 0.2) -> IndexState:
+        """Poll :meth:`index_state` until it is settled (handoffs done, every store
+        acknowledged) or ``timeout_s`` passed; the last state either way."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            state = self.index_state()
+            if state.settled or time.monotonic() >= deadline:
+                return state
+            time.sleep(poll_s)
+
+    def plan(self, preset: str = "paper", *, timeout_s: float | None = None) -> QueryPlan:
+        """What a query needs to know: the index placement the live shards follow (the
+        newest a confirmed shard follows), so each slice goes to an owner of its group."""
+        states = self.shard_states(timeout_s)
         placement = newest_placement(states)
         if placement is None:
             raise NoReply(

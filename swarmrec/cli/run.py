@@ -213,6 +213,14 @@ def print_summary(s: PlacesSummary, out: Path) -> None:
         print(f"  query latency p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms")
     print(f"  measured bytes between robots: {b.per_query:.1f} B per query ({b.per_frame:.1f} B per frame)")
     print(f"  partial queries per shard {load.partial_queries}; busiest / mean = {load.balance_ratio:.2f}")
+    if s.index is not None:
+        ix = s.index
+        state = "settled" if ix.settled else f"NOT settled, {ix.pending_stores} stores pending"
+        print(
+            f"  index: {ix.replicas} replicas a group, placement version {ix.version} "
+            f"({ix.placements_published:.0f} published, {ix.handoff_records:.0f} descriptors handed off), "
+            f"{state}"
+        )
     if s.positions_effect is not None:
         pe = s.positions_effect
         print(

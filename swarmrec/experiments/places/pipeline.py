@@ -63,6 +63,9 @@ from swarmrec.services.registry import WORKLOADS
 from swarmrec.services.settings import DetectorSettings, PlaceSettings
 from swarmrec.wire.codec import constellation_from_proto, constellation_to_proto
 
+#: How long a run waits after its replay for handoffs and retried stores to finish.
+SETTLE_TIMEOUT_S = 60.0
+
 __all__ = ["Prepared", "as_on_the_wire", "compose", "main", "prepare", "swarm_bounds"]
 
 IntArray = npt.NDArray[np.int64]
@@ -245,6 +248,11 @@ def main(
             before_step = _link_schedule(deployment, client, link_events)
             result = replay(client, prepared.blocks, settings, on_step, before_step)
             timings["replay_s"] = result.wall_s
+            # Handoffs and retried stores finish before anything is counted, so the report
+            # agrees with what the shards hold.
+            t0 = time.perf_counter()
+            index_state = client.wait_index_settled(timeout_s=SETTLE_TIMEOUT_S)
+            timings["settle_s"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             metrics = deployment.metrics()
             timings["scrape_s"] = time.perf_counter() - t0
@@ -289,6 +297,7 @@ def main(
         timings=timings,
         deployment=deployment.description,
         loop_closure_min_score=places.loop_closure_min_score,
+        index=index_state,
         detector=detector,
         links=LinkReport(
             settings.link.rate_kbps, settings.link.latency_ms, settings.schedule_unit, sorted(link_events)

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from swarmrec.client import IndexState
 from swarmrec.core.presets import Preset
 from swarmrec.core.types import ConstellationSequence, Trajectory
 from swarmrec.datasets.constellations import label_counts
@@ -107,6 +108,26 @@ class ShardLoad:
         "partial queries served per index shard (swarmrec_shard_partial_queries_total); "
         "balance_ratio is the busiest shard over the mean"
     )
+
+
+@dataclass
+class IndexSummary:
+    """The elastic index after the replay (docs/elastic-index.md)."""
+
+    #: The placement's version at the end (0: never changed) and replicas per group.
+    version: int
+    replicas: int
+    #: The shards owning each label group at the end.
+    owners: list[list[int]]
+    #: Every shard followed that placement and every store was acknowledged.
+    settled: bool
+    #: Slices the descriptors still had to store when the report was written.
+    pending_stores: int
+    #: Placements the coordinator published, descriptors copied in handoffs, requests
+    #: refused by reason (stale placement, unconfirmed shard, group not held).
+    placements_published: float
+    handoff_records: float
+    refused: dict[str, float]
 
 
 @dataclass
@@ -202,6 +223,7 @@ class PlacesSummary:
     positions_effect: PositionsEffect | None = None
     links: LinkReport | None = None
     detector: DetectorFigures | None = None
+    index: IndexSummary | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The summary as JSON-ready data; optional parts absent from the run are left out."""
@@ -328,8 +350,23 @@ class RunRecord:
     timings: dict[str, float]
     deployment: str
     loop_closure_min_score: float
+    index: IndexState | None = None
     detector: DetectorFigures | None = None
     links: LinkReport | None = None
+
+
+def _index_summary(state: IndexState, metrics: Scrape, replicas: int) -> IndexSummary:
+    p = state.placement
+    return IndexSummary(
+        version=p.version if p is not None else -1,
+        replicas=p.replicas if p is not None else replicas,
+        owners=[list(o) for o in p.owners] if p is not None else [],
+        settled=state.settled,
+        pending_stores=state.pending,
+        placements_published=metrics.total("swarmrec_shard_placements_published_total"),
+        handoff_records=metrics.total("swarmrec_shard_handoff_records_total"),
+        refused=metrics.by_label("swarmrec_shard_refused_total", "reason"),
+    )
 
 
 def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
@@ -393,6 +430,8 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
     )
     if run.detector is not None:
         summary.detector = _detector_figures(run.detector, metrics)
+    if run.index is not None:
+        summary.index = _index_summary(run.index, metrics, settings.index.replicas)
     if settings.check_offline and settings.lockstep and not replay.missing:
         summary.offline_check = _compare_offline(matrix, wire_seq, settings.robots, run.preset, run.bounds)
     dense = matrix.dense()
