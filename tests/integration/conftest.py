@@ -53,7 +53,9 @@ def running_swarm(
     ``start`` False only its router runs (the test starts what it needs)."""
     settings = BusSettings(swarm=swarm, n_robots=robots, request_timeout_s=request_timeout_s, **bus)  # type: ignore[arg-type]
     spec = SwarmSpec(settings, tuple(kinds), components, swarm_kinds=tuple(swarm_kinds))
-    deployment = LocalDeployment(data_dir=tmp / "data", log_dir=tmp / "logs", hosting=hosting, security=security)
+    deployment = LocalDeployment(
+        data_dir=tmp / "data", log_dir=tmp / "logs", hosting=hosting, security=security
+    )
     try:
         if start:
             deployment.start(spec, timeout_s=timeout_s)

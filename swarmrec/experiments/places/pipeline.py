@@ -207,11 +207,13 @@ def main(
     *,
     on_step: Callable[[int], None] | None = None,
     swarm_hook: Callable[[Deployment], None] | None = None,
+    after_replay: Callable[[Deployment], None] | None = None,
 ) -> PlacesSummary:
     """Run the swarm (``deployment``, or local processes), write the report, return the summary.
 
-    ``on_step`` is called after each lock-step step and ``swarm_hook`` once the
-    swarm is up (tests use them to inject faults).
+    ``on_step`` is called after each lock-step step, ``swarm_hook`` once the swarm is
+    up and ``after_replay`` once the replay is over and the index has settled, while
+    the swarm still runs (tests use them to inject faults and look inside).
     """
     t_start = time.perf_counter()
     out = settings.out
@@ -253,6 +255,8 @@ def main(
             t0 = time.perf_counter()
             index_state = client.wait_index_settled(timeout_s=SETTLE_TIMEOUT_S)
             timings["settle_s"] = time.perf_counter() - t0
+            if after_replay is not None:
+                after_replay(deployment)
             t0 = time.perf_counter()
             metrics = deployment.metrics()
             timings["scrape_s"] = time.perf_counter() - t0

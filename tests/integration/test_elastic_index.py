@@ -1,0 +1,264 @@
+"""The elastic index on live local swarms: shards killed, added and frozen mid-run.
+
+Every label group lives on two shards (the default). The checks are the issue's:
+
+* a shard killed mid-run (SIGKILL) and a brand-new shard (empty disk) added later
+  lose no stored descriptor: after the run every owner of every group holds every
+  slice the queried frames put in that group (read back through the shards' own
+  ``transfer`` pages), every query was answered (no failed shard), and the lock-step
+  pair scores are identical to the offline evaluation;
+* a shard frozen (SIGSTOP) for a few seconds costs no store: the descriptors queue
+  what it did not acknowledge and store it once it answers again;
+* a request routed with an old placement version is refused with FAILED_PRECONDITION
+  (and one far ahead at once); a placement from a shard that is not the lowest live
+  one is refused.
+
+The expected holdings are computed from the dataset (each frame with enough objects
+stores its non-empty slices), not from anything the swarm says.
+"""
+
+from __future__ import annotations
+
+import shutil
+import signal
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from swarmrec.client import ZenohClient
+from swarmrec.core.descriptor import semantic_descriptor
+from swarmrec.core.placement import Placement
+from swarmrec.core.presets import get_preset
+from swarmrec.core.split import split_frames
+from swarmrec.datasets.constellations import read_constellations
+from swarmrec.datasets.source import DatasetSource
+from swarmrec.deployments.base import Deployment
+from swarmrec.deployments.local import LocalDeployment
+from swarmrec.errors import ErrorCode, RemoteError
+from swarmrec.experiments.places import PlacesSettings, main
+from swarmrec.runtime import keys
+from swarmrec.runtime.rpc import Caller
+from swarmrec.runtime.tls import TlsFiles
+from swarmrec.services.settings import IndexSettings, PlaceSettings
+from swarmrec.wire import messages as pb
+from swarmrec.wire.codec import partial_descriptor_to_proto
+from swarmrec.wire.placement import placement_from_proto
+from tests.integration.conftest import running_swarm
+from tests.integration.support import wait_until
+
+ROBOTS, FRAMES = 4, 400
+STEPS = FRAMES // ROBOTS
+
+
+def _as_shard(swarm: LocalDeployment, shard: int) -> ZenohClient:
+    """A session with shard ``shard``'s certificate (shards may page through each other's groups)."""
+    assert swarm.pki_dir is not None
+    cn = f"r{shard}.index-shard.{swarm.spec_swarm}"
+    return ZenohClient(
+        [swarm.endpoint], swarm.spec_swarm, timeout_s=5.0, tls=TlsFiles.in_dir(swarm.pki_dir, cn)
+    )
+
+
+def group_rows(caller: Caller, swarm: str, shard: int, group: int) -> set[tuple[int, int]]:
+    """Every (robot, frame) ``shard`` holds for ``group``, paged through its ``transfer``."""
+    rows: set[tuple[int, int]] = set()
+    start = 0
+    while True:
+        reply = caller.call(
+            keys.endpoint(swarm, "index-shard", shard, "transfer"),
+            pb.TransferRequest(group=group, start_row=start),
+            pb.TransferReply,
+            target_robot=shard,
+        )
+        rows |= {(r.robot_id, r.frame_index) for r in reply.records}
+        start = reply.next_row
+        if reply.done:
+            return rows
+
+
+def expected_rows(dataset: Path, placement: Placement) -> dict[int, set[tuple[int, int]]]:
+    """Per group, the (robot, frame) of every queried frame with objects of that group."""
+    seq = read_constellations(dataset)
+    preset = get_preset("paper")
+    out: dict[int, set[tuple[int, int]]] = {g: set() for g in range(len(placement.groups))}
+    for robot, block in enumerate(split_frames(len(seq), ROBOTS)):
+        for frame, i in enumerate(block):
+            c = seq.constellations[i]
+            if len(c) < preset.min_objects:
+                continue
+            desc = semantic_descriptor(c, seq.n_labels)
+            for g, (lo, hi) in enumerate(placement.groups):
+                if desc[lo:hi].any():
+                    out[g].add((robot, frame))
+    return out
+
+
+def check_holdings(swarm: LocalDeployment, dataset: Path) -> Placement:
+    """Every owner of every group holds exactly the slices the dataset says; the placement."""
+    with swarm.client(5.0) as client:
+        state = client.index_state()
+    assert state.settled, state
+    placement = state.placement
+    assert placement is not None
+    expected = expected_rows(dataset, placement)
+    asker = min(m for g in placement.owners for m in g)
+    with _as_shard(swarm, asker) as c:
+        caller = Caller(c.session, asker, 5.0)
+        for g, owners in enumerate(placement.owners):
+            assert len(owners) == 2, (g, owners)  # back to two replicas everywhere
+            for shard in owners:
+                assert group_rows(caller, swarm.spec_swarm, shard, g) == expected[g], (g, shard)
+    return placement
+
+
+def _settings(tmp_path: Path, swarm: str, **index: object) -> PlacesSettings:
+    return PlacesSettings(
+        source=DatasetSource(frames=FRAMES),
+        robots=ROBOTS,
+        out=tmp_path / "run",
+        swarm=swarm,
+        request_timeout_s=1.0,
+        progress=False,
+        plots=False,
+        # Quick to give up on a gone shard; no rebalancing, so only membership moves groups.
+        index=IndexSettings(member_grace_s=1.0, placement_tick_s=0.25, rebalance_target=1000.0, **index),  # type: ignore[arg-type]
+    )
+
+
+@pytest.mark.slow
+def test_a_shard_killed_and_a_new_one_added_mid_run_lose_nothing_and_scores_stay_identical(
+    tmp_path: Path,
+) -> None:
+    settings = _settings(tmp_path, "elastic-kill-add")
+    held: list[LocalDeployment] = []
+    events: list[str] = []
+    seen: dict[str, Placement] = {}
+
+    def hook(d: Deployment) -> None:
+        assert isinstance(d, LocalDeployment)
+        held.append(d)
+
+    def on_step(t: int) -> None:
+        swarm = held[0]
+        if t == 25:
+            sp = swarm.find("index-shard", 2)
+            sp.proc.send_signal(signal.SIGKILL)
+            sp.proc.wait(timeout=10)
+            events.append("killed")
+        if t == 60:
+            # A brand-new shard 2: nothing on its disk.
+            shutil.rmtree(swarm.data_dir / "robot2" / "index-shard", ignore_errors=True)
+            started = swarm.start_robot(2, ["index-shard"])
+            assert started
+            swarm.wait_ready(60.0)
+            events.append("added")
+
+    def after(d: Deployment) -> None:
+        assert isinstance(d, LocalDeployment)
+        seen["final"] = check_holdings(d, settings.out / "dataset")
+
+    summary = main(settings, swarm_hook=hook, on_step=on_step, after_replay=after)
+
+    assert events == ["killed", "added"]
+    assert summary.offline_check is not None and summary.offline_check.identical, summary.offline_check
+    assert summary.queries.failed_shard_requests == 0  # every group kept an owner that answered
+    assert summary.index is not None and summary.index.settled
+    assert summary.index.version >= 4  # removal and re-replication, then the new shard's handoff
+    assert summary.index.handoff_records > 0
+    final = seen["final"]
+    assert 2 in final.members and final.groups_of(2), "the new shard took groups"
+
+
+@pytest.mark.slow
+def test_a_frozen_shard_costs_no_store_the_descriptors_queue_and_retry(tmp_path: Path) -> None:
+    settings = _settings(tmp_path, "elastic-frozen")
+    held: list[LocalDeployment] = []
+    frozen: list[float] = []
+
+    def hook(d: Deployment) -> None:
+        assert isinstance(d, LocalDeployment)
+        held.append(d)
+
+    def on_step(t: int) -> None:
+        sp = held[0].find("index-shard", 1)
+        if t == 20:
+            sp.proc.send_signal(signal.SIGSTOP)
+            frozen.append(time.monotonic())
+        if t == 30:
+            # At least 3 s frozen, so stores to it time out (1 s) and wait in the queues.
+            time.sleep(max(0.0, 3.0 - (time.monotonic() - frozen[0])))
+            sp.proc.send_signal(signal.SIGCONT)
+
+    retries: list[float] = []
+
+    def after(d: Deployment) -> None:
+        assert isinstance(d, LocalDeployment)
+        check_holdings(d, settings.out / "dataset")
+        retries.append(d.metrics().total("swarmrec_descriptor_store_retries_total"))
+
+    summary = main(settings, swarm_hook=hook, on_step=on_step, after_replay=after)
+
+    assert summary.queries.failed_shard_requests == 0  # the other owner answered meanwhile
+    assert summary.index is not None and summary.index.settled and summary.index.pending_stores == 0
+    assert retries[0] > 0  # stores to the frozen shard timed out, waited in the queues, were sent again
+
+
+@pytest.fixture
+def shards(tmp_path: Path) -> Iterator[LocalDeployment]:
+    """Three index shards alone (version 0: groups on (0, 1), (1, 2), (2, 0))."""
+    index = IndexSettings(member_grace_s=0.5, placement_tick_s=0.2)
+    with running_swarm(
+        tmp_path,
+        "elastic-shards",
+        PlaceSettings(n_labels=30),
+        index,
+        robots=3,
+        kinds=["index-shard"],
+        swarm_kinds=(),
+    ) as swarm:
+        yield swarm
+
+
+def _slice(version: int) -> pb.PartialQuery:
+    desc = partial_descriptor_to_proto(np.asarray([1, 2] + [0] * 28), 0, 10, robot=0, frame=0, query_step=0)
+    return pb.PartialQuery(descriptor=desc, read_only=True, placement_version=version)
+
+
+def test_stale_and_far_ahead_placement_versions_are_refused_and_placements_come_only_from_the_lowest(
+    shards: LocalDeployment,
+) -> None:
+    s = shards.spec_swarm
+    with shards.client(5.0) as client:
+        caller = client.caller
+        assert caller is not None
+        lookup0 = keys.endpoint(s, "index-shard", 0, "lookup")
+        caller.call(lookup0, _slice(0), pb.CandidatesReply, target_robot=0)  # version 0 is current
+        # Shard 2 goes: after the grace the coordinator (shard 0) moves its groups on.
+        shards.find("index-shard", 2).proc.send_signal(signal.SIGKILL)
+        wait_until(lambda: client.index_state().placement.version >= 2, 30, "placement moved on")  # type: ignore[union-attr]
+        version = client.index_state().placement.version  # type: ignore[union-attr]
+        with pytest.raises(RemoteError) as stale:
+            caller.call(lookup0, _slice(0), pb.CandidatesReply, target_robot=0)
+        assert stale.value.code == ErrorCode.FAILED_PRECONDITION and "refresh" in stale.value.message
+        t0 = time.perf_counter()
+        with pytest.raises(RemoteError) as ahead:
+            caller.call(lookup0, _slice(version + 100), pb.CandidatesReply, target_robot=0)
+        assert ahead.value.code == ErrorCode.FAILED_PRECONDITION
+        assert time.perf_counter() - t0 < 0.5  # refused at once, no wait for an adoption
+        caller.call(lookup0, _slice(version), pb.CandidatesReply, target_robot=0)
+        state = next(st for st in client.shard_states() if st.shard_id == 1)
+    # Shard 1 sends shard 0 a placement: refused, shard 0 is the lowest live shard.
+    with _as_shard(shards, 1) as c:
+        bogus = pb.AdoptRequest(placement=state.placement)
+        bogus.placement.version += 5
+        with pytest.raises(RemoteError) as refused:
+            Caller(c.session, 1, 5.0).call(
+                keys.endpoint(s, "index-shard", 0, "adopt"), bogus, pb.ShardState, target_robot=0
+            )
+        assert refused.value.code == ErrorCode.FAILED_PRECONDITION and "coordinator" in refused.value.message
+    with shards.client(5.0) as client:
+        after = {st.shard_id: placement_from_proto(st.placement, 30).version for st in client.shard_states()}
+    assert after == {0: version, 1: version}
