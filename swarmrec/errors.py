@@ -18,11 +18,15 @@ so a caller can catch the whole family in one place::
     │   └── ClassifierModelError            its ONNX file is missing, does not load or is not a 19-way softmax
     ├── services.fusion.RoundError a fusion round that cannot start (answered INVALID_ARGUMENT)
     ├── models.ModelNotFound       a shipped model is in none of the places models are looked up
+    ├── vpr.errors.VprError        place recognition cannot use this input
+    │   ├── DescriptorError        a descriptor of the wrong shape or dtype, or with NaN/inf
+    │   ├── DescriptorModelError   the descriptor ONNX file is missing, does not load or is not one
+    │   └── StateFileError         a saved index, assignment or centres file cannot be read back
     └── swarm.compose.ComposeError the compose tool failed or containers did not become healthy
 
 The families below the first four live beside the code that raises them
 (``swarmrec.detection.errors``, ``swarmrec.fusion``, ``swarmrec.services.fusion``,
-``swarmrec.models``, ``swarmrec.swarm.compose``).
+``swarmrec.models``, ``swarmrec.vpr.errors``, ``swarmrec.swarm.compose``).
 """
 
 from __future__ import annotations
