@@ -317,9 +317,9 @@ def augment(batch: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
     return torch.stack([padded[i, :, y : y + h, x : x + w] for i, (y, x) in enumerate(offsets)]).clamp(0, 1)
 
 
-def pair_masks(worlds: torch.Tensor, positions: torch.Tensor, directions: torch.Tensor) -> tuple[
-    torch.Tensor, torch.Tensor
-]:
+def pair_masks(
+    worlds: torch.Tensor, positions: torch.Tensor, directions: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Positive and negative pairs of a batch from its poses (see the module docstring)."""
     same_world = worlds[:, None] == worlds[None, :]
     distance = torch.cdist(positions, positions)
@@ -331,8 +331,8 @@ def pair_masks(worlds: torch.Tensor, positions: torch.Tensor, directions: torch.
         & (angle <= TRAIN_POSITIVE.max_angle_deg)
         & ~eye
     )
-    negative = ~same_world | (distance > TRAIN_NEGATIVE.max_distance_m) | (
-        angle > TRAIN_NEGATIVE.max_angle_deg
+    negative = (
+        ~same_world | (distance > TRAIN_NEGATIVE.max_distance_m) | (angle > TRAIN_NEGATIVE.max_angle_deg)
     )
     return positive, negative & ~eye
 
@@ -371,7 +371,9 @@ class BatchSampler:
         images, world_ids, positions, directions = [], [], [], []
         for w in chosen.tolist():
             world = self.worlds[w]
-            anchors = rng.choice(self.anchors[w], size=min(s.anchors_per_world, len(self.anchors[w])), replace=False)
+            anchors = rng.choice(
+                self.anchors[w], size=min(s.anchors_per_world, len(self.anchors[w])), replace=False
+            )
             for a in anchors.tolist():
                 for i in (a, int(rng.choice(self.positives[w][a]))):
                     images.append(world.images[i])
@@ -517,7 +519,9 @@ def main(settings: TrainSettings) -> TrainResult:
         loss_count += 1
         timed_out = time.perf_counter() > deadline
         if steps % s.val_every == 0 or steps == s.steps or timed_out:
-            val_recall = pooled([world_metrics(w, describe_torch(model, w.images)) for w in val])["recall_at_1"]
+            val_recall = pooled([world_metrics(w, describe_torch(model, w.images)) for w in val])[
+                "recall_at_1"
+            ]
             history.append(
                 {
                     "step": steps,
@@ -572,7 +576,9 @@ def main(settings: TrainSettings) -> TrainResult:
             "zero mean, unit norm (192-d)",
             **pooled(baseline_worlds),
         },
-        "baseline_per_world": [asdict(m) | {"seed": w.seed} for m, w in zip(baseline_worlds, test, strict=True)],
+        "baseline_per_world": [
+            asdict(m) | {"seed": w.seed} for m, w in zip(baseline_worlds, test, strict=True)
+        ],
         "places": {
             "same_place": asdict(PlaceThresholds()),
             "train_positive": asdict(TRAIN_POSITIVE),
@@ -602,7 +608,12 @@ def main(settings: TrainSettings) -> TrainResult:
             "dtype": "float32",
             "range": "RGB 0..1, normalised inside the graph",
         },
-        "output": {"name": OUTPUT_NAME, "shape": ["N", DIMENSION], "dtype": "float32", "meaning": "unit L2 rows"},
+        "output": {
+            "name": OUTPUT_NAME,
+            "shape": ["N", DIMENSION],
+            "dtype": "float32",
+            "meaning": "unit L2 rows",
+        },
         "opset": OPSET,
         "versions": {
             "python": platform.python_version(),

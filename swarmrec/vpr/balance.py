@@ -105,7 +105,7 @@ def balanced_assignment(report: LoadReport, n_robots: int, slack: float = 0.25) 
     """The load- and adjacency-aware table of the module docstring."""
     if n_robots < 1:
         raise ConfigError(f"n_robots must be >= 1, got {n_robots}")
-    if not 0 <= slack:
+    if not slack >= 0:
         raise ConfigError(f"slack must be >= 0, got {slack}")
     k = len(report.loads)
     loads = report.loads.astype(np.float64)

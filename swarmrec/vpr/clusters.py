@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import faiss  # type: ignore[import-untyped]  # faiss ships no type hints
+import faiss
 import numpy as np
 import numpy.typing as npt
 
@@ -64,8 +64,15 @@ def train_centres(descriptors: npt.NDArray[np.floating], k: int, seed: int) -> F
     if not 1 <= k <= len(x):
         raise ConfigError(f"k must be in [1, {len(x)}] (the number of descriptors), got {k}")
     # faiss warns on stderr below 39 points per centre and samples above 256; both fine here.
-    kmeans = faiss.Kmeans(x.shape[1], k, niter=KMEANS_ITERATIONS, seed=int(seed), verbose=False,
-                          max_points_per_centroid=1 << 20, min_points_per_centroid=1)
+    kmeans = faiss.Kmeans(
+        x.shape[1],
+        k,
+        niter=KMEANS_ITERATIONS,
+        seed=int(seed),
+        verbose=False,
+        max_points_per_centroid=1 << 20,
+        min_points_per_centroid=1,
+    )
     kmeans.train(x)
     centres: Float32Array = np.ascontiguousarray(kmeans.centroids, np.float32)
     return centres
@@ -157,7 +164,9 @@ class Assignment:
 def random_assignment(n_robots: int, clusters_per_robot: int, seed: int) -> Assignment:
     """The paper's assignment: exactly ``clusters_per_robot`` clusters per robot, shuffled (seeded)."""
     if n_robots < 1 or clusters_per_robot < 1:
-        raise ConfigError(f"need n_robots >= 1 and clusters_per_robot >= 1, got {n_robots}, {clusters_per_robot}")
+        raise ConfigError(
+            f"need n_robots >= 1 and clusters_per_robot >= 1, got {n_robots}, {clusters_per_robot}"
+        )
     owners = np.repeat(np.arange(n_robots), clusters_per_robot)
     np.random.default_rng([seed, 0xA551]).shuffle(owners)
     return Assignment(tuple(int(o) for o in owners), n_robots, "random", seed)
@@ -222,8 +231,11 @@ def load_centres(path: str | Path, k: int) -> Float32Array:
         with np.load(path, allow_pickle=False) as data:
             if f"k{k}" not in data.files:
                 have = sorted(int(n[1:]) for n in data.files if n.startswith("k"))
-                raise StateFileError(path, f"no centres for k={k} (it has k in {have}); train them with "
-                                     "python -m swarmrec.vpr.centres")
+                raise StateFileError(
+                    path,
+                    f"no centres for k={k} (it has k in {have}); train them with "
+                    "python -m swarmrec.vpr.centres",
+                )
             centres = np.asarray(data[f"k{k}"], np.float32)
     except (OSError, ValueError) as exc:
         raise StateFileError(path, f"cannot read centres: {exc}") from exc
@@ -235,7 +247,6 @@ def _atomic_write(path: Path, payload: bytes) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_bytes(payload)
     os.replace(tmp, path)
-
 
 
 def _width(values: object) -> int:

@@ -89,4 +89,6 @@ def render_world(seed: int, frames: int, stride: int, vary: bool, *, offset: boo
     indices = np.arange(start, len(renderer), stride, dtype=np.int64)
     images = np.stack([to_model_size(renderer.render(int(i)).rgb) for i in indices])
     quaternions = ds.trajectory.quaternions[indices]
-    return RenderedWorld(seed, images, indices, ds.trajectory.positions[indices], view_directions(quaternions))
+    return RenderedWorld(
+        seed, images, indices, ds.trajectory.positions[indices], view_directions(quaternions)
+    )

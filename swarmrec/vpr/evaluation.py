@@ -177,8 +177,7 @@ class EvaluationSummary:
 def describe_worlds(model: DescriptorModel, worlds: list[RenderedWorld]) -> list[Float32Array]:
     """Each world's descriptors, in batches the model takes."""
     return [
-        np.concatenate([model.describe(w.images[i : i + 256]) for i in range(0, len(w), 256)])
-        for w in worlds
+        np.concatenate([model.describe(w.images[i : i + 256]) for i in range(0, len(w), 256)]) for w in worlds
     ]
 
 
@@ -251,19 +250,21 @@ def _aggregate(runs: list[RunResult], key: str) -> list[dict[str, Any]]:
 
 def _random_run(
     name: str, experiment: str, team: _Team, c: int, seed: int, x: Float32Array, other: Float32Array,
-    centralized: float, centres_out: dict[str, Float32Array],
+    centralized: float, centres_out: dict[str, Any],
 ) -> RunResult:  # fmt: skip
     centres = train_centres(other, team.n_robots * c, seed)
     assignment = random_assignment(team.n_robots, c, seed)
     _, owners = Router(centres, assignment).route_many(x)
     centres_out[name] = centres
     answers = run_queries(x, team.robots, owners, team.order)
-    return _record(name, experiment, team, c, seed, answers, centralized, assignment, FLOAT_BYTES * x.shape[1])
+    return _record(
+        name, experiment, team, c, seed, answers, centralized, assignment, FLOAT_BYTES * x.shape[1]
+    )
 
 
 def _balanced_run(
     s: EvaluationSettings, team: _Team, seed: int, x: Float32Array, other: Float32Array,
-    centralized: float, centres_out: dict[str, Float32Array],
+    centralized: float, centres_out: dict[str, Any],
 ) -> RunResult:  # fmt: skip
     """Random start with ``c`` clusters per robot; after the warm-up, hot clusters split and a
     load- and adjacency-aware table (:mod:`swarmrec.vpr.balance`)."""
@@ -272,7 +273,7 @@ def _balanced_run(
     centres = train_centres(other, n * c, seed)
     start = random_assignment(n, c, seed)
     _, owners = Router(centres, start).route_many(x)
-    at = int(round(s.warmup_share * len(x)))
+    at = round(s.warmup_share * len(x))
     seen = x[team.order[:at]]
     capacity = (1.0 + s.slack) * at / n
     refined = split_hot_clusters(centres, seen, capacity, seed)
@@ -324,7 +325,9 @@ def main(settings: EvaluationSettings) -> EvaluationSummary:
     out.mkdir(parents=True, exist_ok=True)
     model = DescriptorModel(s.model, intra_op_threads=s.threads)
     deployment = render_world(s.deployment_seed, s.deployment_frames, 1, vary=False, offset=False)
-    others = [render_world(s.other_seed_base + j, 2500, s.other_stride, vary=True) for j in range(s.other_worlds)]
+    others = [
+        render_world(s.other_seed_base + j, 2500, s.other_stride, vary=True) for j in range(s.other_worlds)
+    ]
     render_s = time.perf_counter() - started
     x = describe_worlds(model, [deployment])[0]
     other = np.concatenate(describe_worlds(model, others))
@@ -346,7 +349,7 @@ def main(settings: EvaluationSettings) -> EvaluationSummary:
         PlaceThresholds(s.max_distance_m, s.max_angle_deg, 0),
     )
     runs: list[RunResult] = []
-    centres_out: dict[str, Float32Array] = {}
+    centres_out: dict[str, Any] = {}  # Any: np.savez's keyword parameters are typed too
     centralized: dict[int, float] = {}
     teams: dict[int, _Team] = {}
     for n in sorted({*s.robots, s.fig7_robots}):
@@ -363,7 +366,9 @@ def main(settings: EvaluationSettings) -> EvaluationSummary:
             runs.append(_random_run(f"fig7_c{c}_run{seed}", "fig7", teams[n], c, seed, x, other,
                                     centralized[n], centres_out))  # fmt: skip
     n = s.fig7_robots
-    balanced = [_balanced_run(s, teams[n], seed, x, other, centralized[n], centres_out) for seed in range(s.runs)]
+    balanced = [
+        _balanced_run(s, teams[n], seed, x, other, centralized[n], centres_out) for seed in range(s.runs)
+    ]
     runs += balanced
     sweep_s = time.perf_counter() - started - render_s - describe_s
     quantisation = _quantisation(s, x, other, deployment)
@@ -377,17 +382,20 @@ def main(settings: EvaluationSettings) -> EvaluationSummary:
         "warmup_share": s.warmup_share,
         "slack": s.slack,
         **_aggregate(balanced, "n_robots")[0],
-        "worst_balance_ratio_after_warmup_runs": [r.extra["worst_balance_ratio_after_warmup"] for r in balanced],
-        "migration_bytes_per_query_mean": float(np.mean([r.extra["migration_bytes_per_query"] for r in balanced])),
+        "worst_balance_ratio_after_warmup_runs": [
+            r.extra["worst_balance_ratio_after_warmup"] for r in balanced
+        ],
+        "migration_bytes_per_query_mean": float(
+            np.mean([r.extra["migration_bytes_per_query"] for r in balanced])
+        ),
         "split_clusters_runs": [r.extra["split_clusters"] for r in balanced],
         "one_cluster_per_robot": one,
     }
     np.savez_compressed(out / "runs.npz", **centres_out)
     (out / "runs.json").write_text(json.dumps([asdict(r) for r in runs], indent=1) + "\n")
-    summary = EvaluationSummary(
-        out, centralized, fig6, fig7, balance, quantisation, runs,
-        {"render": render_s, "describe": describe_s, "sweeps": sweep_s, "total": time.perf_counter() - started},
-    )  # fmt: skip
+    seconds = {"render": render_s, "describe": describe_s, "sweeps": sweep_s}
+    seconds["total"] = time.perf_counter() - started
+    summary = EvaluationSummary(out, centralized, fig6, fig7, balance, quantisation, runs, seconds)
     (out / "summary.json").write_text(json.dumps(summary.to_json(), indent=1) + "\n")
     plot_sweep(fig6, "n_robots", "robots", out / "fig6.png", "Fig. 6: one cluster per robot")
     plot_sweep(fig7, "clusters_per_robot", "clusters per robot", out / "fig7.png",

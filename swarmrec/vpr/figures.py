@@ -38,7 +38,9 @@ def plot_sweep(
             runs = np.asarray(row[f"{metric}_runs"], np.float64)
             offsets = np.linspace(-spread, spread, len(runs)) if len(runs) > 1 else np.zeros(1)
             ax.scatter(x + offsets, runs, s=9, color="tab:blue", alpha=0.55, linewidths=0)
-        ax.plot(xs, [row[f"{metric}_mean"] for row in rows], "-", color="tab:blue", label="random (paper), mean")
+        ax.plot(
+            xs, [row[f"{metric}_mean"] for row in rows], "-", color="tab:blue", label="random (paper), mean"
+        )
         if balanced is not None:
             runs = np.asarray(balanced[f"{metric}_runs"], np.float64)
             x0 = float(balanced["clusters_per_robot_start"])

@@ -29,7 +29,7 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
-import faiss  # type: ignore[import-untyped]  # faiss ships no type hints
+import faiss
 import numpy as np
 import numpy.typing as npt
 
@@ -57,7 +57,9 @@ class Match:
 
 def _entry_id(robot: int, frame: int) -> int:
     if not (0 <= robot <= MAX_ROBOT and 0 <= frame <= MAX_FRAME):
-        raise ConfigError(f"robot must be in [0, {MAX_ROBOT}] and frame in [0, {MAX_FRAME}], got {robot}, {frame}")
+        raise ConfigError(
+            f"robot must be in [0, {MAX_ROBOT}] and frame in [0, {MAX_FRAME}], got {robot}, {frame}"
+        )
     return (robot << _FRAME_BITS) | frame
 
 
@@ -112,7 +114,9 @@ class OwnerIndex:
         if self._index.ntotal == 0:
             return None
         own = faiss.IDSelectorRange(robot << _FRAME_BITS, (robot + 1) << _FRAME_BITS)
-        params = faiss.SearchParameters(sel=faiss.IDSelectorNot(own))
+        # faiss's stubs list no constructor arguments; the selector is set as an attribute.
+        params = faiss.SearchParameters()
+        params.sel = faiss.IDSelectorNot(own)
         distances, ids = self._index.search(x[None], 1, params=params)
         found = int(ids[0, 0])
         if found < 0:  # every stored frame is the querier's own
@@ -153,8 +157,11 @@ class OwnerIndex:
         except RuntimeError as exc:
             raise StateFileError(path, f"the faiss index does not load: {exc}") from exc
         if inner.d != dimension or not isinstance(inner, faiss.IndexIDMap2):
-            raise StateFileError(path, f"index of dimension {inner.d} and type {type(inner).__name__}, "
-                                 f"expected an id-mapped index of dimension {dimension}")
+            raise StateFileError(
+                path,
+                f"index of dimension {inner.d} and type {type(inner).__name__}, "
+                f"expected an id-mapped index of dimension {dimension}",
+            )
         index = cls(dimension)
         index._index = inner
         index._ids = {int(i) for i in faiss.vector_to_array(inner.id_map)}

@@ -89,7 +89,8 @@ class DescriptorModel:
         height, width = (shape[2], shape[3]) if len(shape) == 4 else (None, None)
         if image.type != "tensor(float)" or len(shape) != 4 or shape[1] != 3 or not (height and width):
             raise DescriptorModelError(
-                self.model, f"expected a float32 input [N, 3, H, W] of fixed size, got {image.type} {image.shape}"
+                self.model,
+                f"expected a float32 input [N, 3, H, W] of fixed size, got {image.type} {image.shape}",
             )
         if shape[0] is not None:
             # A robot describes one frame, an evaluation thousands: the export must leave N free.
@@ -119,7 +120,9 @@ class DescriptorModel:
         batch = images[None] if images.ndim == 3 else images
         h, w = self.image_hw
         if batch.ndim != 4 or batch.shape[1:] != (h, w, 3):
-            raise DescriptorError(f"expected RGB images [N, {h}, {w}, 3] or one [{h}, {w}, 3], got {images.shape}")
+            raise DescriptorError(
+                f"expected RGB images [N, {h}, {w}, 3] or one [{h}, {w}, 3], got {images.shape}"
+            )
         if len(batch) == 0:
             return np.zeros((0, self.dimension), np.float32)
         return self._run(batch)
@@ -134,7 +137,9 @@ class DescriptorModel:
             raise DescriptorError(f"expected 3 colour channels, got shape {frames.shape}")
         h, w = self.image_hw
         resized = [cv2.resize(f, (w, h), interpolation=cv2.INTER_AREA)[:, :, ::-1] for f in batch]
-        return self.describe(np.ascontiguousarray(np.stack(resized)) if resized else np.zeros((0, h, w, 3), np.uint8))
+        return self.describe(
+            np.ascontiguousarray(np.stack(resized)) if resized else np.zeros((0, h, w, 3), np.uint8)
+        )
 
     def _run(self, batch: ImageArray) -> Float32Array:
         feed = np.ascontiguousarray(batch.transpose(0, 3, 1, 2), np.float32) / np.float32(255.0)
@@ -151,6 +156,7 @@ class DescriptorModel:
         norms = np.linalg.norm(out.astype(np.float64), axis=1)
         if np.any(np.abs(norms - 1.0) > NORM_TOLERANCE):
             raise DescriptorModelError(
-                self.model, f"its output rows are not L2-normalised (norms {norms.min():.4g}..{norms.max():.4g})"
+                self.model,
+                f"its output rows are not L2-normalised (norms {norms.min():.4g}..{norms.max():.4g})",
             )
         return out

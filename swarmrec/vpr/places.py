@@ -91,9 +91,7 @@ def view_directions(quaternions: npt.ArrayLike) -> FloatArray:
     return directions
 
 
-def pair_distances(
-    positions: FloatArray, directions: FloatArray
-) -> tuple[FloatArray, FloatArray]:
+def pair_distances(positions: FloatArray, directions: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Camera distances (m) and viewing-direction angles (deg) between every two frames."""
     diff = positions[:, None, :] - positions[None, :, :]
     distance = np.sqrt((diff * diff).sum(-1))
@@ -105,7 +103,7 @@ def same_place(
     positions: FloatArray,
     directions: FloatArray,
     frames: IntArray,
-    thresholds: PlaceThresholds = PlaceThresholds(),  # noqa: B008  # frozen, so one shared default is safe
+    thresholds: PlaceThresholds = PlaceThresholds(),  # frozen, so one shared default is safe
 ) -> BoolArray:
     """``(N, N)`` true loop closures of N frames of ONE sequence (``frames``: their indices in it)."""
     distance, angle = pair_distances(positions, directions)

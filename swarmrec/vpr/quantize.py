@@ -21,9 +21,9 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
-import faiss  # type: ignore[import-untyped]  # faiss ships no type hints
+import faiss
 import numpy as np
 import numpy.typing as npt
 
@@ -103,7 +103,9 @@ class PQQuantizer:
         if dimension < 1 or m < 1 or dimension % m:
             raise ConfigError(f"m must divide the dimension, got dimension {dimension}, m {m}")
         self.dimension, self.m = dimension, m
-        self._pq = faiss.ProductQuantizer(dimension, m, 8)
+        # Any: faiss's stubs give the C++ signatures (decode(code, x) -> None), not the numpy
+        # wrappers the Python module installs (decode(codes) -> array).
+        self._pq: Any = faiss.ProductQuantizer(dimension, m, 8)
         self.trained = False
 
     @property
@@ -156,7 +158,9 @@ class PQQuantizer:
             raise StateFileError(path, f"not a saved product quantiser (expected format {PQ_FORMAT!r})")
         pq = cls(int(meta["dimension"]), int(meta["m"]))
         if centroids.size != pq._pq.centroids.size():
-            raise StateFileError(path, f"{centroids.size} codebook values, expected {pq._pq.centroids.size()}")
+            raise StateFileError(
+                path, f"{centroids.size} codebook values, expected {pq._pq.centroids.size()}"
+            )
         faiss.copy_array_to_vector(centroids.ravel(), pq._pq.centroids)
         pq.trained = True
         return pq

@@ -175,9 +175,11 @@ def answers_curve(answers: Answers, closures: BoolArray, eligible_pairs: BoolArr
     scores[:, :n][eligible_pairs] = 0.0
     scores[:, n] = 0.5
     answered = np.flatnonzero(answers.matches >= 0)
-    scores[answered, answers.matches[answered]] = 1.0 + (
-        MAX_SQUARED_DISTANCE - np.minimum(answers.distances[answered], MAX_SQUARED_DISTANCE)
-    ) / MAX_SQUARED_DISTANCE
+    scores[answered, answers.matches[answered]] = (
+        1.0
+        + (MAX_SQUARED_DISTANCE - np.minimum(answers.distances[answered], MAX_SQUARED_DISTANCE))
+        / MAX_SQUARED_DISTANCE
+    )
     truth = np.zeros((n, n + 1), np.bool_)
     truth[:, :n] = closures & eligible_pairs
     return precision_recall(scores, truth)

@@ -22,10 +22,13 @@ def as_descriptors(values: object, dimension: int) -> Float32Array:
         raise DescriptorError(f"expected a real-valued numpy array of descriptors, got {kind}")
     batch = values[None] if values.ndim == 1 else values
     if batch.ndim != 2 or batch.shape[1] != dimension:
-        raise DescriptorError(f"expected descriptors of length {dimension}, got an array of shape {values.shape}")
-    out = np.ascontiguousarray(batch, np.float32)
+        raise DescriptorError(
+            f"expected descriptors of length {dimension}, got an array of shape {values.shape}"
+        )
+    # A float64 beyond float32's range turns into inf in the cast, and is as unusable as a NaN.
+    with np.errstate(over="ignore", invalid="ignore"):
+        out = np.ascontiguousarray(batch, np.float32)
     if not np.isfinite(out).all():
-        # A float64 beyond float32's range turns into inf here, and is as unusable as a NaN.
         raise DescriptorError("descriptors hold NaN or inf")
     return out
 
@@ -35,4 +38,5 @@ def as_descriptor(values: object, dimension: int) -> Float32Array:
     batch = as_descriptors(values, dimension)
     if len(batch) != 1:
         raise DescriptorError(f"expected one descriptor, got {len(batch)}")
-    return batch[0]
+    one: Float32Array = batch[0]
+    return one
