@@ -16,7 +16,7 @@ contrastive loss (InfoNCE over cosine similarities, every other view of the batc
 candidate), so the other views of the same world are the negatives the model must push away,
 the twin desks included.
 
-The network: five strided 3x3 convolution stages (96 x 128 RGB -> 6 x 8 x 128 local
+The network: seven 3x3 convolutions, four of them strided (96 x 128 RGB -> 6 x 8 x 128 local
 features), NetVLAD pooling (16 clusters, intra-normalised, then L2), a linear layer
 2048 -> 128 (the paper's PCA layer, learnt end to end) and L2 normalisation: the output
 is a unit vector, so squared L2 distance = 2 - 2 cos.
@@ -61,9 +61,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from swarmrec.errors import ConfigError
-from swarmrec.synthetic import OfficeConfig, generate_office
-from swarmrec.synthetic.config import MIN_CLEARANCE_M
-from swarmrec.synthetic.render import RenderSettings, SequenceRenderer
+from swarmrec.vpr.data import INPUT_HW, RenderedWorld, render_world
 from swarmrec.vpr.places import (
     TRAIN_NEGATIVE,
     TRAIN_POSITIVE,
@@ -73,7 +71,6 @@ from swarmrec.vpr.places import (
     pair_distances,
     retrieval_metrics,
     same_place,
-    view_directions,
 )
 
 ImageArray = npt.NDArray[np.uint8]
@@ -87,9 +84,6 @@ CHECK_INPUTS_FILE = "check_inputs.npy"
 CHECK_TORCH_FILE = "check_torch_descriptors.npy"
 INPUT_NAME = "image"
 OUTPUT_NAME = "descriptor"
-#: The model input (height, width) and the render size it is area-averaged from.
-INPUT_HW = (96, 128)
-RENDER_HW = (192, 256)
 DIMENSION = 128
 #: The torch.export-based exporter's lowest opset (the repository's other models use it too).
 OPSET = 18
@@ -133,6 +127,8 @@ class TrainSettings:
     threads: int = 2
     workers: int = 2
     check_arrays: bool = False
+    #: Keep rendered worlds here and reuse them (same seeds and sampling) on the next run.
+    cache: Path | None = None
 
     def __post_init__(self) -> None:
         for name in (
@@ -167,72 +163,33 @@ class TrainResult:
 # --- data ---------------------------------------------------------------------------------------
 
 
-@dataclass(eq=False)
-class World:
-    """The rendered frames of one world: model-size RGB images, and each frame's pose."""
-
-    seed: int
-    images: ImageArray  # (N, 96, 128, 3) RGB
-    frames: IntArray  # index of each image in the world's sequence
-    positions: FloatArray
-    directions: FloatArray
-
-    def __len__(self) -> int:
-        return int(self.images.shape[0])
-
-
-def world_config(seed: int, frames: int, vary: bool) -> OfficeConfig:
-    """The default office of ``seed``; with ``vary``, its layout and camera path drawn from ``seed``
-    too, so training sees more orbits, heights and looks around the room than a swarm does."""
-    if not vary:
-        return OfficeConfig(seed=seed, n_frames=frames)
-    rng = np.random.default_rng([seed, 0xD35C])
-    n_desks = int(rng.choice([4, 6, 8]))
-    # The smallest orbit the world accepts for this block, read from a config that is surely valid.
-    half_x, half_y = OfficeConfig(n_desks=n_desks, orbit_radius_m=20.0).block_half_extent_m
-    least = MIN_CLEARANCE_M + (half_x + half_y) / 2
-    low, high = sorted((float(rng.uniform(0.9, 1.25)), float(rng.uniform(1.45, 1.85))))
-    return OfficeConfig(
-        seed=seed,
-        n_frames=frames,
-        n_desks=n_desks,
-        n_loops=float(rng.choice([2.0, 2.0, 2.5, 3.0])),
-        orbit_radius_m=round(least + float(rng.uniform(0.2, 1.3)), 3),
-        camera_height_m=(round(low, 3), round(high, 3)),
-        wobble_deg=round(float(rng.uniform(8.0, 24.0)), 2),
-        glances_per_minute=round(float(rng.uniform(2.0, 9.0)), 2),
-    )
+def _render_job(job: tuple[int, int, int, bool, str]) -> RenderedWorld:
+    """One world, from the cache folder when it was rendered before (same seed and sampling)."""
+    seed, frames, stride, vary, cache = job
+    path = Path(cache) / f"world_{seed}_{frames}_{stride}_{int(vary)}.npz" if cache else None
+    if path is not None and path.is_file():
+        with np.load(path) as d:
+            return RenderedWorld(seed, d["images"], d["frames"], d["positions"], d["directions"])
+    world = render_world(seed, frames, stride, vary)
+    if path is not None:
+        np.savez(path, images=world.images, frames=world.frames, positions=world.positions,
+                 directions=world.directions)  # fmt: skip
+    return world
 
 
-def to_model_size(bgr: ImageArray) -> ImageArray:
-    """A BGR frame of any size as the model's RGB input (area average, like a camera frame)."""
-    small = cv2.resize(bgr, (INPUT_HW[1], INPUT_HW[0]), interpolation=cv2.INTER_AREA)
-    return np.ascontiguousarray(small[:, :, ::-1])
-
-
-def render_world(job: tuple[int, int, int, bool]) -> World:
-    """Every ``stride``-th frame of the world ``seed`` of ``frames`` frames."""
-    seed, frames, stride, vary = job
-    ds = generate_office(world_config(seed, frames, vary))
-    renderer = SequenceRenderer(ds, RenderSettings(width=RENDER_HW[1], height=RENDER_HW[0]))
-    # A seeded offset, so two worlds do not sample the same phases of their paths.
-    start = int(np.random.default_rng([seed, 1]).integers(stride))
-    indices = np.arange(start, len(renderer), stride, dtype=np.int64)
-    images = np.stack([to_model_size(renderer.render(int(i)).rgb) for i in indices])
-    quaternions = ds.trajectory.quaternions[indices]
-    return World(seed, images, indices, ds.trajectory.positions[indices], view_directions(quaternions))
-
-
-def render_split(base: int, count: int, s: TrainSettings, vary: bool, stride: int) -> list[World]:
-    jobs = [(1000 * base + j, s.world_frames, stride, vary) for j in range(count)]
+def render_split(base: int, count: int, s: TrainSettings, vary: bool, stride: int) -> list[RenderedWorld]:
+    cache = str(s.cache) if s.cache else ""
+    if s.cache:
+        s.cache.mkdir(parents=True, exist_ok=True)
+    jobs = [(1000 * base + j, s.world_frames, stride, vary, cache) for j in range(count)]
     if s.workers == 1 or len(jobs) == 1:
-        return [render_world(job) for job in jobs]
+        return [_render_job(job) for job in jobs]
     # spawn: forking a process that has started torch's thread pools can deadlock.
     with ProcessPoolExecutor(s.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        return list(pool.map(render_world, jobs))
+        return list(pool.map(_render_job, jobs))
 
 
-def revisit_positives(world: World) -> list[IntArray]:
+def revisit_positives(world: RenderedWorld) -> list[IntArray]:
     """For each frame, the frames of another pass (> REVISIT_FRAMES apart) showing the same place."""
     distance, angle = pair_distances(world.positions, world.directions)
     far = np.abs(world.frames[:, None] - world.frames[None, :]) > REVISIT_FRAMES
@@ -243,16 +200,9 @@ def revisit_positives(world: World) -> list[IntArray]:
 # --- model --------------------------------------------------------------------------------------
 
 
-def _stage(n_in: int, n_out: int) -> list[nn.Module]:
-    """A strided 3x3 convolution and a plain one, each with batch norm and ReLU."""
-    return [
-        nn.Conv2d(n_in, n_out, 3, stride=2, padding=1, bias=False),
-        nn.BatchNorm2d(n_out),
-        nn.ReLU(inplace=True),
-        nn.Conv2d(n_out, n_out, 3, padding=1, bias=False),
-        nn.BatchNorm2d(n_out),
-        nn.ReLU(inplace=True),
-    ]
+def _conv(n_in: int, n_out: int, stride: int = 1) -> list[nn.Module]:
+    """A 3x3 convolution with batch norm and ReLU."""
+    return [nn.Conv2d(n_in, n_out, 3, stride=stride, padding=1, bias=False), nn.BatchNorm2d(n_out), nn.ReLU()]
 
 
 class NetVLAD(nn.Module):
@@ -264,13 +214,13 @@ class NetVLAD(nn.Module):
         self.centres = nn.Parameter(torch.randn(clusters, dim) * 0.1)
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
-        n, d = features.shape[:2]
-        x = F.normalize(features, dim=1).flatten(2)  # (N, D, HW): per-location unit features
-        a = torch.softmax(self.assign(F.normalize(features, dim=1)).flatten(2), dim=1)  # (N, K, HW)
+        unit = F.normalize(features, dim=1)  # per-location unit features
+        x = unit.flatten(2)  # (N, D, HW)
+        a = torch.softmax(self.assign(unit).flatten(2), dim=1)  # (N, K, HW)
         # sum_hw a_k (x - c_k) = (a @ x^T) - c_k * sum_hw a_k
         vlad = torch.matmul(a, x.transpose(1, 2)) - self.centres[None] * a.sum(2, keepdim=True)
         vlad = F.normalize(vlad, dim=2)  # intra-normalisation: no cluster dominates by burstiness
-        return F.normalize(vlad.reshape(n, -1), dim=1)
+        return F.normalize(vlad.flatten(1), dim=1)
 
 
 class PlaceDescriptor(nn.Module):
@@ -283,13 +233,17 @@ class PlaceDescriptor(nn.Module):
         self.std: torch.Tensor
         self.register_buffer("mean", torch.tensor(mean, dtype=torch.float32).view(1, 3, 1, 1))
         self.register_buffer("std", torch.tensor(std, dtype=torch.float32).view(1, 3, 1, 1))
-        widths = (24, 48, 96, 128, 128)
-        layers: list[nn.Module] = []
-        for n_in, n_out in zip((3, *widths[:-1]), widths, strict=True):
-            layers += _stage(n_in, n_out)
-        self.backbone = nn.Sequential(*layers)
-        self.pool = NetVLAD(clusters, widths[-1])
-        self.reduce = nn.Linear(clusters * widths[-1], DIMENSION)
+        # Down to stride 16 fast (two strided convolutions first), then two convolutions at each of
+        # strides 4, 8 and 16: ~30 M multiply-adds per 96 x 128 frame, a third of a plain VGG-like
+        # stack of the same widths, which on 2 shared CPU cores is the difference between a few
+        # hundred and a few thousand training steps; 6 x 8 = 48 local features for NetVLAD.
+        self.backbone = nn.Sequential(
+            *_conv(3, 16, 2), *_conv(16, 32, 2), *_conv(32, 32),
+            *_conv(32, 64, 2), *_conv(64, 64),
+            *_conv(64, 128, 2), *_conv(128, 128),
+        )  # fmt: skip
+        self.pool = NetVLAD(clusters, 128)
+        self.reduce = nn.Linear(clusters * 128, DIMENSION)
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         features = self.backbone((image - self.mean) / self.std)
@@ -355,7 +309,7 @@ class BatchSampler:
     """Anchors with a revisit positive, ``anchors_per_world`` from each of ``worlds_per_batch``
     worlds, each followed by one of its positives."""
 
-    def __init__(self, worlds: list[World], s: TrainSettings) -> None:
+    def __init__(self, worlds: list[RenderedWorld], s: TrainSettings) -> None:
         self.worlds = worlds
         self.positives = [revisit_positives(w) for w in worlds]
         self.anchors = [np.flatnonzero([len(p) > 0 for p in pos]) for pos in self.positives]
@@ -418,7 +372,7 @@ def tiny_image(images: ImageArray) -> FloatArray:
     return np.stack(out)
 
 
-def world_metrics(world: World, descriptors: FloatArray) -> RetrievalMetrics:
+def world_metrics(world: RenderedWorld, descriptors: FloatArray) -> RetrievalMetrics:
     thresholds = PlaceThresholds()
     closures = same_place(world.positions, world.directions, world.frames, thresholds)
     eligible = eligible_pairs(world.frames, thresholds.exclusion_frames)
@@ -532,8 +486,8 @@ def main(settings: TrainSettings) -> TrainResult:
                 }
             )
             _log(
-                f"step {steps:5d}/{s.steps}  loss {loss_sum / loss_count:.3f}  val recall@1 {val_recall:.3f}  "
-                f"({history[-1]['seconds']:.0f} s)"
+                f"step {steps:5d}/{s.steps}  loss {loss_sum / loss_count:.3f}  "
+                f"val recall@1 {val_recall:.3f}  ({history[-1]['seconds']:.0f} s)"
             )
             loss_sum, loss_count = 0.0, 0
             if val_recall > best_recall:
@@ -627,8 +581,9 @@ def main(settings: TrainSettings) -> TrainResult:
     metrics_path.write_text(json.dumps(metrics, indent=1) + "\n")
     _log(
         f"test recall@1 {test_metrics['recall_at_1']:.3f} @5 {test_metrics['recall_at_5']:.3f} "
-        f"AUC {test_metrics['auc']:.3f} (baseline {baseline['recall_at_1']:.3f} / {baseline['recall_at_5']:.3f} "
-        f"/ {baseline['auc']:.3f}), {n_params} parameters, {metrics['model_bytes']} bytes, "
+        f"AUC {test_metrics['auc']:.3f} (baseline {baseline['recall_at_1']:.3f} / "
+        f"{baseline['recall_at_5']:.3f} / {baseline['auc']:.3f}), {n_params} parameters, "
+        f"{metrics['model_bytes']} bytes, "
         f"torch vs onnxruntime max diff {max_diff:.2e}"
     )
     if not max_diff < EXPORT_TOLERANCE:
@@ -657,6 +612,7 @@ def parse_args(argv: Sequence[str] | None = None) -> TrainSettings:
     p.add_argument("--val-every", type=int, default=d.val_every)
     p.add_argument("--threads", type=int, default=d.threads, help="torch and onnxruntime threads")
     p.add_argument("--workers", type=int, default=d.workers, help="rendering processes")
+    p.add_argument("--cache", type=Path, help="folder to keep rendered worlds in and reuse them from")
     p.add_argument(
         "--check-arrays", action="store_true", help=f"also write {CHECK_INPUTS_FILE}, {CHECK_TORCH_FILE}"
     )
@@ -681,6 +637,7 @@ def parse_args(argv: Sequence[str] | None = None) -> TrainSettings:
         threads=a.threads,
         workers=a.workers,
         check_arrays=a.check_arrays,
+        cache=a.cache,
     )
 
 

@@ -106,8 +106,11 @@ class DescriptorModel:
         self.image_hw = (height, width)
         # A classifier's softmax or an un-normalised embedding has the right shapes; probing shows
         # it. Two different images: a model that ignores its input cannot recognise places.
-        ramp = np.linspace(0, 255, height * width * 3).reshape(height, width, 3).astype(np.uint8)
-        probe = self._run(np.stack([np.full((height, width, 3), 128, np.uint8), ramp]))
+        # Probes of different mean colour too, so even a model of the mean colour tells them apart.
+        rows = np.linspace(0, 255, height, dtype=np.float64)[:, None] * np.ones((1, width))
+        cols = np.linspace(0, 255, width, dtype=np.float64)[None, :] * np.ones((height, 1))
+        pattern = np.stack([rows, cols, np.full((height, width), 200.0)], axis=2).astype(np.uint8)
+        probe = self._run(np.stack([np.full((height, width, 3), 64, np.uint8), pattern]))
         if np.allclose(probe[0], probe[1], atol=1e-6):
             raise DescriptorModelError(self.model, "it gives the same descriptor for two different images")
 
