@@ -123,11 +123,28 @@ class OwnerIndex:
             return None
         return Match(float(distances[0, 0]), found >> _FRAME_BITS, found & MAX_FRAME)
 
-    def entries(self) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
-        """Robots and frames of the stored descriptors, in the order they were stored."""
+    def export(self) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], npt.NDArray[np.float32]]:
+        """Robots, frames and descriptors of every stored entry, in storage order: what an owner
+        hands over when a cluster moves to another robot (with :meth:`remove` after)."""
         with self._lock:
             ids = faiss.vector_to_array(self._index.id_map).astype(np.int64)
-        return ids >> _FRAME_BITS, ids & MAX_FRAME
+            vectors = self._index.index.reconstruct_n(0, self._index.ntotal)
+        return (
+            ids >> _FRAME_BITS,
+            ids & MAX_FRAME,
+            np.asarray(vectors, np.float32).reshape(-1, self.dimension),
+        )
+
+    def remove(self, robots: npt.ArrayLike, frames: npt.ArrayLike) -> int:
+        """Forget these entries (robot and frame pairs); returns how many were stored."""
+        entries = [_entry_id(int(r), int(f)) for r, f in zip(np.ravel(robots), np.ravel(frames), strict=True)]
+        with self._lock:
+            present = [e for e in entries if e in self._ids]
+            if present:
+                # The numpy wrapper takes an id array; faiss's stubs give the C++ IDSelector signature.
+                self._index.remove_ids(np.array(present, np.int64))  # type: ignore[arg-type]
+                self._ids.difference_update(present)
+            return len(present)
 
     def save(self, path: str | Path) -> None:
         """Write the whole index to ``path`` (``.npz``), atomically."""

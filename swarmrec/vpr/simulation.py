@@ -143,13 +143,8 @@ def run_queries(
     migrated = 0
     for position, i in enumerate(order.tolist()):
         if reassignment is not None and position == reassignment.at:
-            stored = order[:position]
-            new = reassignment.owners.astype(np.int64)
-            migrated = int((new[stored] != current[stored]).sum())
-            indexes = {}
-            for j in stored.tolist():  # in arrival order, as the old owners stored them
-                indexes.setdefault(int(new[j]), OwnerIndex(x.shape[1])).store(x[j], int(robots[j]), j)
-            current = new
+            current = reassignment.owners.astype(np.int64)
+            migrated = _migrate(indexes, current, x.shape[1])
         owner = int(current[i])
         used[i] = owner
         index = indexes.setdefault(owner, OwnerIndex(x.shape[1]))
@@ -157,6 +152,22 @@ def run_queries(
         if match is not None:
             matches[i], distances[i] = match.frame, match.distance
     return Answers(used, matches, distances, migrated)
+
+
+def _migrate(indexes: dict[int, OwnerIndex], owners: IntArray, dimension: int) -> int:
+    """Move every stored entry whose frame now belongs to another owner, as owners would: export,
+    store at the new owner, remove. Returns how many moved."""
+    moved = 0
+    for owner, index in list(indexes.items()):
+        robots, frames, vectors = index.export()
+        leaving = np.flatnonzero(owners[frames] != owner)
+        for j in leaving.tolist():
+            destination = int(owners[frames[j]])
+            indexes.setdefault(destination, OwnerIndex(dimension)).store(
+                vectors[j], int(robots[j]), int(frames[j])
+            )
+        moved += index.remove(robots[leaving], frames[leaving])
+    return moved
 
 
 def answers_curve(answers: Answers, closures: BoolArray, eligible_pairs: BoolArray) -> PRCurve:

@@ -61,8 +61,9 @@ def test_a_restarted_owner_answers_exactly_as_before(tmp_path: Path) -> None:
     index.save(tmp_path / "owner.npz")
     restored = OwnerIndex.load(tmp_path / "owner.npz")
     assert len(restored) == 50 and restored.dimension == 8
-    robots, frames = restored.entries()
+    robots, frames, vectors = restored.export()
     assert frames.tolist() == list(range(50)) and robots.tolist() == [i % 3 for i in range(50)]
+    np.testing.assert_array_equal(vectors, x)
     for q in rng.normal(size=(10, 8)).astype(np.float32):
         assert restored.search(q, robot=1) == index.search(q, robot=1)
 
@@ -109,8 +110,21 @@ def test_concurrent_queries_each_store_once_and_each_sees_a_consistent_index() -
     for t in threads:
         t.join()
     assert len(index) == 400
-    assert sorted(index.entries()[1].tolist()) == list(range(400))
+    assert sorted(index.export()[1].tolist()) == list(range(400))
     assert len(answers) == 400
     # Whatever the interleaving, no answer is the querier's own frame, and every answer is a
     # frame that was queried (so stored) by another thread.
     assert all(a is None or (a.robot != i % 4 and a.frame % 4 == a.robot) for i, a in answers.items())
+
+
+def test_entries_handed_to_another_owner_are_exported_then_removed() -> None:
+    index = OwnerIndex(2)
+    for frame, v in enumerate([unit(1, 0), unit(0, 1), unit(1, 1)]):
+        index.query_then_store(v, robot=frame, frame=frame)
+    robots, frames, vectors = index.export()
+    np.testing.assert_allclose(vectors[2], unit(1, 1))
+    assert index.remove(robots[:2], frames[:2]) == 2
+    assert index.remove([0], [0]) == 0  # already gone
+    assert index.export()[1].tolist() == [2] and len(index) == 1
+    match = index.search(unit(1, 0), robot=9)
+    assert match is not None and match.frame == 2
