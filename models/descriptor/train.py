@@ -113,7 +113,10 @@ class TrainSettings:
     seed: int = 0
     #: Optimiser steps in all; training also stops after ``max_minutes``.
     steps: int = 3000
-    max_minutes: float = 25.0
+    max_minutes: float = 22.0
+    #: Steps the learning-rate schedule spans (default: ``steps``); with ``steps`` below it, a
+    #: run stopped early by ``max_minutes`` is repeated exactly: ``--steps 838 --schedule-steps 3000``.
+    schedule_steps: int | None = None
     #: A batch: ``worlds_per_batch`` worlds x ``anchors_per_world`` anchors x (anchor, positive).
     worlds_per_batch: int = 4
     anchors_per_world: int = 8
@@ -143,6 +146,8 @@ class TrainSettings:
             raise ConfigError(f"the three data seeds must differ and be >= 0, got {self.data_seeds}")
         if max(self.train_worlds, self.val_worlds, self.test_worlds) > 999:
             raise ConfigError("a split may have at most 999 worlds (its seeds would reach the next split's)")
+        if self.schedule_steps is not None and self.schedule_steps < self.steps:
+            raise ConfigError(f"schedule_steps must be >= steps, got {self.schedule_steps} < {self.steps}")
         for name in ("lr", "temperature", "max_minutes"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -442,12 +447,13 @@ def main(settings: TrainSettings) -> TrainResult:
     optimiser = torch.optim.AdamW(model.parameters(), lr=s.lr, weight_decay=s.weight_decay)
     # A short linear warm-up, then cosine decay to a tenth: from scratch the contrastive loss
     # needs the warm-up, or the NetVLAD assignment collapses onto one cluster in the first steps.
-    warmup = max(1, min(150, s.steps // 10))
+    span = s.schedule_steps or s.steps
+    warmup = max(1, min(150, span // 10))
 
     def lr_factor(step: int) -> float:
         if step < warmup:
             return (step + 1) / warmup
-        return 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * (step - warmup) / max(1, s.steps - warmup)))
+        return 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * (step - warmup) / max(1, span - warmup)))
 
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimiser, lr_factor)
 
@@ -555,7 +561,7 @@ def main(settings: TrainSettings) -> TrainResult:
         },
         "sizes": {"train": sum(map(len, train)), "val": sum(map(len, val)), "test": len(test_images)},
         "seconds": {"render": render_s, "train": train_s, "total": time.perf_counter() - started},
-        "settings": {**asdict(s), "out": str(s.out)},
+        "settings": {**asdict(s), "out": str(s.out), "cache": str(s.cache) if s.cache else None},
         "input": {
             "name": INPUT_NAME,
             "shape": ["N", 3, *INPUT_HW],
@@ -604,6 +610,9 @@ def parse_args(argv: Sequence[str] | None = None) -> TrainSettings:
     p.add_argument("--seed", type=int, default=d.seed, help="seed of initialisation, sampling, augmentation")
     p.add_argument("--steps", type=int, default=d.steps, help="optimiser steps (3 for a smoke run)")
     p.add_argument("--max-minutes", type=float, default=d.max_minutes, help="stop training after this long")
+    p.add_argument(
+        "--schedule-steps", type=int, help="steps the learning-rate schedule spans (default: --steps)"
+    )
     p.add_argument("--worlds-per-batch", type=int, default=d.worlds_per_batch)
     p.add_argument("--anchors-per-world", type=int, default=d.anchors_per_world)
     p.add_argument("--lr", type=float, default=d.lr)
@@ -628,6 +637,7 @@ def parse_args(argv: Sequence[str] | None = None) -> TrainSettings:
         seed=a.seed,
         steps=a.steps,
         max_minutes=a.max_minutes,
+        schedule_steps=a.schedule_steps,
         worlds_per_batch=a.worlds_per_batch,
         anchors_per_world=a.anchors_per_world,
         lr=a.lr,

@@ -28,6 +28,7 @@ import numpy.typing as npt
 from swarmrec.errors import ConfigError
 from swarmrec.vpr.clusters import save_centres, train_centres
 from swarmrec.vpr.data import render_world
+from swarmrec.vpr.index import set_faiss_threads
 from swarmrec.vpr.model import DescriptorModel
 
 __all__ = ["CentresSettings", "CentresSummary", "main", "other_descriptors"]
@@ -82,6 +83,7 @@ class CentresSummary:
 def main(settings: CentresSettings) -> CentresSummary:
     started = time.perf_counter()
     s = settings
+    set_faiss_threads(s.threads)
     model = DescriptorModel(s.model, intra_op_threads=s.threads)
     other, seeds = other_descriptors(model, s.worlds, s.seed_base, s.stride)
     centres = {k: train_centres(other, k, s.seed) for k in s.ks}

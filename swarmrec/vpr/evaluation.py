@@ -51,6 +51,7 @@ from swarmrec.vpr.centres import other_descriptors
 from swarmrec.vpr.clusters import Assignment, Router, random_assignment, train_centres
 from swarmrec.vpr.data import RenderedWorld, render_world
 from swarmrec.vpr.figures import plot_sweep
+from swarmrec.vpr.index import set_faiss_threads
 from swarmrec.vpr.model import DescriptorModel
 from swarmrec.vpr.places import (
     PlaceThresholds,
@@ -324,6 +325,7 @@ def main(settings: EvaluationSettings) -> EvaluationSummary:
     started = time.perf_counter()
     out = Path(s.out)
     out.mkdir(parents=True, exist_ok=True)
+    set_faiss_threads(s.threads)
     model = DescriptorModel(s.model, intra_op_threads=s.threads)
     deployment = render_world(s.deployment_seed, s.deployment_frames, 1, vary=False, offset=False)
     x = describe_worlds(model, [deployment])[0]

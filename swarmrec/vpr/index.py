@@ -28,6 +28,7 @@ import os
 import threading
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import faiss
 import numpy as np
@@ -37,13 +38,22 @@ from swarmrec.errors import ConfigError
 from swarmrec.vpr.errors import StateFileError
 from swarmrec.vpr.vectors import as_descriptor
 
-__all__ = ["INDEX_FORMAT", "MAX_FRAME", "MAX_ROBOT", "Match", "OwnerIndex"]
+__all__ = ["INDEX_FORMAT", "MAX_FRAME", "MAX_ROBOT", "Match", "OwnerIndex", "set_faiss_threads"]
 
 INDEX_FORMAT = "swarmrec.vpr.index/1"
 _FRAME_BITS = 40
 #: Frame numbers fit in 40 bits and robot ids in the 23 bits above them (faiss ids are int64 >= 0).
 MAX_FRAME = (1 << _FRAME_BITS) - 1
 MAX_ROBOT = (1 << (63 - _FRAME_BITS)) - 1
+
+
+def set_faiss_threads(threads: int) -> None:
+    """faiss's OpenMP threads, for the whole process (faiss has no per-call setting). An owner's
+    single-query search over thousands of vectors gains nothing from threads, and OpenMP's
+    waiting threads made it 5-20x slower on 2 cores shared with other processes: use 1 there."""
+    if threads < 1:
+        raise ConfigError(f"threads must be >= 1, got {threads}")
+    faiss.omp_set_num_threads(threads)
 
 
 @dataclass(frozen=True)
@@ -73,6 +83,9 @@ class OwnerIndex:
         self._index = faiss.IndexIDMap2(faiss.IndexFlatL2(dimension))
         self._ids: set[int] = set()
         self._lock = threading.Lock()
+        # One set of search parameters per querying robot: building faiss's selector objects
+        # costs more than searching a few thousand vectors.
+        self._params: dict[int, Any] = {}
 
     def __len__(self) -> int:
         with self._lock:
@@ -113,10 +126,14 @@ class OwnerIndex:
     def _search(self, x: npt.NDArray[np.float32], robot: int) -> Match | None:
         if self._index.ntotal == 0:
             return None
-        own = faiss.IDSelectorRange(robot << _FRAME_BITS, (robot + 1) << _FRAME_BITS)
-        # faiss's stubs list no constructor arguments; the selector is set as an attribute.
-        params = faiss.SearchParameters()
-        params.sel = faiss.IDSelectorNot(own)
+        params = self._params.get(robot)
+        if params is None:
+            own = faiss.IDSelectorRange(robot << _FRAME_BITS, (robot + 1) << _FRAME_BITS)
+            # faiss's stubs list no constructor arguments; the selector is set as an attribute.
+            params = faiss.SearchParameters()
+            params.sel = faiss.IDSelectorNot(own)
+            params.own = own  # the Not selector does not keep its argument alive in Python
+            self._params[robot] = params
         distances, ids = self._index.search(x[None], 1, params=params)
         found = int(ids[0, 0])
         if found < 0:  # every stored frame is the querier's own

@@ -35,7 +35,8 @@ def smoke_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
         )
     out = tmp_path_factory.mktemp("descriptor-smoke")
     proc = subprocess.run(
-        [str(TRAIN_PYTHON), str(SCRIPT), *SMOKE, "--out", str(out)],
+        # --cache too: its setting must survive into metrics.json like every other.
+        [str(TRAIN_PYTHON), str(SCRIPT), *SMOKE, "--out", str(out), "--cache", str(out / "cache")],
         cwd=REPO,
         capture_output=True,
         text=True,
@@ -62,6 +63,7 @@ def test_the_smoke_run_writes_a_small_model_and_its_metrics(smoke_run: Path, met
     worlds = metrics["worlds"]
     assert not set(worlds["train"]) & set(worlds["test"]) and not set(worlds["val"]) & set(worlds["test"])
     assert [h["step"] for h in metrics["history"]] == [2, 3]
+    assert metrics["settings"]["cache"] == str(smoke_run / "cache")
 
 
 def test_the_export_loads_as_a_descriptor_model(smoke_run: Path) -> None:
