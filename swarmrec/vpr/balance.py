@@ -39,9 +39,17 @@ from swarmrec.errors import ConfigError
 from swarmrec.vpr.clusters import Assignment, nearest_centre, train_centres
 from swarmrec.vpr.vectors import as_descriptors
 
-__all__ = ["LoadReport", "balanced_assignment", "observe", "split_hot_clusters"]
+__all__ = [
+    "LoadReport",
+    "balanced_assignment",
+    "boundary_margin",
+    "observe",
+    "replica_owners",
+    "split_hot_clusters",
+]
 
 Float32Array = npt.NDArray[np.float32]
+FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 
@@ -59,11 +67,14 @@ class LoadReport:
             raise ConfigError(f"adjacency must be ({k}, {k}), got {self.adjacency.shape}")
 
 
-def _two_nearest(centres: Float32Array, x: Float32Array) -> tuple[IntArray, IntArray]:
+def _two_nearest(centres: Float32Array, x: Float32Array) -> tuple[IntArray, IntArray, FloatArray]:
+    """Nearest and second-nearest centre of each row, and the gap ``d2^2 - d1^2`` between them."""
     c = centres.astype(np.float64)
     cost = (c * c).sum(1)[None, :] - 2.0 * (x.astype(np.float64) @ c.T)
     order = np.argsort(cost, axis=1, kind="stable")
-    return order[:, 0].astype(np.int64), order[:, 1].astype(np.int64)
+    rows = np.arange(len(x))
+    gap = cost[rows, order[:, 1]] - cost[rows, order[:, 0]]
+    return order[:, 0].astype(np.int64), order[:, 1].astype(np.int64), gap
 
 
 def observe(centres: Float32Array, descriptors: npt.NDArray[np.floating]) -> LoadReport:
@@ -72,7 +83,7 @@ def observe(centres: Float32Array, descriptors: npt.NDArray[np.floating]) -> Loa
     k = len(centres)
     if k < 2:
         raise ConfigError("observing adjacency needs at least two centres")
-    first, second = _two_nearest(centres, x)
+    first, second, _ = _two_nearest(centres, x)
     loads = np.bincount(first, minlength=k).astype(np.int64)
     adjacency = np.zeros((k, k), np.int64)
     np.add.at(adjacency, (first, second), 1)
@@ -101,8 +112,12 @@ def split_hot_clusters(
     return np.stack(out).astype(np.float32)
 
 
-def balanced_assignment(report: LoadReport, n_robots: int, slack: float = 0.25) -> Assignment:
-    """The load- and adjacency-aware table of the module docstring."""
+def balanced_assignment(
+    report: LoadReport, n_robots: int, slack: float = 0.25, previous: Assignment | None = None
+) -> Assignment:
+    """The load- and adjacency-aware table of the module docstring. With ``previous``, a cluster
+    stays with its previous owner when that is as good (equal adjacency), which saves moving
+    its stored descriptors (clusters past the previous table's, new halves, have none)."""
     if n_robots < 1:
         raise ConfigError(f"n_robots must be >= 1, got {n_robots}")
     if not slack >= 0:
@@ -114,11 +129,17 @@ def balanced_assignment(report: LoadReport, n_robots: int, slack: float = 0.25) 
     robot_load = np.zeros(n_robots)
     # affinity[r, j]: adjacency of cluster j to the clusters robot r owns so far.
     affinity = np.zeros((n_robots, k))
+    before = np.full(k, -1, np.int64)
+    if previous is not None:
+        known = min(k, previous.n_clusters)
+        before[:known] = previous.owner_array()[:known]
     for cluster in np.lexsort((np.arange(k), -loads)).tolist():
         room = robot_load + loads[cluster] <= capacity
         candidates = np.flatnonzero(room) if room.any() else np.array([int(np.argmin(robot_load))])
-        # Most adjacent load first, then least loaded, then lowest id.
-        best = candidates[np.lexsort((candidates, robot_load[candidates], -affinity[candidates, cluster]))[0]]
+        # Most adjacent load first, then the previous owner, then least loaded, then lowest id.
+        moved = candidates != before[cluster]
+        keys = (candidates, robot_load[candidates], moved, -affinity[candidates, cluster])
+        best = candidates[np.lexsort(keys)[0]]
         owners[cluster] = best
         robot_load[best] += loads[cluster]
         affinity[best] += report.adjacency[cluster]
@@ -129,3 +150,28 @@ def balanced_assignment(report: LoadReport, n_robots: int, slack: float = 0.25) 
         None,
         {"slack": slack, "observed_queries": int(loads.sum())},
     )
+
+
+def boundary_margin(centres: Float32Array, descriptors: npt.NDArray[np.floating], share: float) -> float:
+    """The gap ``d2^2 - d1^2`` under which ``share`` of ``descriptors`` lie: descriptors this close
+    to a boundary between two cells are the ones whose true matches fall on the other side."""
+    if not 0.0 <= share <= 1.0:
+        raise ConfigError(f"share must be in [0, 1], got {share}")
+    if share == 0.0:
+        return -1.0
+    _, _, gap = _two_nearest(centres, as_descriptors(descriptors, centres.shape[1]))
+    return float(np.quantile(gap, share))
+
+
+def replica_owners(
+    centres: Float32Array, assignment: Assignment, descriptors: npt.NDArray[np.floating], margin: float
+) -> IntArray:
+    """For each descriptor, the owner of its second-nearest centre when the gap to it is at most
+    ``margin`` and that owner is another robot than the nearest's; -1 otherwise. Storing such a
+    descriptor there too (not querying there) lets a later query on the other side of the
+    boundary find it, at the cost of one more upload and no extra search load."""
+    first, second, gap = _two_nearest(centres, as_descriptors(descriptors, centres.shape[1]))
+    owners = assignment.owner_array()
+    near = (gap <= margin) & (owners[second] != owners[first])
+    replicas: IntArray = np.where(near, owners[second], -1).astype(np.int64)
+    return replicas

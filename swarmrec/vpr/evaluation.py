@@ -12,7 +12,7 @@ product quantisation, and then runs, on the same deployment descriptors,
 * **Fig. 7**: the same with ``fig7_robots`` robots and ``c`` clusters per robot;
 * **balance** (:mod:`swarmrec.vpr.balance`): the paper's random start with
   ``balance_clusters_per_robot`` clusters per robot, re-assigned from the load observed in the
-  first ``warmup_share`` of the queries, against one cluster per robot;
+  load observed in each period of ``rebalance_share`` of the queries, against one cluster per robot;
 * **quantisation** (:mod:`swarmrec.vpr.quantize`): recall@1/5 and AUC of the decoded
   descriptors with the model card's protocol (:mod:`swarmrec.vpr.places`: every frame
   against the whole sequence outside a 100-frame window), and the bytes;
@@ -46,7 +46,13 @@ import numpy as np
 import numpy.typing as npt
 
 from swarmrec.errors import ConfigError
-from swarmrec.vpr.balance import balanced_assignment, observe, split_hot_clusters
+from swarmrec.vpr.balance import (
+    balanced_assignment,
+    boundary_margin,
+    observe,
+    replica_owners,
+    split_hot_clusters,
+)
 from swarmrec.vpr.centres import other_descriptors
 from swarmrec.vpr.clusters import Assignment, Router, random_assignment, train_centres
 from swarmrec.vpr.data import RenderedWorld, render_world
@@ -61,6 +67,7 @@ from swarmrec.vpr.places import (
 )
 from swarmrec.vpr.quantize import Int8Quantizer, PQQuantizer, Quantizer
 from swarmrec.vpr.simulation import (
+    QUERY_HEADER_BYTES,
     Answers,
     Reassignment,
     answers_curve,
@@ -100,7 +107,9 @@ class EvaluationSettings:
     runs: int = 10
     #: Re-balancing: the random start's clusters per robot, the observed share, the capacity slack.
     balance_clusters_per_robot: int = 8
-    warmup_share: float = 0.1
+    rebalance_share: float = 0.05
+    #: Share of a period's queries near a cell boundary that are stored at the neighbour cell's owner too.
+    replica_share: float = 0.5
     slack: float = 0.25
     #: Product-quantisation code sizes (bytes) to measure beside int8.
     pq_bytes: tuple[int, ...] = (16, 32)
@@ -123,8 +132,10 @@ class EvaluationSettings:
         largest = max(max(self.robots), self.fig7_robots)
         if largest * max(self.clusters_per_robot) > self.other_worlds * 300:
             raise ConfigError("too few other descriptors for the largest k: add other_worlds")
-        if not 0.0 < self.warmup_share < 1.0:
-            raise ConfigError(f"warmup_share must be in (0, 1), got {self.warmup_share}")
+        if not 0.0 < self.rebalance_share < 1.0:
+            raise ConfigError(f"rebalance_share must be in (0, 1), got {self.rebalance_share}")
+        if not 0.0 <= self.replica_share <= 1.0:
+            raise ConfigError(f"replica_share must be in [0, 1], got {self.replica_share}")
         if not (math.isfinite(self.slack) and self.slack >= 0):
             raise ConfigError(f"slack must be >= 0, got {self.slack}")
         if any(b < 1 or 128 % b for b in self.pq_bytes):
@@ -268,35 +279,43 @@ def _balanced_run(
     s: EvaluationSettings, team: _Team, seed: int, x: Float32Array, other: Float32Array,
     centralized: float, centres_out: dict[str, Any],
 ) -> RunResult:  # fmt: skip
-    """Random start with ``c`` clusters per robot; after the warm-up, hot clusters split and a
-    load- and adjacency-aware table (:mod:`swarmrec.vpr.balance`)."""
+    """The paper's random start with ``c`` clusters per robot, then after every period of
+    ``rebalance_share`` of the queries: hot clusters of that period split, and a load- and
+    adjacency-aware table from that period's counts (:mod:`swarmrec.vpr.balance`). Routing does
+    not depend on answers, so every table is computed up front from the descriptors, exactly as
+    the owners would compute it from what they received."""
     c = s.balance_clusters_per_robot
     n = team.n_robots
-    centres = train_centres(other, n * c, seed)
-    start = random_assignment(n, c, seed)
+    start_centres = centres = train_centres(other, n * c, seed)
+    start = table = random_assignment(n, c, seed)
     _, owners = Router(centres, start).route_many(x)
-    at = round(s.warmup_share * len(x))
-    seen = x[team.order[:at]]
-    capacity = (1.0 + s.slack) * at / n
-    refined = split_hot_clusters(centres, seen, capacity, seed)
-    report = observe(refined, seen)
-    table = balanced_assignment(report, n, s.slack)
-    _, new_owners = Router(refined, table).route_many(x)
-    answers = run_queries(x, team.robots, owners, team.order, Reassignment(at, new_owners))
+    period = max(1, round(s.rebalance_share * len(x)))
+    capacity = (1.0 + s.slack) * period / n
+    switches: list[Reassignment] = []
+    for at in range(period, len(x), period):
+        window = x[team.order[at - period : at]]
+        centres = split_hot_clusters(centres, window, capacity, seed)
+        table = balanced_assignment(observe(centres, window), n, s.slack, previous=table)
+        margin = boundary_margin(centres, window, s.replica_share)
+        replicas = replica_owners(centres, table, x, margin)
+        switches.append(Reassignment(at, Router(centres, table).route_many(x)[1], replicas))
+    answers = run_queries(x, team.robots, owners, team.order, switches)
     name = f"balance_n{n}_run{seed}"
-    centres_out[f"{name}_start"] = centres
-    centres_out[name] = refined
-    after = answers.owners[team.order[at:]]
+    centres_out[f"{name}_start"] = start_centres
+    centres_out[name] = centres
+    first = switches[0].at if switches else len(x)
     code_bytes = FLOAT_BYTES * x.shape[1]
-    migration = answers.migrated * (code_bytes + 5)
+    migration = answers.migrated * (code_bytes + QUERY_HEADER_BYTES)
     extra = {
         "start_assignment": start.to_json(),
-        "warmup_queries": at,
-        "split_clusters": len(refined) - len(centres),
+        "rebalances": len(switches),
+        "period_queries": period,
+        "split_clusters": len(centres) - len(start_centres),
         "migrated_descriptors": answers.migrated,
+        "stored_twice_share": float((answers.replicas >= 0).mean()) if answers.replicas is not None else 0.0,
         "migration_bytes": migration,
         "migration_bytes_per_query": migration / len(x),
-        "worst_balance_ratio_after_warmup": worst_balance_ratio(after, n),
+        "worst_balance_ratio_after_first_period": worst_balance_ratio(answers.owners[team.order[first:]], n),
     }
     return _record(name, "balance", team, c, seed, answers, centralized, table, code_bytes, extra)
 
@@ -378,11 +397,12 @@ def main(settings: EvaluationSettings) -> EvaluationSummary:
     balance = {
         "n_robots": n,
         "clusters_per_robot_start": s.balance_clusters_per_robot,
-        "warmup_share": s.warmup_share,
+        "rebalance_share": s.rebalance_share,
+        "replica_share": s.replica_share,
         "slack": s.slack,
         **_aggregate(balanced, "n_robots")[0],
-        "worst_balance_ratio_after_warmup_runs": [
-            r.extra["worst_balance_ratio_after_warmup"] for r in balanced
+        "worst_balance_ratio_after_first_period_runs": [
+            r.extra["worst_balance_ratio_after_first_period"] for r in balanced
         ],
         "migration_bytes_per_query_mean": float(
             np.mean([r.extra["migration_bytes_per_query"] for r in balanced])

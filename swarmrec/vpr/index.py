@@ -86,6 +86,8 @@ class OwnerIndex:
         # One set of search parameters per querying robot: building faiss's selector objects
         # costs more than searching a few thousand vectors.
         self._params: dict[int, Any] = {}
+        # The selectors the parameters point to: SWIG does not keep them alive by itself.
+        self._selectors: list[Any] = []
 
     def __len__(self) -> int:
         with self._lock:
@@ -132,7 +134,7 @@ class OwnerIndex:
             # faiss's stubs list no constructor arguments; the selector is set as an attribute.
             params = faiss.SearchParameters()
             params.sel = faiss.IDSelectorNot(own)
-            params.own = own  # the Not selector does not keep its argument alive in Python
+            self._selectors += [own, params.sel]
             self._params[robot] = params
         distances, ids = self._index.search(x[None], 1, params=params)
         found = int(ids[0, 0])

@@ -29,12 +29,14 @@ them all). The *worst balance ratio* is ``max_r load[r] / (Q / n)``, Q the numbe
 **Bytes** (the brief's model, not measured on a wire): a query whose owner is another robot
 sends the descriptor (``4 d`` B as float32, or the quantised code) plus 5 B (querier 1 B,
 frame 4 B) and gets 13 B back (squared distance 4 B, robot 1 B, frame 8 B); a query owned by
-its own robot costs 0 B.
+its own robot costs 0 B. A replica stored at another robot than the querier costs the same
+upload again, without an answer.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -99,12 +101,15 @@ def eligible(robots: IntArray, order: IntArray) -> BoolArray:
 @dataclass(frozen=True, eq=False)
 class Answers:
     """Per frame (in frame order): the owner its query went to, the answer's frame (-1: none)
-    and squared distance (inf: none); and how many stored descriptors changed owner."""
+    and squared distance (inf: none); how many stored descriptors were moved or copied when
+    owners changed; where each frame was stored a second time."""
 
     owners: IntArray
     matches: IntArray
     distances: FloatArray
     migrated: int = 0
+    #: Per frame: the robot it was also stored at (-1: none).
+    replicas: IntArray | None = None
 
     @property
     def n_queries(self) -> int:
@@ -113,11 +118,13 @@ class Answers:
 
 @dataclass(frozen=True, eq=False)
 class Reassignment:
-    """From position ``at`` of the arrival order on, frame ``i`` goes to ``owners[i]``; what was
-    stored before moves to the new owner of each stored frame."""
+    """From position ``at`` of the arrival order on, frame ``i`` goes to ``owners[i]`` (and is also
+    stored at ``replicas[i]`` when that is >= 0); what was stored before moves to where each
+    stored frame now belongs."""
 
     at: int
     owners: IntArray
+    replicas: IntArray | None = None
 
 
 def run_queries(
@@ -125,49 +132,66 @@ def run_queries(
     robots: IntArray,
     owners: IntArray,
     order: IntArray,
-    reassignment: Reassignment | None = None,
+    reassignments: Sequence[Reassignment] = (),
+    replicas: IntArray | None = None,
 ) -> Answers:
     """Send every frame's query to ``owners[frame]`` in ``order``: one :class:`OwnerIndex` per
-    owner, each query searched then stored (frames are stored under their own index)."""
+    owner, each query searched then stored (frames are stored under their own index), and stored
+    without a search at ``replicas[frame]`` too when given and >= 0 (a second copy near a cell
+    boundary, :mod:`swarmrec.vpr.balance`). At each reassignment's place in the order the owners
+    change and stored entries move. ``Answers.migrated`` counts descriptors moved or copied."""
     x = as_descriptors(descriptors, descriptors.shape[1] if descriptors.ndim == 2 else -1)
     n = len(x)
     if not (len(robots) == len(owners) == n and sorted(order.tolist()) == list(range(n))):
         raise ConfigError("robots, owners and order must cover the same frames")
-    if reassignment is not None and (len(reassignment.owners) != n or not 0 <= reassignment.at <= n):
-        raise ConfigError("a reassignment must give an owner to every frame and switch inside the order")
+    switches = {r.at: r for r in reassignments}
+    if len(switches) != len(reassignments) or any(
+        len(r.owners) != n or not 0 <= r.at <= n for r in reassignments
+    ):
+        raise ConfigError(
+            "each reassignment must give an owner to every frame and switch at its own place in the order"
+        )
     current = owners.astype(np.int64)
+    copies = np.full(n, -1, np.int64) if replicas is None else replicas.astype(np.int64)
     indexes: dict[int, OwnerIndex] = {}
     used = np.empty(n, np.int64)
     matches = np.full(n, -1, np.int64)
     distances = np.full(n, np.inf)
     migrated = 0
+    stored_twice = np.full(n, -1, np.int64)
     for position, i in enumerate(order.tolist()):
-        if reassignment is not None and position == reassignment.at:
-            current = reassignment.owners.astype(np.int64)
-            migrated = _migrate(indexes, current, x.shape[1])
+        if position in switches:
+            switch = switches[position]
+            current = switch.owners.astype(np.int64)
+            copies = np.full(n, -1, np.int64) if switch.replicas is None else switch.replicas.astype(np.int64)
+            migrated += _migrate(indexes, current, copies, x.shape[1])
         owner = int(current[i])
         used[i] = owner
-        index = indexes.setdefault(owner, OwnerIndex(x.shape[1]))
-        match = index.query_then_store(x[i], int(robots[i]), i)
+        match = indexes.setdefault(owner, OwnerIndex(x.shape[1])).query_then_store(x[i], int(robots[i]), i)
         if match is not None:
             matches[i], distances[i] = match.frame, match.distance
-    return Answers(used, matches, distances, migrated)
+        if copies[i] >= 0 and copies[i] != owner:
+            indexes.setdefault(int(copies[i]), OwnerIndex(x.shape[1])).store(x[i], int(robots[i]), i)
+            stored_twice[i] = copies[i]
+    return Answers(used, matches, distances, migrated, stored_twice)
 
 
-def _migrate(indexes: dict[int, OwnerIndex], owners: IntArray, dimension: int) -> int:
-    """Move every stored entry whose frame now belongs to another owner, as owners would: export,
-    store at the new owner, remove. Returns how many moved."""
-    moved = 0
-    for owner, index in list(indexes.items()):
+def _migrate(indexes: dict[int, OwnerIndex], owners: IntArray, replicas: IntArray, dimension: int) -> int:
+    """Put every stored entry where its frame now belongs (its owner, and its replica if any), as
+    owners would: export, store at the new places, remove the rest. Returns the copies made."""
+    copied = 0
+    for holder, index in list(indexes.items()):
         robots, frames, vectors = index.export()
-        leaving = np.flatnonzero(owners[frames] != owner)
-        for j in leaving.tolist():
-            destination = int(owners[frames[j]])
-            indexes.setdefault(destination, OwnerIndex(dimension)).store(
-                vectors[j], int(robots[j]), int(frames[j])
-            )
-        moved += index.remove(robots[leaving], frames[leaving])
-    return moved
+        leaving = []
+        for j, frame in enumerate(frames.tolist()):
+            targets = {int(owners[frame])} | ({int(replicas[frame])} if replicas[frame] >= 0 else set())
+            if holder not in targets:
+                leaving.append(j)
+            for target in targets - {holder}:
+                destination = indexes.setdefault(target, OwnerIndex(dimension))
+                copied += destination.store(vectors[j], int(robots[j]), frame)
+        index.remove(robots[leaving], frames[leaving])
+    return copied
 
 
 def answers_curve(answers: Answers, closures: BoolArray, eligible_pairs: BoolArray) -> PRCurve:
@@ -206,9 +230,12 @@ def worst_balance_ratio(owners: IntArray, n_robots: int) -> float:
 
 def bytes_per_query(answers: Answers, robots: IntArray, code_bytes: int) -> dict[str, float]:
     """Mean bytes a query sends and receives under the byte model (``code_bytes``: the
-    descriptor on the wire, 4 d for float32)."""
+    descriptor on the wire, 4 d for float32), second copies included."""
     remote = answers.owners != robots
     share = float(remote.mean()) if len(remote) else 0.0
-    up = share * (code_bytes + QUERY_HEADER_BYTES)
+    copies = 0.0
+    if answers.replicas is not None:
+        copies = float(((answers.replicas >= 0) & (answers.replicas != robots)).mean())
+    up = (share + copies) * (code_bytes + QUERY_HEADER_BYTES)
     down = share * ANSWER_BYTES
-    return {"remote_share": share, "up": up, "down": down, "total": up + down}
+    return {"remote_share": share, "replica_share": copies, "up": up, "down": down, "total": up + down}

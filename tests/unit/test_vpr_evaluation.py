@@ -77,7 +77,7 @@ def test_each_run_can_be_rechecked_from_the_files(evaluated: tuple[Path, Evaluat
 def test_bad_settings_are_refused(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="robots must be counts >= 2"):
         EvaluationSettings(out=tmp_path, robots=(1, 2))
-    with pytest.raises(ConfigError, match="warmup_share"):
-        EvaluationSettings(out=tmp_path, warmup_share=1.0)
+    with pytest.raises(ConfigError, match="rebalance_share"):
+        EvaluationSettings(out=tmp_path, rebalance_share=1.0)
     with pytest.raises(ConfigError, match="pq_bytes must divide 128"):
         EvaluationSettings(out=tmp_path, pq_bytes=(24,))

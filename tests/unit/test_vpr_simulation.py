@@ -82,7 +82,14 @@ def test_the_byte_model_counts_only_queries_sent_to_another_robot() -> None:
     # Two of four queries go to another robot: 0.5 x (512 + 5) up, 0.5 x 13 down.
     answers = Answers(np.array([0, 1, 1, 0]), np.full(4, -1), np.full(4, np.inf))
     cost = bytes_per_query(answers, robots, 512)
-    assert cost == pytest.approx({"remote_share": 0.5, "up": 258.5, "down": 6.5, "total": 265.0})
+    assert cost == pytest.approx(
+        {"remote_share": 0.5, "replica_share": 0.0, "up": 258.5, "down": 6.5, "total": 265.0}
+    )
+    # Frame 0 also stored at robot 1 (remote), frame 3 at robot 1 (its own robot: free): one more
+    # upload of 517 B in four queries.
+    twice = Answers(answers.owners, answers.matches, answers.distances, 0, np.array([1, -1, -1, 1]))
+    cost = bytes_per_query(twice, robots, 512)
+    assert cost["replica_share"] == 0.25 and cost["up"] == pytest.approx(0.75 * 517)
 
 
 def test_queries_run_through_owner_indexes_and_a_reassignment_moves_what_was_stored() -> None:
@@ -97,7 +104,18 @@ def test_queries_run_through_owner_indexes_and_a_reassignment_moves_what_was_sto
     together = run_queries(x, robots, np.array([0, 1, 0, 1]), order)
     assert together.matches.tolist() == [-1, -1, 0, 1]
     # Start split; from the third query on, robot 0 owns everything: frames 0 and 2 move to it.
-    moved = run_queries(x, robots, np.array([0, 0, 1, 0]), order, Reassignment(2, np.zeros(4, np.int64)))
+    moved = run_queries(x, robots, np.array([0, 0, 1, 0]), order, [Reassignment(2, np.zeros(4, np.int64))])
     assert moved.migrated == 1  # frame 2 was stored at robot 1
     # Query 1 (robot 0) now sees frame 2 at robot 0; query 3 (robot 1) finds frame 1, its place.
     assert moved.owners.tolist() == [0, 0, 1, 0] and moved.matches.tolist() == [-1, 2, -1, 1]
+
+
+def test_a_frame_stored_twice_is_found_from_either_owner() -> None:
+    x = np.array([[1, 0], [0, 1], [1, 0], [0, 1]], np.float32)
+    robots = np.array([0, 0, 1, 1])
+    order = arrival_order(robots)  # 0, 2, 1, 3
+    # As in the split case above, but frame 0 is also stored at robot 1, where frame 2 goes.
+    answers = run_queries(x, robots, np.array([0, 1, 1, 0]), order, replicas=np.array([1, -1, -1, -1]))
+    assert answers.matches.tolist() == [-1, 2, 0, 0]
+    assert answers.distances[2] == 0.0 and answers.replicas is not None
+    assert answers.replicas.tolist() == [1, -1, -1, -1]
