@@ -89,7 +89,7 @@ def main(settings: CentresSettings) -> CentresSummary:
     centres = {k: train_centres(other, k, s.seed) for k in s.ks}
     meta = {
         "what": "k-means centres of the place descriptor, trained on varied office worlds",
-        "model": model.model,
+        "model": Path(model.model).name,
         "worlds": seeds,
         "stride": s.stride,
         "descriptors": len(other),

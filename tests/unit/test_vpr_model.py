@@ -142,5 +142,6 @@ def test_the_committed_model_recognises_places_in_a_world_it_never_saw() -> None
     closures = same_place(world.positions, world.directions, world.frames, thresholds)
     metrics, _ = retrieval_metrics(x, closures, eligible_pairs(world.frames, thresholds.exclusion_frames))
     assert metrics.queries_with_match > 150
-    # RECALL_FLOOR: see below.
-    assert metrics.recall_at_1 > RECALL_FLOOR, metrics
+    # The held-out test worlds give recall@1 0.63 and the tiny-image baseline 0.35
+    # (metrics.json); a broken model or input convention falls far below 0.45.
+    assert metrics.recall_at_1 > 0.45, metrics
