@@ -47,7 +47,7 @@ def other_descriptors(
     parts = []
     for seed in seeds:
         world = render_world(seed, OTHER_WORLD_FRAMES, stride, vary=True)
-        parts += [model.describe(world.images[i : i + 256]) for i in range(0, len(world), 256)]
+        parts.append(model.describe(world.images))
     return np.concatenate(parts), seeds
 
 

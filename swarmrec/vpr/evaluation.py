@@ -79,7 +79,7 @@ from swarmrec.vpr.simulation import (
     worst_balance_ratio,
 )
 
-__all__ = ["EvaluationSettings", "EvaluationSummary", "RunResult", "describe_worlds", "main"]
+__all__ = ["EvaluationSettings", "EvaluationSummary", "RunResult", "main"]
 
 Float32Array = npt.NDArray[np.float32]
 IntArray = npt.NDArray[np.int64]
@@ -185,13 +185,6 @@ class EvaluationSummary:
             "quantisation": self.quantisation,
             "seconds": self.seconds,
         }
-
-
-def describe_worlds(model: DescriptorModel, worlds: list[RenderedWorld]) -> list[Float32Array]:
-    """Each world's descriptors, in batches the model takes."""
-    return [
-        np.concatenate([model.describe(w.images[i : i + 256]) for i in range(0, len(w), 256)]) for w in worlds
-    ]
 
 
 @dataclass(frozen=True, eq=False)
@@ -347,7 +340,7 @@ def main(settings: EvaluationSettings) -> EvaluationSummary:
     set_faiss_threads(s.threads)
     model = DescriptorModel(s.model, intra_op_threads=s.threads)
     deployment = render_world(s.deployment_seed, s.deployment_frames, 1, vary=False, offset=False)
-    x = describe_worlds(model, [deployment])[0]
+    x = model.describe(deployment.images)
     other, other_seeds = other_descriptors(model, s.other_worlds, s.other_seed_base, s.other_stride)
     describe_s = time.perf_counter() - started
     np.savez_compressed(

@@ -12,6 +12,7 @@ matplotlib.use("Agg")  # files only: never needs a display
 
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.ticker import MaxNLocator
 
 __all__ = ["plot_sweep"]
 
@@ -49,6 +50,7 @@ def plot_sweep(
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     bottom.axhline(1.0, color="grey", lw=0.8, ls=":")
+    bottom.xaxis.set_major_locator(MaxNLocator(integer=True))  # robots and clusters are counts
     top.legend(fontsize=7, loc="lower left")
     bottom.set_xlabel(xlabel)
     top.set_title(title)

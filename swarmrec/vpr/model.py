@@ -30,6 +30,8 @@ __all__ = ["DescriptorModel", "default_model_path"]
 ImageArray = npt.NDArray[np.uint8]
 Float32Array = npt.NDArray[np.float32]
 
+#: Images per onnxruntime call.
+_CHUNK = 256
 #: How far a row's norm may be from 1 (float32 normalisation) before the model is not taken
 #: for a unit-descriptor model.
 NORM_TOLERANCE = 1e-3
@@ -128,7 +130,8 @@ class DescriptorModel:
             )
         if len(batch) == 0:
             return np.zeros((0, self.dimension), np.float32)
-        return self._run(batch)
+        # Bounded chunks: a whole sequence at once would hold every activation in memory.
+        return np.concatenate([self._run(batch[i : i + _CHUNK]) for i in range(0, len(batch), _CHUNK)])
 
     def describe_frames(self, frames: ImageArray) -> Float32Array:
         """Descriptors of BGR camera frames ``[N, H, W, 3]`` (or one) of any size: each is
