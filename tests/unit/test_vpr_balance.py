@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 
 from swarmrec.errors import ConfigError
-from swarmrec.vpr.balance import LoadReport, balanced_assignment, observe, split_hot_clusters
+from swarmrec.vpr.balance import (
+    LoadReport,
+    balanced_assignment,
+    boundary_margin,
+    observe,
+    replica_owners,
+    split_hot_clusters,
+)
+from swarmrec.vpr.clusters import Assignment
 
 
 def test_observe_counts_queries_per_cluster_and_nearest_second_nearest_pairs() -> None:
@@ -54,3 +62,27 @@ def test_a_hot_cluster_is_split_in_two_on_its_own_descriptors() -> None:
     assert sorted(np.round(split[[0, 2], 0]).tolist()) == [-1.0, 1.0]
     unchanged = split_hot_clusters(centres, seen.astype(np.float32), max_load=100, seed=0)
     np.testing.assert_array_equal(unchanged, centres)
+
+
+def test_a_descriptor_near_a_boundary_is_also_stored_at_the_neighbours_owner() -> None:
+    centres = np.array([[0.0], [2.0], [10.0]], np.float32)
+    table = Assignment((0, 1, 1), 2)
+    x = np.array([[0.9], [0.2], [1.9], [6.5]], np.float32)
+    # Gaps d2^2 - d1^2: 0.9 -> 1.21 - 0.81 = 0.4 (cells 0, 1); 0.2 -> 3.24 - 0.04 = 3.2;
+    # 1.9 -> 3.61 - 0.01 = 3.6 (cells 1, 0); 6.5 -> 20.25 - 12.25 = 8.0 (cells 2, 1).
+    assert boundary_margin(centres, x, 0.25) == pytest.approx(np.quantile([0.4, 3.2, 3.6, 8.0], 0.25))
+    assert boundary_margin(centres, x, 0.0) < 0  # nothing is copied
+    # Margin 3.6: 0.9 and 0.2 are copied to robot 1, 1.9 to robot 0; 6.5's neighbour (cell 1) has
+    # the same owner as its own cell (robot 1), so no copy.
+    assert replica_owners(centres, table, x, 3.6).tolist() == [1, 1, 0, -1]
+    assert replica_owners(centres, table, x, 0.5).tolist() == [1, -1, -1, -1]
+
+
+def test_a_cluster_stays_with_its_previous_owner_when_that_is_as_good() -> None:
+    # Four equal clusters, two robots, no adjacency: from scratch 0 -> robot 0, 1 -> robot 1,
+    # 2 -> robot 0, 3 -> robot 1 (least loaded, then lowest id).
+    report = _report([2, 2, 2, 2], {})
+    assert balanced_assignment(report, 2, slack=0.0).owners == (0, 1, 0, 1)
+    # With a previous table (1, 0, 0, 1), each cluster keeps its owner: nothing has to move.
+    previous = Assignment((1, 0, 0, 1), 2)
+    assert balanced_assignment(report, 2, slack=0.0, previous=previous).owners == (1, 0, 0, 1)

@@ -119,3 +119,18 @@ def test_a_frame_stored_twice_is_found_from_either_owner() -> None:
     assert answers.matches.tolist() == [-1, 2, 0, 0]
     assert answers.distances[2] == 0.0 and answers.replicas is not None
     assert answers.replicas.tolist() == [1, -1, -1, -1]
+
+
+def test_a_reassignment_puts_copies_where_the_new_tables_say() -> None:
+    x = np.array([[1, 0], [0, 1], [1, 0], [0, 1]], np.float32)
+    robots = np.array([0, 0, 1, 1])
+    order = arrival_order(robots)  # 0, 2, 1, 3
+    # Frames 0 and 2 start at robot 0, frames 1 and 3 at robot 1. From the third query on,
+    # everything belongs to robot 1 and frame 0 is also kept at robot 0.
+    switch = Reassignment(2, np.ones(4, np.int64), replicas=np.array([0, -1, -1, -1]))
+    answers = run_queries(x, robots, np.array([0, 1, 0, 1]), order, [switch])
+    # Frame 2 moves to robot 1 and frame 0 is copied there (it stays at robot 0 as its copy): 2.
+    assert answers.migrated == 2
+    # Query 1 (robot 0) at robot 1 finds frame 2 (robot 1's, the other place: 2 apart); query 3
+    # (robot 1) finds frame 1 (its place).
+    assert answers.matches.tolist() == [-1, 2, 0, 1]
