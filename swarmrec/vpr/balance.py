@@ -11,21 +11,27 @@ boundary cuts true matches apart (its Fig. 7). Two observations make a better tr
    centre, second-nearest centre), which every robot can compute since all know the centres.
 
 So the mission starts with the paper's random assignment of ``c`` clusters per robot (many
-small cells); after a warm-up share of the queries the owners publish those counts (``k``
-loads and a sparse ``k x k`` adjacency: a few kB once), and every robot computes the same new
-table with :func:`balanced_assignment`:
+small cells). After every period (a share of the mission's queries) the owners publish that
+period's counts (``k`` loads and a sparse ``k x k`` adjacency: a few kB), and every robot
+computes the same new table, deterministically, with no coordinator:
 
-* clusters are taken from the busiest down; each goes to the robot, among those whose load
-  stays under ``(1 + slack) x`` the even share, that already owns the most adjacent load
-  (adjacency counts to its clusters); ties to the least loaded robot, then the lowest id; when
-  no robot has room, to the least loaded one. Regions of touching cells thus grow on one
-  owner up to its capacity, and boundaries between owners fall where few queries lie;
-* a cluster busier than the capacity alone is first split (:func:`split_hot_clusters`): its
-  owner runs 2-means on the descriptors it stored for it and publishes the two new centres.
+* a cluster busier than the capacity, ``(1 + slack) x`` an even share of the period, is split
+  (:func:`split_hot_clusters`): its owner runs 2-means on the descriptors it stored for it and
+  publishes the two new centres;
+* after the first period, a new plan (:func:`balanced_assignment`): clusters from the busiest
+  down, each to the robot, among those that stay under the capacity, that already owns the most
+  adjacent load (adjacency counts to its clusters); ties to the previous owner, then the least
+  loaded robot, then the lowest id; with no room anywhere, to the least loaded. Regions of
+  touching cells grow on one owner up to its capacity, so boundaries between owners fall
+  where few queries lie;
+* after later periods, a repair of the current table (:func:`repair_assignment`): only
+  clusters of robots over the capacity move, which halves the descriptors that travel;
+* a descriptor near a boundary, whose second-nearest centre belongs to another robot, is also
+  stored there (:func:`replica_owners`, margin from :func:`boundary_margin`), so a later
+  query on the other side of the boundary finds it.
 
 Clusters that change owner move their stored descriptors to the new owner (counted by the
-evaluation as bytes), so nothing seen before is lost. The function is deterministic: the same
-counts give every robot the same table, with no coordinator.
+evaluation as bytes), so nothing seen before is lost.
 """
 
 from __future__ import annotations
@@ -44,6 +50,7 @@ __all__ = [
     "balanced_assignment",
     "boundary_margin",
     "observe",
+    "repair_assignment",
     "replica_owners",
     "split_hot_clusters",
 ]
@@ -175,3 +182,64 @@ def replica_owners(
     near = (gap <= margin) & (owners[second] != owners[first])
     replicas: IntArray = np.where(near, owners[second], -1).astype(np.int64)
     return replicas
+
+
+def repair_assignment(report: LoadReport, previous: Assignment, slack: float = 0.25) -> Assignment:
+    """The previous table, changed as little as needed: clusters new since it (split halves)
+    first go, as in :func:`balanced_assignment`, to the robot with room that owns the most
+    adjacent load; then, while the busiest robot is over ``(1 + slack) x`` the even share, its
+    busiest cluster that fits elsewhere moves to the robot with room that owns the most adjacent
+    load (then the least loaded). Fewer clusters move than with a new plan, so fewer stored
+    descriptors travel."""
+    k, n = len(report.loads), previous.n_robots
+    if k < previous.n_clusters:
+        raise ConfigError(
+            f"the report has {k} clusters, fewer than the previous table's {previous.n_clusters}"
+        )
+    loads = report.loads.astype(np.float64)
+    capacity = (1.0 + slack) * loads.sum() / n
+    owners = np.full(k, -1, np.int64)
+    owners[: previous.n_clusters] = previous.owner_array()
+    robot_load = np.bincount(owners[owners >= 0], loads[owners >= 0], minlength=n)
+
+    def affinity(cluster: int) -> npt.NDArray[np.float64]:
+        mine = owners >= 0
+        weights = report.adjacency[cluster, mine].astype(np.float64)
+        return np.bincount(owners[mine], weights, minlength=n).astype(np.float64)
+
+    def best_robot(cluster: int, exclude: int) -> int | None:
+        room = (robot_load + loads[cluster] <= capacity) & (np.arange(n) != exclude)
+        candidates = np.flatnonzero(room)
+        if len(candidates) == 0:
+            return None
+        keys = (candidates, robot_load[candidates], -affinity(cluster)[candidates])
+        return int(candidates[np.lexsort(keys)[0]])
+
+    for cluster in range(previous.n_clusters, k):
+        target = best_robot(cluster, -1)
+        owners[cluster] = int(np.argmin(robot_load)) if target is None else target
+        robot_load[owners[cluster]] += loads[cluster]
+    for _ in range(k):
+        busiest = int(np.argmax(robot_load))
+        if robot_load[busiest] <= capacity:
+            break
+        moved = False
+        for cluster in np.flatnonzero(owners == busiest)[
+            np.argsort(-loads[owners == busiest], kind="stable")
+        ].tolist():
+            target = best_robot(cluster, busiest) if loads[cluster] > 0 else None
+            if target is not None:
+                owners[cluster] = target
+                robot_load[busiest] -= loads[cluster]
+                robot_load[target] += loads[cluster]
+                moved = True
+                break
+        if not moved:
+            break
+    return Assignment(
+        tuple(int(o) for o in owners),
+        n,
+        "load-adjacency-repair",
+        None,
+        {"slack": slack, "observed_queries": int(loads.sum())},
+    )

@@ -50,6 +50,7 @@ from swarmrec.vpr.balance import (
     balanced_assignment,
     boundary_margin,
     observe,
+    repair_assignment,
     replica_owners,
     split_hot_clusters,
 )
@@ -288,7 +289,13 @@ def _balanced_run(
     for at in range(period, len(x), period):
         window = x[team.order[at - period : at]]
         centres = split_hot_clusters(centres, window, capacity, seed)
-        table = balanced_assignment(observe(centres, window), n, s.slack, previous=table)
+        report = observe(centres, window)
+        # One new plan after the first period (touching cells onto one owner), then repairs.
+        table = (
+            balanced_assignment(report, n, s.slack, previous=table)
+            if not switches
+            else repair_assignment(report, table, s.slack)
+        )
         margin = boundary_margin(centres, window, s.replica_share)
         replicas = replica_owners(centres, table, x, margin)
         switches.append(Reassignment(at, Router(centres, table).route_many(x)[1], replicas))

@@ -11,6 +11,7 @@ from swarmrec.vpr.balance import (
     balanced_assignment,
     boundary_margin,
     observe,
+    repair_assignment,
     replica_owners,
     split_hot_clusters,
 )
@@ -86,3 +87,17 @@ def test_a_cluster_stays_with_its_previous_owner_when_that_is_as_good() -> None:
     # With a previous table (1, 0, 0, 1), each cluster keeps its owner: nothing has to move.
     previous = Assignment((1, 0, 0, 1), 2)
     assert balanced_assignment(report, 2, slack=0.0, previous=previous).owners == (1, 0, 0, 1)
+
+
+def test_a_repair_moves_only_what_overloads_a_robot() -> None:
+    # Robot 0 holds clusters 0, 1, 2 (loads 4, 3, 1: 8), robot 1 holds cluster 3 (load 2).
+    # Capacity (slack 0) is 10 / 2 = 5: robot 0's busiest cluster that fits elsewhere is
+    # cluster 0 (4 + 2 <= 5? no), then cluster 1 (3 + 2 = 5, yes): it moves; robot 0 is at 5.
+    previous = Assignment((0, 0, 0, 1), 2)
+    table = repair_assignment(_report([4, 3, 1, 2], {}), previous, slack=0.0)
+    assert table.owners == (0, 1, 0, 1)
+    # Loads 4, 0, 1, 0 and a new cluster 4 (a split half) of load 1; capacity 6 / 2 = 3. The new
+    # cluster goes where there is room, robot 1 (load 1). Robot 0 (5) is over: cluster 0 (4) fits
+    # nowhere, cluster 2 (1) moves to robot 1 (2); robot 0 is still at 4 but nothing else can move.
+    table = repair_assignment(_report([4, 0, 1, 0, 1], {}), Assignment((0, 0, 0, 1), 2), slack=0.0)
+    assert table.owners == (0, 0, 1, 1, 1)
