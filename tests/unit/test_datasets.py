@@ -24,19 +24,25 @@ def _folder(tmp_path: Path, files: dict[str, str]) -> Path:
 
 
 def test_labels_with_spaces_are_every_token_but_the_last_three(tmp_path: Path) -> None:
-    seq = read_constellations(_folder(tmp_path, {"1.5.txt": "teddy bear 0.1 0.2 0.3\ncell phone 1 2 3\n"}))
+    seq = read_constellations(
+        _folder(tmp_path, {"1.5.txt": "teddy bear 0.1 0.2 0.3\ncell phone 1 2 3\n"})
+    )
     assert seq.constellations[0].labels.tolist() == [label("teddy bear"), label("cell phone")]
     assert seq.constellations[0].positions.tolist() == [[0.1, 0.2, 0.3], [1, 2, 3]]
 
 
 def test_frames_are_ordered_by_timestamp_not_by_name(tmp_path: Path) -> None:
-    seq = read_constellations(_folder(tmp_path, {"10.0.txt": "cup 0 0 1\n", "9.5.txt": "book 0 0 1\n"}))
+    seq = read_constellations(
+        _folder(tmp_path, {"10.0.txt": "cup 0 0 1\n", "9.5.txt": "book 0 0 1\n"})
+    )
     assert seq.frame_ids == ("9.5", "10.0")
     assert seq.timestamps.tolist() == [9.5, 10.0]
 
 
 def test_empty_frames_are_legal_and_counted(tmp_path: Path) -> None:
-    seq = read_constellations(_folder(tmp_path, {"1.0.txt": "", "2.0.txt": "cup 0 0 1\n", "3.0.txt": "\n"}))
+    seq = read_constellations(
+        _folder(tmp_path, {"1.0.txt": "", "2.0.txt": "cup 0 0 1\n", "3.0.txt": "\n"})
+    )
     assert [len(c) for c in seq.constellations] == [0, 1, 0]
     assert seq.skipped == {"empty_frames": 2}
 
@@ -84,7 +90,9 @@ def test_zip_archives_read_like_folders_and_name_the_member(tmp_path: Path) -> N
 
 
 def test_written_constellations_read_back_exactly(tmp_path: Path) -> None:
-    src = read_constellations(_folder(tmp_path, {"1.0.txt": "teddy bear 0.1 -0.2 1.3\nbottle 1e-3 2 3\n"}))
+    src = read_constellations(
+        _folder(tmp_path, {"1.0.txt": "teddy bear 0.1 -0.2 1.3\nbottle 1e-3 2 3\n"})
+    )
     out = write_constellations(src, tmp_path / "out")
     back = read_constellations(out)
     assert back.frame_ids == src.frame_ids
@@ -122,7 +130,9 @@ def test_trajectory_round_trips_and_skips_comments(tmp_path: Path) -> None:
     assert traj.timestamps.tolist() == [1.0, 2.0]
     write_trajectory(traj, tmp_path / "copy.txt")
     again = read_trajectory(tmp_path / "copy.txt")
-    assert np.allclose(again.positions, traj.positions) and np.allclose(again.quaternions, traj.quaternions)
+    assert np.allclose(again.positions, traj.positions) and np.allclose(
+        again.quaternions, traj.quaternions
+    )
 
 
 @pytest.mark.parametrize(

@@ -27,7 +27,9 @@ def _sequence(depths: list[float]) -> ConstellationSequence:
     frames = tuple(make(("cup", 0, 0, z), ("book", 0, 0, z)) for z in depths)
     n = len(frames)
     names = tuple(str(i) for i in range(80))
-    return ConstellationSequence(tuple(map(str, range(n))), np.arange(n, dtype=float), frames, names)
+    return ConstellationSequence(
+        tuple(map(str, range(n))), np.arange(n, dtype=float), frames, names
+    )
 
 
 def test_cameras_facing_the_same_scene_point_are_a_closure() -> None:
@@ -74,7 +76,9 @@ def test_fr3_rules_separate_the_two_sides_of_the_desks() -> None:
 # 2->3 (0.3, false), 3->1 (0.4, false). Walk 0.9, 0.9, 0.4, 0.3:
 # TP 1 2 2 2, FP 0 0 1 2; relevant frames 0, 1, 2 -> 3.
 # precision 1, 1, 2/3, 1/2; recall 1/3, 2/3, 2/3, 2/3; AUC = 1/3 (trapezoid from recall 1/3).
-SCORES = np.array([[-1, 0.9, 0.2, 0.0], [0.9, -1, 0.1, 0.4], [0.2, 0.1, -1, 0.3], [0.0, 0.4, 0.3, -1]])
+SCORES = np.array(
+    [[-1, 0.9, 0.2, 0.0], [0.9, -1, 0.1, 0.4], [0.2, 0.1, -1, 0.3], [0.0, 0.4, 0.3, -1]]
+)
 TRUTH = np.zeros((4, 4), bool)
 TRUTH[0, 1] = TRUTH[1, 0] = TRUTH[0, 2] = TRUTH[2, 0] = True
 

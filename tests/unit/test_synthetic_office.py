@@ -354,7 +354,9 @@ def test_write_dataset_refuses_a_non_empty_folder_unless_told_to_overwrite(
         ({"false_positives_per_frame": -0.1}, "false_positives_per_frame"),
     ],
 )
-def test_config_rejects_bad_settings_with_a_clear_message(settings: dict[str, object], message: str) -> None:
+def test_config_rejects_bad_settings_with_a_clear_message(
+    settings: dict[str, object], message: str
+) -> None:
     with pytest.raises(ConfigError, match=message):
         OfficeConfig(**settings)  # type: ignore[arg-type]  # wrong types on purpose
 

@@ -48,7 +48,9 @@ def typical_constellation(seed: int = 0) -> Constellation:
     """10 objects with labels < 80, within +-3 m sideways and up to 3 m ahead."""
     rng = np.random.default_rng(seed)
     labels = rng.integers(0, N_LABELS, size=10)
-    positions = np.column_stack([rng.uniform(-3, 3, 10), rng.uniform(-1.5, 1.5, 10), rng.uniform(0.3, 3, 10)])
+    positions = np.column_stack(
+        [rng.uniform(-3, 3, 10), rng.uniform(-1.5, 1.5, 10), rng.uniform(0.3, 3, 10)]
+    )
     return Constellation(labels, positions)
 
 
@@ -92,7 +94,9 @@ def test_constellation_round_trips_to_the_millimetre() -> None:
         (-0.0625, -62),
     ],
 )
-def test_positions_round_to_the_nearest_millimetre_with_ties_to_even(metres: float, millimetres: int) -> None:
+def test_positions_round_to_the_nearest_millimetre_with_ties_to_even(
+    metres: float, millimetres: int
+) -> None:
     c = Constellation(np.array([0]), np.array([[metres, 0.0, 0.0]]))
     assert list(constellation_to_proto(c, robot=0, frame=0).positions_mm) == [millimetres, 0, 0]
 
@@ -119,7 +123,9 @@ def test_constellation_encoding_rejects_a_non_finite_position(bad: float) -> Non
     positions = np.zeros((3, 3))
     positions[1, 2] = bad
     with pytest.raises(WireError, match="object 1 has a non-finite position"):
-        constellation_to_proto(Constellation(np.zeros(3, dtype=np.int64), positions), robot=0, frame=0)
+        constellation_to_proto(
+            Constellation(np.zeros(3, dtype=np.int64), positions), robot=0, frame=0
+        )
 
 
 @pytest.mark.parametrize("metres", [2147484.0, -2147484.0, 1e308])
@@ -139,7 +145,9 @@ def test_constellation_encoding_accepts_the_largest_int32_millimetre_position() 
     ("robot", "frame", "match"),
     [(-1, 0, "robot id -1"), (0, 2**32, "frame index 4294967296"), (0, 1.5, "frame index must")],
 )
-def test_constellation_encoding_rejects_ids_that_are_not_uint32(robot: int, frame: int, match: str) -> None:
+def test_constellation_encoding_rejects_ids_that_are_not_uint32(
+    robot: int, frame: int, match: str
+) -> None:
     with pytest.raises(WireError, match=match):
         constellation_to_proto(typical_constellation(), robot=robot, frame=frame)
 
@@ -214,7 +222,9 @@ def per_object_constellation_class() -> type:
     )
     pool = descriptor_pool.DescriptorPool()
     pool.Add(fdp)
-    cls: type = message_factory.GetMessageClass(pool.FindMessageTypeByName("size_comparison.Constellation"))
+    cls: type = message_factory.GetMessageClass(
+        pool.FindMessageTypeByName("size_comparison.Constellation")
+    )
     return cls
 
 
@@ -261,7 +271,9 @@ def test_descriptor_sends_only_the_non_zero_bins_in_ascending_order() -> None:
         (np.array([2**32]), "does not fit in 32 unsigned bits"),
     ],
 )
-def test_descriptor_encoding_rejects_counts_the_wire_cannot_carry(counts: np.ndarray, match: str) -> None:
+def test_descriptor_encoding_rejects_counts_the_wire_cannot_carry(
+    counts: np.ndarray, match: str
+) -> None:
     with pytest.raises(WireError, match=match):
         descriptor_to_proto(counts)
 
@@ -316,7 +328,9 @@ def test_partial_descriptor_sends_labels_as_offsets_from_lo() -> None:
         (-1, 10, "label_lo -1 does not fit"),
     ],
 )
-def test_partial_descriptor_encoding_rejects_a_bad_label_range(lo: int, hi: int, match: str) -> None:
+def test_partial_descriptor_encoding_rejects_a_bad_label_range(
+    lo: int, hi: int, match: str
+) -> None:
     with pytest.raises(WireError, match=match):
         partial_descriptor_to_proto(typical_counts(), lo, hi, robot=0, frame=0, query_step=0)
 
@@ -396,7 +410,9 @@ def test_candidates_reply_with_four_candidates_encodes_in_39_bytes() -> None:
         ({"scores": [0.5, float("inf")]}, "candidate 1 has a non-finite score"),
     ],
 )
-def test_candidates_decoding_rejects_an_inconsistent_reply(fields: dict[str, Any], match: str) -> None:
+def test_candidates_decoding_rejects_an_inconsistent_reply(
+    fields: dict[str, Any], match: str
+) -> None:
     values: dict[str, Any] = {
         "label_lo": 20,
         "label_hi": 40,
@@ -561,7 +577,9 @@ def test_encode_rejects_a_message_over_max_size() -> None:
 
 def test_schema_name_is_the_full_message_name() -> None:
     assert schema_name(pb.Constellation) == "swarmrec.v1.Constellation"
-    assert schema_name(pb.ErrorReply(code=pb.ErrorCode.ERROR_CODE_MALFORMED)) == ("swarmrec.v1.ErrorReply")
+    assert schema_name(pb.ErrorReply(code=pb.ErrorCode.ERROR_CODE_MALFORMED)) == (
+        "swarmrec.v1.ErrorReply"
+    )
     with pytest.raises(TypeError, match="not a protobuf message"):
         schema_name(Constellation)
 
