@@ -11,8 +11,8 @@ product quantisation, and then runs, on the same deployment descriptors,
   over centralized, :mod:`swarmrec.vpr.simulation` for the protocol) and worst balance ratio;
 * **Fig. 7**: the same with ``fig7_robots`` robots and ``c`` clusters per robot;
 * **balance** (:mod:`swarmrec.vpr.balance`): the paper's random start with
-  ``balance_clusters_per_robot`` clusters per robot, re-assigned from the load observed in the
-  load observed in each period of ``rebalance_share`` of the queries, against one cluster per robot;
+  ``balance_clusters_per_robot`` clusters per robot, re-assigned from the load observed in each
+  period of ``rebalance_share`` of the queries, with boundary copies, against one cluster per robot;
 * **quantisation** (:mod:`swarmrec.vpr.quantize`): recall@1/5 and AUC of the decoded
   descriptors with the model card's protocol (:mod:`swarmrec.vpr.places`: every frame
   against the whole sequence outside a 100-frame window), and the bytes;
