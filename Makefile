@@ -14,6 +14,7 @@
 #   make train-env           the model-training environment (.venv-train: PyPI torch, several GB)
 #   make train-landmarks     retrain models/landmarks/landmark_cnn.onnx (CPU, about 6 minutes)
 #   make train-detector      retrain models/detector/office_detector.onnx
+#   make train-descriptor    retrain models/descriptor/descriptor.onnx (place recognition from images)
 #
 # Every target sets up its own virtual environment first (.venv, pinned by
 # requirements.lock), so a fresh clone needs only python3 and make. Training
@@ -32,7 +33,7 @@ TRAIN_VENV  := .venv-train
 TRAIN_STAMP := $(TRAIN_VENV)/.installed-stamp
 TRAIN_REQS  := models/requirements-train.txt
 
-.PHONY: help venv contracts train-env train-landmarks train-detector landmarks run evaluate test unit lint typecheck proto check-proto bench images swarm-up swarm-run swarm-down clean
+.PHONY: help venv contracts train-env train-landmarks train-detector train-descriptor landmarks run evaluate test unit lint typecheck proto check-proto bench images swarm-up swarm-run swarm-down clean
 
 help:
 	@sed -n 's/^#   //p' Makefile
@@ -61,6 +62,9 @@ train-landmarks: $(TRAIN_STAMP)
 
 train-detector: $(TRAIN_STAMP)
 	$(TRAIN_VENV)/bin/python models/detector/train.py
+
+train-descriptor: $(TRAIN_STAMP)
+	$(TRAIN_VENV)/bin/python models/descriptor/train.py
 
 landmarks: $(STAMP)
 	$(BIN)/swarmrec landmarks --out $(LANDMARKS_OUT)
@@ -99,6 +103,10 @@ bench: $(STAMP)
 	$(BIN)/python bench/bench_detector.py --out bench/results/detector.json
 	$(BIN)/python bench/bench_landmarks.py --out bench/results/landmarks.json
 	$(BIN)/python bench/bench_compose.py --rebuild-base --out bench/results/compose.json
+	$(BIN)/python bench/bench_gateway.py --out bench/results/gateway.json
+	$(BIN)/python bench/bench_scale.py --out bench/results/scale.json
+	$(BIN)/python bench/bench_vpr.py --out bench/results/vpr.json
+	$(BIN)/python bench/bench_slam.py --out bench/results/slam.json
 
 images: $(STAMP)
 	PYTHON=$(BIN)/python deploy/build.sh

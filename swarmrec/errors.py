@@ -45,14 +45,18 @@ so a caller can catch the whole family in one place::
     │   ├── GraphError             a graph that cannot be solved as given (disconnected, no anchor)
     │   ├── MessageError           a distributed Gauss-Seidel message that does not fit its receiver
     │   └── AlignmentError         points that cannot be rigidly aligned
+    ├── vpr.errors.VprError        place recognition cannot use this input
+    │   ├── DescriptorError        a descriptor of the wrong shape or dtype, or with NaN/inf
+    │   ├── DescriptorModelError   the descriptor ONNX file is missing, does not load or is not one
+    │   └── StateFileError         a saved index, assignment or centres file cannot be read back
     └── deployments.DeploymentError        a deployment could not start, reach or stop its swarm
         ├── SwarmStartError                a service process exited or never became ready
         └── ComposeError                   the compose tool failed or containers did not become healthy
 
 The families below the bus errors live beside the code that raises them
 (``swarmrec.detection.errors``, ``swarmrec.fusion``, ``swarmrec.models``,
-``swarmrec.deployments``, ``swarmrec.slam.errors``); a test checks that every subclass of
-:class:`SwarmrecError` in the package is named in this tree.
+``swarmrec.deployments``, ``swarmrec.slam.errors``, ``swarmrec.vpr.errors``); a test
+checks that every subclass of :class:`SwarmrecError` in the package is named in this tree.
 
 Errors a service answers with carry their wire code (:class:`ErrorCode`, the
 same numbers as ``swarmrec.v1.ErrorCode``; a test checks them against the

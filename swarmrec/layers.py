@@ -45,6 +45,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
             "swarmrec.errors",
             "swarmrec.models",
             "swarmrec.slam",
+            "swarmrec.vpr",
         ),
     ),
     ("wire", ("swarmrec.wire",)),

@@ -22,6 +22,8 @@ from pathlib import Path
 from swarmrec.errors import SwarmrecError
 
 __all__ = [
+    "DESCRIPTOR_CENTRES",
+    "DESCRIPTOR_MODEL",
     "DETECTOR_MODEL",
     "LANDMARK_MODEL",
     "MODELS_ENV",
@@ -36,6 +38,10 @@ MODELS_ENV = "SWARMREC_MODELS"
 LANDMARK_MODEL = Path("landmarks") / "landmark_cnn.onnx"
 #: The small office-world object detector (COCO class ids), relative to ``models/``.
 DETECTOR_MODEL = Path("detector") / "office_detector.onnx"
+#: The full-image place descriptor (128-d, unit rows), relative to ``models/``.
+DESCRIPTOR_MODEL = Path("descriptor") / "descriptor.onnx"
+#: k-means centres of that descriptor, trained on other worlds than a swarm's (one array per k).
+DESCRIPTOR_CENTRES = Path("descriptor") / "centres.npz"
 
 #: swarmrec/models.py -> the repository root of a source checkout or an editable install.
 _REPO_MODELS = Path(__file__).resolve().parents[1] / "models"
