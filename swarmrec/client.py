@@ -450,9 +450,11 @@ class ZenohClient(SwarmClient):
         )
         return list(reply.loop_closures)
 
-    def step(self, step: int, timeout_s: float) -> list[pb.StepReply | Exception]:
-        """Lock-step replay: every detector processes ``step``; one entry per answer."""
-        key = keys.endpoint(self.swarm, "detector", "*", "step")
+    def step(
+        self, step: int, timeout_s: float, *, robot: int | None = None
+    ) -> list[pb.StepReply | Exception]:
+        """Lock-step replay: every detector (or ``robot``'s) processes ``step``; one entry per answer."""
+        key = keys.endpoint(self.swarm, "detector", "*" if robot is None else robot, "step")
         pending = self._caller().start(
             key, pb.StepRequest(step=step), target_robot=None, scatter=True, timeout_s=timeout_s
         )

@@ -72,6 +72,7 @@ from pathlib import Path
 from typing import ClassVar
 
 __all__ = [
+    "TRANSIENT_CODES",
     "AlreadyExists",
     "CallError",
     "CertificateExpiredError",
@@ -128,6 +129,19 @@ class ErrorCode(IntEnum):
             return cls(value)
         except ValueError:
             return cls.UNSPECIFIED
+
+
+#: Codes that say "not now" rather than "not this": a request refused with one may
+#: succeed when sent again (a peer unreachable, frozen, behind, restarting).
+TRANSIENT_CODES = frozenset(
+    {
+        ErrorCode.UNAVAILABLE,
+        ErrorCode.TIMEOUT,
+        ErrorCode.FAILED_PRECONDITION,
+        ErrorCode.INTERNAL,
+        ErrorCode.UNSPECIFIED,
+    }
+)
 
 
 class SwarmrecError(Exception):

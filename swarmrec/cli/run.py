@@ -241,6 +241,11 @@ def print_summary(s: PlacesSummary, out: Path) -> None:
         print(f"  pair scores vs offline decentralized evaluation: {verdict}")
     if q.missing_slots:
         print(f"  missing answers: {q.missing_slots} (by robot {q.missing_by_robot})")
+    if q.late_frames or q.pending_frames:
+        print(
+            f"  frames delivered late from the detectors' outboxes: {q.late_frames}"
+            + (f"; still waiting: {q.pending_frames}" if q.pending_frames else "")
+        )
     if s.scrape_failed:
         print(f"  metrics not read from: {', '.join(s.scrape_failed)}")
     t = s.timings

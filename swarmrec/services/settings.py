@@ -216,9 +216,19 @@ class DetectorSettings(Component):
     frames_per_robot: int = setting(
         0, "frames played by each robot; 0 splits the dataset evenly over n_robots"
     )
+    outbox_capacity: int = setting(
+        100_000,
+        "frames the detector keeps (on disk) while its descriptor cannot take them; past it, "
+        "steps are refused (UNAVAILABLE) rather than frames dropped",
+    )
+    outbox_retry_s: float = setting(0.5, "how often queued frames are sent again")
 
     def problems(self) -> list[str]:
         problems = []
+        if self.outbox_capacity < 1:
+            problems.append(f"outbox_capacity must be >= 1, got {self.outbox_capacity}")
+        if not (math.isfinite(self.outbox_retry_s) and 0.01 <= self.outbox_retry_s <= 3600):
+            problems.append(f"outbox_retry_s must be 0.01 to 3600 s, got {self.outbox_retry_s}")
         if self.detector_mode not in DETECTOR_MODES:
             problems.append(f"detector_mode must be {', '.join(DETECTOR_MODES)}; got {self.detector_mode!r}")
         if self.frames_per_robot < 0:

@@ -6,25 +6,35 @@
   fast as the swarm answers); the reports are collected from the query events.
 
 A robot that does not answer a step, or whose report never comes, is recorded
-as a missing (robot, step) slot rather than stopping the run.
+as a missing (robot, step) slot rather than stopping the run. A frame a detector
+could not hand to its descriptor at its step waits in the detector's outbox and
+is delivered later (``late``); after the last step the job asks for steps past
+the end, which flush the outboxes, until none has frames pending.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import zenoh
 from tqdm import tqdm
 
 from swarmrec.client import ZenohClient
-from swarmrec.errors import SwarmrecError
+from swarmrec.errors import TRANSIENT_CODES, RemoteError, SwarmrecError
 from swarmrec.experiments.places.settings import PlacesSettings
 from swarmrec.runtime import keys
 from swarmrec.wire import messages as pb
 
 __all__ = ["Replay", "collect_loop_closures", "replay", "replay_free", "replay_lockstep"]
+
+#: How long a robot that does not answer a step is asked again before it counts as gone.
+STEP_RETRY_S = 10.0
+STEP_RETRY_POLL_S = 0.25
+#: How long the job waits after the last step for the detectors' outboxes to empty.
+FLUSH_TIMEOUT_S = 60.0
+FLUSH_POLL_S = 0.2
 
 
 @dataclass
@@ -36,6 +46,10 @@ class Replay:
     errors: list[str]
     step_seconds: list[float]
     wall_s: float
+    #: (robot, step) slots whose frame was queued at its step and delivered later.
+    late: list[tuple[int, int]] = field(default_factory=list)
+    #: Frames still in the detectors' outboxes when the replay gave up waiting.
+    pending: int = 0
 
 
 def replay_lockstep(
@@ -47,7 +61,9 @@ def replay_lockstep(
 ) -> Replay:
     per = max((len(b) for b in blocks), default=0)
     reports: list[pb.QueryReport] = []
-    missing: list[tuple[int, int]] = []
+    queued: set[tuple[int, int]] = set()
+    # Robots that did not answer a step in STEP_RETRY_S: asked once a step until they answer again.
+    gone: set[int] = set()
     errors: list[str] = []
     step_s: list[float] = []
     t0 = time.perf_counter()
@@ -59,19 +75,87 @@ def replay_lockstep(
                 before_step(t)
             ts = time.perf_counter()
             answered: set[int] = set()
-            for item in client.step(t, step_timeout):
-                if isinstance(item, Exception):
-                    errors.append(f"step {t}: {item}")
-                    continue
+
+            def take(item: pb.StepReply, t: int = t, answered: set[int] = answered) -> None:
                 answered.add(item.robot_id)
-                if not item.finished:
+                gone.discard(item.robot_id)
+                reports.extend(item.late_reports)
+                if item.HasField("report"):
                     reports.append(item.report)
-            missing += [(r, t) for r, b in enumerate(blocks) if t < len(b) and r not in answered]
+                elif item.queued:
+                    queued.add((item.robot_id, t))
+
+            for item in client.step(t, step_timeout):
+                if not isinstance(item, Exception):
+                    take(item)
+            due = [r for r, b in enumerate(blocks) if t < len(b) and r not in answered]
+            errors += _retry_step(client, t, step_timeout, [r for r in due if r not in gone], take, gone)
+            errors += [f"step {t}: robot {r} does not answer" for r in due if r in gone]
             step_s.append(time.perf_counter() - ts)
             bar.update(1)
             if on_step is not None:
                 on_step(t)
-    return Replay(reports, missing, errors, step_s, time.perf_counter() - t0)
+    pending = _flush_outboxes(client, per, step_timeout, reports, errors)
+    delivered = {(r.robot_id, r.frame_index) for r in reports}
+    slots = [(r, t) for r, b in enumerate(blocks) for t in range(len(b))]
+    missing = [slot for slot in slots if slot not in delivered]
+    late = sorted(slot for slot in queued if slot in delivered)
+    return Replay(reports, missing, errors, step_s, time.perf_counter() - t0, late, pending)
+
+
+def _retry_step(
+    client: ZenohClient,
+    t: int,
+    step_timeout: float,
+    robots: list[int],
+    take: Callable[[pb.StepReply], None],
+    gone: set[int],
+) -> list[str]:
+    """Ask ``robots`` for step ``t`` again, one by one, for up to STEP_RETRY_S (a router
+    restarting, a detector busy flushing); a detector's step is idempotent. Robots that
+    still do not answer join ``gone``; what each last said, as errors."""
+    last: dict[int, str] = {}
+    deadline = time.monotonic() + STEP_RETRY_S
+    todo = list(robots)
+    while todo and time.monotonic() < deadline:
+        time.sleep(STEP_RETRY_POLL_S)
+        for r in list(todo):
+            for item in client.step(t, step_timeout, robot=r):
+                if isinstance(item, Exception):
+                    last[r] = str(item)
+                    if isinstance(item, RemoteError) and item.code not in TRANSIENT_CODES:
+                        todo.remove(r)  # the step itself is refused: asking again changes nothing
+                    continue
+                take(item)
+                todo.remove(r)
+                last.pop(r, None)
+            if r in todo and r not in last:
+                last[r] = "no answer"
+    gone.update(todo)
+    return [f"step {t}: robot {r}: {msg}" for r, msg in sorted(last.items())]
+
+
+def _flush_outboxes(
+    client: ZenohClient, past_end: int, step_timeout: float, reports: list[pb.QueryReport], errors: list[str]
+) -> int:
+    """Ask for steps past the end until no detector has frames pending (or it stops
+    making progress for a while); the frames still pending."""
+    pending = 0
+    deadline = time.monotonic() + FLUSH_TIMEOUT_S
+    while time.monotonic() < deadline:
+        pending = 0
+        answered = False
+        for item in client.step(past_end, step_timeout):
+            if isinstance(item, Exception):
+                continue
+            answered = True
+            reports += item.late_reports
+            pending += item.pending
+        if not pending or not answered:
+            return pending
+        time.sleep(FLUSH_POLL_S)
+    errors.append(f"{pending} frames still waited in the detectors' outboxes after {FLUSH_TIMEOUT_S:g} s")
+    return pending
 
 
 def replay_free(client: ZenohClient, blocks: list[range], settings: PlacesSettings) -> Replay:

@@ -82,6 +82,10 @@ class QueryStats:
     errors: list[str]
     latency_ms: dict[str, float]
     step_latency_ms: dict[str, float]
+    #: Frames a detector could not hand on at their step, delivered later from its outbox.
+    late_frames: int = 0
+    #: Frames still waiting in the detectors' outboxes at the end (lost to this report).
+    pending_frames: int = 0
 
 
 @dataclass
@@ -409,6 +413,8 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
             errors=replay.errors[:50],
             latency_ms={k: v / 1e3 for k, v in _pct([r.duration_us for r in queried]).items()},
             step_latency_ms={k: v * 1e3 for k, v in _pct(replay.step_seconds).items()},
+            late_frames=len(replay.late),
+            pending_frames=replay.pending,
         ),
         bytes=_bytes(metrics, len(queried), n_slots),
         shard_load=ShardLoad(
@@ -432,7 +438,8 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
         summary.detector = _detector_figures(run.detector, metrics)
     if run.index is not None:
         summary.index = _index_summary(run.index, metrics, settings.index.replicas)
-    if settings.check_offline and settings.lockstep and not replay.missing:
+    # Frames delivered late were stored after their step: the lock-step identity is off then.
+    if settings.check_offline and settings.lockstep and not replay.missing and not replay.late:
         summary.offline_check = _compare_offline(matrix, wire_seq, settings.robots, run.preset, run.bounds)
     dense = matrix.dense()
     curves: dict[str, PRCurve] = {}

@@ -61,7 +61,10 @@ class Detector(ServiceBase):
 
     def member_info(self) -> pb.MemberInfo:
         # A classifier's classes are the landmarks', not the place-recognition label list.
-        return pb.MemberInfo(n_labels=0 if self.classifier is not None else self.n_labels)
+        return pb.MemberInfo(
+            n_labels=0 if self.classifier is not None else self.n_labels,
+            pending_items=self.player.pending() if self.player is not None else 0,
+        )
 
     def _player(self, endpoint: str) -> FramePlayer:
         if self.player is None:

@@ -7,9 +7,17 @@ this robot plays block ``robot``. Frames are sent as requests to the
 descriptor (``descriptor/<robot>/process``), so the replay waits for each
 query to finish: a slow swarm slows the replay rather than losing frames.
 
+Every frame goes through the robot's outbox (:mod:`.outbox`, on disk): one the
+descriptor cannot take now (it, its verifier or the router not answering) waits
+there and is sent again, oldest first, until it is taken; nothing played is lost,
+and the descriptor's idempotent stores keep a frame sent twice stored once.
+
 * ``step`` (lock-step replay): the main job asks every detector for step t and
   waits for all before t + 1. A frame the detector cannot make a constellation
-  of is answered with an error reply that says why; the service goes on.
+  of is answered with an error reply that says why; the service goes on. A frame
+  that must wait is answered ``queued``; its report comes with a later reply
+  (``late_reports``). A step past the end flushes the outbox: the job asks for one
+  until no robot has frames ``pending``.
 * ``replay`` (free replay): the whole block at ``rate_hz`` (0: as fast as the
   swarm answers), in the background; reports appear on ``events/query/<robot>``.
 """
@@ -23,14 +31,31 @@ from typing import Protocol
 
 from swarmrec.core.split import split_frames
 from swarmrec.core.types import Constellation
-from swarmrec.errors import CallError, InvalidArgument, RequestError, Unavailable, WireError
+from swarmrec.errors import (
+    TRANSIENT_CODES,
+    CallError,
+    ErrorCode,
+    InvalidArgument,
+    RemoteError,
+    RequestError,
+    Unavailable,
+    WireError,
+)
 from swarmrec.runtime import ServiceContext, keys
 from swarmrec.runtime.settings import BusSettings
+from swarmrec.services.detector.outbox import Outbox
 from swarmrec.services.settings import DetectorSettings, PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import constellation_to_proto
 
 __all__ = ["FramePlayer", "FrameSource", "robot_block"]
+
+#: Late reports kept for the next step's reply.
+LATE_REPORTS = 10_000
+
+
+def _code_of(e: Exception) -> ErrorCode:
+    return e.code if isinstance(e, RemoteError | RequestError) else ErrorCode.INTERNAL
 
 
 def robot_block(n_frames: int, bus: BusSettings, detector: DetectorSettings) -> range:
@@ -59,12 +84,21 @@ class FramePlayer:
     def __init__(self, ctx: ServiceContext, source: FrameSource) -> None:
         self.ctx, self.source = ctx, source
         bus = ctx.bus
+        detector = ctx.settings(DetectorSettings)
         self.lock = threading.Lock()
+        self.outbox = Outbox(ctx.open_log("outbox"), detector.outbox_capacity)
+        self.retry_s = detector.outbox_retry_s
+        # Reports of queued frames the retrier delivered, for the next step's reply.
+        self.late: list[pb.QueryReport] = []
+        self._retrier = threading.Thread(target=self._retry, name="outbox", daemon=True)
+        self._retrier.start()
         self.replaying: threading.Thread | None = None
         self.key = keys.endpoint(bus.swarm, "descriptor", bus.robot, "process")
         # A frame's query holds several nested requests; give it their time and some.
         self.timeout_s = 4 * bus.request_timeout_s
         self.exact = ctx.settings(PlaceSettings).exact_positions
+        # Frames the descriptor refused for what they are (answered with the step's error).
+        self.refused: dict[int, Exception] = {}
 
     def _send(self, t: int) -> pb.QueryReport:
         robot = self.ctx.bus.robot
@@ -80,16 +114,82 @@ class FramePlayer:
             self.key, wire, pb.QueryReport, target_robot=robot, endpoint="process", timeout_s=self.timeout_s
         )
 
+    def _flush(self, deadline: float) -> list[tuple[int, pb.QueryReport]]:
+        """Send the waiting frames, oldest first, until one must wait again or ``deadline``
+        (caller holds the lock). A frame the descriptor refuses for what it is (not for
+        being unreachable) leaves the outbox: sending it again would be refused again."""
+        delivered = []
+        for frame in self.outbox.waiting():
+            if time.monotonic() > deadline:
+                break
+            try:
+                report = self._send(frame)
+            except RemoteError as e:
+                if e.code in TRANSIENT_CODES:
+                    break
+                self.outbox.done(frame)
+                self.ctx.log.warning("frame refused", extra={"fields": {"frame": frame, "reason": str(e)}})
+                self.refused[frame] = e
+                continue
+            except CallError:
+                break
+            except RequestError as e:
+                self.outbox.done(frame)
+                self.refused[frame] = e
+                continue
+            self.outbox.done(frame)
+            delivered.append((frame, report))
+        return delivered
+
+    def _take_late(self) -> list[pb.QueryReport]:
+        late, self.late = self.late, []
+        return late
+
     def step(self, req: pb.StepRequest) -> pb.StepReply:
         robot = self.ctx.bus.robot
-        if req.step >= len(self.source.frame_ids):
-            return pb.StepReply(robot_id=robot, step=req.step, finished=True)
+        deadline = time.monotonic() + self.timeout_s
         with self.lock:  # steps of one robot run in order
+            if req.step >= len(self.source.frame_ids):
+                delivered = self._flush(deadline)
+                return pb.StepReply(
+                    robot_id=robot,
+                    step=req.step,
+                    finished=True,
+                    late_reports=[r for _f, r in delivered] + self._take_late(),
+                    pending=len(self.outbox),
+                )
+            self.source.constellation(req.step)  # a frame that cannot be made is refused here
+            self.outbox.add(req.step)
+            self.refused.pop(req.step, None)
+            delivered = self._flush(deadline)
+            refused = self.refused.pop(req.step, None)
+            if refused is not None:
+                raise RequestError(f"descriptor refused frame {req.step}: {refused}", code=_code_of(refused))
+            own = next((r for f, r in delivered if f == req.step), None)
+            late = [r for f, r in delivered if f != req.step] + self._take_late()
+            reply = pb.StepReply(
+                robot_id=robot, step=req.step, queued=own is None, late_reports=late, pending=len(self.outbox)
+            )
+            if own is not None:
+                reply.report.CopyFrom(own)
+            return reply
+
+    def _retry(self) -> None:
+        """Send queued frames again in the background (a free replay, or between steps)."""
+        while not self.ctx.stop.wait(self.retry_s):
+            if not len(self.outbox) or not self.lock.acquire(blocking=False):
+                continue
             try:
-                report = self._send(req.step)
-            except CallError as e:
-                raise Unavailable(f"descriptor: {e}") from None
-        return pb.StepReply(robot_id=robot, step=req.step, report=report)
+                delivered = self._flush(time.monotonic() + self.timeout_s)
+                self.late += [r for _f, r in delivered]
+                del self.late[:-LATE_REPORTS]  # a free replay reads them from the events instead
+            except Exception:  # the retrier must keep going; the next round retries
+                self.ctx.log.exception("sending queued frames failed")
+            finally:
+                self.lock.release()
+
+    def pending(self) -> int:
+        return len(self.outbox)
 
     def replay(self, req: pb.ReplayRequest) -> pb.ReplayReply:
         if not (math.isfinite(req.rate_hz) and req.rate_hz >= 0):
@@ -115,11 +215,15 @@ class FramePlayer:
                 delay = start + t * period - time.perf_counter()
                 if delay > 0 and self.ctx.stop.wait(delay):
                     return
-            try:
-                self._send(t)
-            except (CallError, RequestError) as e:
-                self.ctx.log.warning("frame failed", extra={"fields": {"frame": t, "reason": str(e)}})
-        self.ctx.log.info("replay finished", extra={"fields": {"frames": n}})
+            with self.lock:
+                try:
+                    self.source.constellation(t)
+                    self.outbox.add(t)
+                except RequestError as e:
+                    self.ctx.log.warning("frame failed", extra={"fields": {"frame": t, "reason": str(e)}})
+                    continue
+                self._flush(time.monotonic() + self.timeout_s)
+        self.ctx.log.info("replay finished", extra={"fields": {"frames": n, "waiting": len(self.outbox)}})
 
     def close(self) -> None:
         if self.replaying is not None:

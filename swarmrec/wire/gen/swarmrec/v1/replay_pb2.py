@@ -25,7 +25,7 @@ _sym_db = _symbol_database.Default()
 from . import events_pb2 as swarmrec_dot_v1_dot_events__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18swarmrec/v1/replay.proto\x12\x0bswarmrec.v1\x1a\x18swarmrec/v1/events.proto\")\n\x0bStepRequest\x12\x11\n\x04step\x18\x01 \x01(\rH\x00\x88\x01\x01\x42\x07\n\x05_step\"g\n\tStepReply\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x0c\n\x04step\x18\x02 \x01(\r\x12\x10\n\x08\x66inished\x18\x03 \x01(\x08\x12(\n\x06report\x18\x04 \x01(\x0b\x32\x18.swarmrec.v1.QueryReport\"1\n\rReplayRequest\x12\x14\n\x07rate_hz\x18\x01 \x01(\x02H\x00\x88\x01\x01\x42\n\n\x08_rate_hz\"1\n\x0bReplayReply\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x10\n\x08n_frames\x18\x02 \x01(\r\"#\n\nStoreReply\x12\x15\n\rstored_frames\x18\x01 \x01(\r\"(\n\x13LoopClosuresRequest\x12\x11\n\tmin_score\x18\x01 \x01(\x02\"T\n\x0fLoopClosureList\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12/\n\rloop_closures\x18\x02 \x03(\x0b\x32\x18.swarmrec.v1.LoopClosureb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18swarmrec/v1/replay.proto\x12\x0bswarmrec.v1\x1a\x18swarmrec/v1/events.proto\")\n\x0bStepRequest\x12\x11\n\x04step\x18\x01 \x01(\rH\x00\x88\x01\x01\x42\x07\n\x05_step\"\xb8\x01\n\tStepReply\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x0c\n\x04step\x18\x02 \x01(\r\x12\x10\n\x08\x66inished\x18\x03 \x01(\x08\x12(\n\x06report\x18\x04 \x01(\x0b\x32\x18.swarmrec.v1.QueryReport\x12\x0e\n\x06queued\x18\x05 \x01(\x08\x12.\n\x0clate_reports\x18\x06 \x03(\x0b\x32\x18.swarmrec.v1.QueryReport\x12\x0f\n\x07pending\x18\x07 \x01(\r\"1\n\rReplayRequest\x12\x14\n\x07rate_hz\x18\x01 \x01(\x02H\x00\x88\x01\x01\x42\n\n\x08_rate_hz\"1\n\x0bReplayReply\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x10\n\x08n_frames\x18\x02 \x01(\r\"#\n\nStoreReply\x12\x15\n\rstored_frames\x18\x01 \x01(\r\"(\n\x13LoopClosuresRequest\x12\x11\n\tmin_score\x18\x01 \x01(\x02\"T\n\x0fLoopClosureList\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12/\n\rloop_closures\x18\x02 \x03(\x0b\x32\x18.swarmrec.v1.LoopClosureb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -34,16 +34,16 @@ if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_STEPREQUEST']._serialized_start=67
   _globals['_STEPREQUEST']._serialized_end=108
-  _globals['_STEPREPLY']._serialized_start=110
-  _globals['_STEPREPLY']._serialized_end=213
-  _globals['_REPLAYREQUEST']._serialized_start=215
-  _globals['_REPLAYREQUEST']._serialized_end=264
-  _globals['_REPLAYREPLY']._serialized_start=266
-  _globals['_REPLAYREPLY']._serialized_end=315
-  _globals['_STOREREPLY']._serialized_start=317
-  _globals['_STOREREPLY']._serialized_end=352
-  _globals['_LOOPCLOSURESREQUEST']._serialized_start=354
-  _globals['_LOOPCLOSURESREQUEST']._serialized_end=394
-  _globals['_LOOPCLOSURELIST']._serialized_start=396
-  _globals['_LOOPCLOSURELIST']._serialized_end=480
+  _globals['_STEPREPLY']._serialized_start=111
+  _globals['_STEPREPLY']._serialized_end=295
+  _globals['_REPLAYREQUEST']._serialized_start=297
+  _globals['_REPLAYREQUEST']._serialized_end=346
+  _globals['_REPLAYREPLY']._serialized_start=348
+  _globals['_REPLAYREPLY']._serialized_end=397
+  _globals['_STOREREPLY']._serialized_start=399
+  _globals['_STOREREPLY']._serialized_end=434
+  _globals['_LOOPCLOSURESREQUEST']._serialized_start=436
+  _globals['_LOOPCLOSURESREQUEST']._serialized_end=476
+  _globals['_LOOPCLOSURELIST']._serialized_start=478
+  _globals['_LOOPCLOSURELIST']._serialized_end=562
 # @@protoc_insertion_point(module_scope)

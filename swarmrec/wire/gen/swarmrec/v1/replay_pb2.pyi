@@ -14,16 +14,22 @@ class StepRequest(_message.Message):
     def __init__(self, step: _Optional[int] = ...) -> None: ...
 
 class StepReply(_message.Message):
-    __slots__ = ("robot_id", "step", "finished", "report")
+    __slots__ = ("robot_id", "step", "finished", "report", "queued", "late_reports", "pending")
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     STEP_FIELD_NUMBER: _ClassVar[int]
     FINISHED_FIELD_NUMBER: _ClassVar[int]
     REPORT_FIELD_NUMBER: _ClassVar[int]
+    QUEUED_FIELD_NUMBER: _ClassVar[int]
+    LATE_REPORTS_FIELD_NUMBER: _ClassVar[int]
+    PENDING_FIELD_NUMBER: _ClassVar[int]
     robot_id: int
     step: int
     finished: bool
     report: _events_pb2.QueryReport
-    def __init__(self, robot_id: _Optional[int] = ..., step: _Optional[int] = ..., finished: _Optional[bool] = ..., report: _Optional[_Union[_events_pb2.QueryReport, _Mapping]] = ...) -> None: ...
+    queued: bool
+    late_reports: _containers.RepeatedCompositeFieldContainer[_events_pb2.QueryReport]
+    pending: int
+    def __init__(self, robot_id: _Optional[int] = ..., step: _Optional[int] = ..., finished: _Optional[bool] = ..., report: _Optional[_Union[_events_pb2.QueryReport, _Mapping]] = ..., queued: _Optional[bool] = ..., late_reports: _Optional[_Iterable[_Union[_events_pb2.QueryReport, _Mapping]]] = ..., pending: _Optional[int] = ...) -> None: ...
 
 class ReplayRequest(_message.Message):
     __slots__ = ("rate_hz",)
