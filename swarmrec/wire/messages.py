@@ -21,7 +21,14 @@ from swarmrec.wire.codec import schema_name
 from swarmrec.wire.gen.swarmrec.v1.constellation_pb2 import Constellation
 from swarmrec.wire.gen.swarmrec.v1.descriptor_pb2 import PartialDescriptor, SemanticDescriptor
 from swarmrec.wire.gen.swarmrec.v1.errors_pb2 import ErrorCode, ErrorReply
-from swarmrec.wire.gen.swarmrec.v1.events_pb2 import LoopClosure, QueryReport, VerifiedPair
+from swarmrec.wire.gen.swarmrec.v1.events_pb2 import (
+    CandidateOutcome,
+    FunnelReason,
+    LoopClosure,
+    QueryReport,
+    ShardCandidates,
+    VerifiedPair,
+)
 from swarmrec.wire.gen.swarmrec.v1.fusion_pb2 import (
     ClassifierOutput,
     ClassifyReply,
@@ -37,10 +44,13 @@ from swarmrec.wire.gen.swarmrec.v1.fusion_pb2 import (
 from swarmrec.wire.gen.swarmrec.v1.health_pb2 import MemberInfo, ServiceKind
 from swarmrec.wire.gen.swarmrec.v1.query_pb2 import CandidatesReply, PartialQuery
 from swarmrec.wire.gen.swarmrec.v1.replay_pb2 import (
+    ExplainReply,
+    ExplainRequest,
     LoopClosureList,
     LoopClosuresRequest,
     ReplayReply,
     ReplayRequest,
+    ReportStatus,
     StepReply,
     StepRequest,
     StoreReply,
@@ -49,6 +59,7 @@ from swarmrec.wire.gen.swarmrec.v1.verify_pb2 import VerifyMatch, VerifyReply, V
 
 __all__ = [
     "MESSAGE_TYPES",
+    "CandidateOutcome",
     "CandidatesReply",
     "ClassifierOutput",
     "ClassifyReply",
@@ -56,6 +67,9 @@ __all__ = [
     "Constellation",
     "ErrorCode",
     "ErrorReply",
+    "ExplainReply",
+    "ExplainRequest",
+    "FunnelReason",
     "FusionPosterior",
     "FusionRoundStart",
     "FusionRoundStarted",
@@ -71,8 +85,10 @@ __all__ = [
     "QueryReport",
     "ReplayReply",
     "ReplayRequest",
+    "ReportStatus",
     "SemanticDescriptor",
     "ServiceKind",
+    "ShardCandidates",
     "StepReply",
     "StepRequest",
     "StoreReply",
@@ -87,12 +103,15 @@ __all__ = [
 MESSAGE_TYPES: dict[str, type[Message]] = {
     schema_name(cls): cls
     for cls in (
+        CandidateOutcome,
         CandidatesReply,
         ClassifierOutput,
         ClassifyReply,
         ClassifyRequest,
         Constellation,
         ErrorReply,
+        ExplainReply,
+        ExplainRequest,
         FusionPosterior,
         FusionRoundStart,
         FusionRoundStarted,
@@ -109,6 +128,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         ReplayReply,
         ReplayRequest,
         SemanticDescriptor,
+        ShardCandidates,
         StepReply,
         StepRequest,
         StoreReply,
