@@ -84,6 +84,7 @@ _CLIENT_QUERIES = (
     ("*", "info"),
     ("verifier", "verify"),
     ("descriptor", "loop_closures"),
+    ("descriptor", "explain"),
     ("fusion", "posterior"),
 )
 # What an operator adds: driving the replay (lock-step steps, free replay, classifier views).
