@@ -155,7 +155,7 @@ class Descriptor(ServiceBase):
                     self.closures.append(closure)
                     self.closed.add(report.frame_index)
         settled = settle(
-            outcomes_from_proto(report.candidates),
+            outcomes_from_proto(report),
             {(r, f): v for (r, f, _score), v in zip(matches, verdicts, strict=True)},
         )
         del report.candidates[:]

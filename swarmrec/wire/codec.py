@@ -542,27 +542,30 @@ def matched_pairs_from_proto(match: verify_pb2.VerifyMatch, n_query: int) -> Int
 
 
 def outcomes_to_proto(outcomes: Iterable[CandidateOutcome]) -> list[events_pb2.CandidateOutcome]:
-    """A query's candidate outcomes as the report carries them (robot 0, frame 0 and a
-    score of 0 cost no byte)."""
-    out = []
-    for o in outcomes:
-        if not np.isfinite(o.score):
-            raise WireError(f"candidate ({o.robot}, {o.frame}) has a non-finite score")
-        out.append(
-            events_pb2.CandidateOutcome(
-                robot_id=_uint32("robot id", o.robot),
-                frame_index=_uint32("frame index", o.frame),
-                reason=events_pb2.FunnelReason.ValueType(o.reason),
-                score=o.score,
-            )
+    """A query's candidate outcomes as its report carries them: robot, frame and reason
+    (robot 0 and frame 0 cost no byte). The scores are not sent again: a scored
+    candidate's score is the report's match of the same robot and frame."""
+    return [
+        events_pb2.CandidateOutcome(
+            robot_id=_uint32("robot id", o.robot),
+            frame_index=_uint32("frame index", o.frame),
+            reason=events_pb2.FunnelReason.ValueType(o.reason),
         )
-    return out
+        for o in outcomes
+    ]
 
 
-def outcomes_from_proto(msgs: Iterable[events_pb2.CandidateOutcome]) -> list[CandidateOutcome]:
-    """The candidate outcomes of a report; a reason this version does not know reads as
+def outcomes_from_proto(report: events_pb2.QueryReport) -> list[CandidateOutcome]:
+    """The candidate outcomes of ``report``, each with its score from the report's matches
+    (0 for a candidate without a match). A reason this version does not know reads as
     UNSPECIFIED (a newer sender's), never as another one."""
-    return [CandidateOutcome(m.robot_id, m.frame_index, Reason.of(m.reason), m.score) for m in msgs]
+    scores = {(m.match_robot_id, m.match_frame_index): m.score for m in report.matches}
+    return [
+        CandidateOutcome(
+            c.robot_id, c.frame_index, Reason.of(c.reason), scores.get((c.robot_id, c.frame_index), 0.0)
+        )
+        for c in report.candidates
+    ]
 
 
 # --- errors -----------------------------------------------------------------

@@ -160,16 +160,18 @@ def test_the_reasons_are_the_schemas() -> None:
     assert {r.wire_name: int(r) for r in Reason} == dict(pb.FunnelReason.items())
 
 
-def test_outcomes_travel_in_the_report_and_come_back_equal() -> None:
+def test_outcomes_travel_in_the_report_with_their_scores_from_its_matches() -> None:
     outcomes = [CandidateOutcome(0, 0, R.ACCEPTED, 0.75), CandidateOutcome(9, 1234, R.ROBOT_NOT_CHOSEN)]
-    report = pb.QueryReport(candidates=outcomes_to_proto(outcomes))
-    assert outcomes_from_proto(pb.QueryReport.FromString(report.SerializeToString()).candidates) == outcomes
-    # Robot 0, frame 0, no score: 2 bytes for the sub-message and 2 for the reason.
-    one = pb.QueryReport(candidates=outcomes_to_proto([CandidateOutcome(0, 0, R.OUTRANKED)]))
+    match = pb.VerifiedPair(match_robot_id=0, match_frame_index=0, score=0.75)
+    report = pb.QueryReport(matches=[match], candidates=outcomes_to_proto(outcomes))
+    assert outcomes_from_proto(pb.QueryReport.FromString(report.SerializeToString())) == outcomes
+    # The score is the match's, not sent twice: robot 0, frame 0 cost nothing, so the
+    # outcome is 2 bytes of sub-message header and 2 of reason.
+    one = pb.QueryReport(candidates=outcomes_to_proto([CandidateOutcome(0, 0, R.OUTRANKED, 0.5)]))
     assert len(one.SerializeToString()) == 4
     # A reason of a newer sender reads as unspecified, never as another one.
-    newer = pb.CandidateOutcome(robot_id=1, frame_index=2, reason=99)  # type: ignore[arg-type]
-    assert outcomes_from_proto([newer]) == [CandidateOutcome(1, 2, R.UNSPECIFIED)]
+    newer = pb.QueryReport(candidates=[pb.CandidateOutcome(robot_id=1, frame_index=2, reason=99)])  # type: ignore[list-item]
+    assert outcomes_from_proto(newer) == [CandidateOutcome(1, 2, R.UNSPECIFIED)]
 
 
 def test_the_funnels_levels_count_what_passed_each_stage() -> None:

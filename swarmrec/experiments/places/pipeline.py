@@ -274,6 +274,8 @@ def main(
     timings["total_s"] = time.perf_counter() - t_start
     places = spec.component(PlaceSettings)
     assert isinstance(places, PlaceSettings)
+    replayed = spec.component(DetectorSettings)
+    assert isinstance(replayed, DetectorSettings)
     record = RunRecord(
         seq=seq,
         wire_seq=as_on_the_wire(seq, exact=places.exact_positions),
@@ -289,6 +291,9 @@ def main(
         deployment=deployment.description,
         loop_closure_min_score=places.loop_closure_min_score,
         detector=detector,
+        # From pixels the constellations are the detections written back above.
+        dataset_folder=out / "detections" if prepared.pixels is not None else Path(replayed.dataset),
+        labels_file=replayed.labels_file,
         links=LinkReport(
             settings.link.rate_kbps, settings.link.latency_ms, settings.schedule_unit, sorted(link_events)
         )

@@ -107,13 +107,11 @@ class ShardCandidates(_message.Message):
     def __init__(self, robot_id: _Optional[int] = ..., n_candidates: _Optional[int] = ...) -> None: ...
 
 class CandidateOutcome(_message.Message):
-    __slots__ = ("robot_id", "frame_index", "reason", "score")
+    __slots__ = ("robot_id", "frame_index", "reason")
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     FRAME_INDEX_FIELD_NUMBER: _ClassVar[int]
     REASON_FIELD_NUMBER: _ClassVar[int]
-    SCORE_FIELD_NUMBER: _ClassVar[int]
     robot_id: int
     frame_index: int
     reason: FunnelReason
-    score: float
-    def __init__(self, robot_id: _Optional[int] = ..., frame_index: _Optional[int] = ..., reason: _Optional[_Union[FunnelReason, str]] = ..., score: _Optional[float] = ...) -> None: ...
+    def __init__(self, robot_id: _Optional[int] = ..., frame_index: _Optional[int] = ..., reason: _Optional[_Union[FunnelReason, str]] = ...) -> None: ...
