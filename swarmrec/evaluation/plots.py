@@ -102,9 +102,15 @@ def plot_bytes(per_query_by_message: dict[str, float], path: Path) -> None:
     plt.close(fig)
 
 
-def plot_funnel(levels: list[tuple[str, int]], stops_by_robot: dict[int, dict[str, int]], path: Path) -> None:
+def plot_funnel(
+    levels: list[tuple[str, int]],
+    stops_by_robot: dict[int, dict[str, int]],
+    path: Path,
+    order: list[str] | None = None,
+) -> None:
     """Left: the loop-closure funnel, candidates left after each stage. Right: where the
-    candidates of each robot's queries stopped, stacked by reason."""
+    candidates of each robot's queries stopped, stacked by reason (in ``order`` from the
+    bottom; by name without it)."""
     fig, (left, right) = plt.subplots(1, 2, figsize=(11, 3.8), gridspec_kw={"width_ratios": [1, 1.3]})
     names = [name for name, _n in levels][::-1]
     values = [n for _name, n in levels][::-1]
@@ -117,7 +123,8 @@ def plot_funnel(levels: list[tuple[str, int]], stops_by_robot: dict[int, dict[st
     left.set_title("the loop-closure funnel")
     left.grid(axis="x", alpha=0.4)
     robots = sorted(stops_by_robot)
-    reasons = sorted({r for stops in stops_by_robot.values() for r in stops})
+    present = {r for stops in stops_by_robot.values() for r in stops}
+    reasons = [r for r in order if r in present] if order else sorted(present)
     colors = plt.get_cmap("tab20")
     bottom = np.zeros(len(robots))
     for i, reason in enumerate(reasons):

@@ -127,7 +127,7 @@ def test_every_candidate_of_a_run_frame_is_explained_with_its_stage(tmp_path: Pa
         (2, 0, "selection", "robot_not_chosen", None),
     ]
     whys = [c["why"] for c in ex.candidates()]
-    assert whys[0] == "the robot's own frame, 2 frames from the query, within the exclusion of 100"
+    assert whys[0] == "the robot's own frame, 2 frames from the query: within the exclusion of 100"
     assert whys[1] == "the loop closure of robot 0 frame 3, score 0.5000"
     assert whys[2] == (
         "passed the rule with 0.4000, but robot 1 frame 1 (0.5000) scored higher: the loop closure"

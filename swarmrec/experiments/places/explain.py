@@ -292,18 +292,16 @@ def why(o: CandidateOutcome, q: QueryFunnel, rule: Rule) -> str:
         case Reason.VERIFIER_ERROR:
             return f"robot {r}'s verifier answered with an error (or an undecodable answer): its log says why"
         case Reason.TOO_FEW_MATCHES:
-            return (
-                "verified, score 0: fewer than the preset's min_common objects in common, "
-                "or none associated within its distance d"
-            )
+            return "verified, score 0: fewer than min_common objects in common, or none associated within d"
         case Reason.MATCHED:
             return f"verified, score {o.score:.4f} (a client's query: no loop-closure rule)"
         case Reason.BELOW_SCORE_THRESHOLD:
             return f"verified, score {o.score:.4f} < loop_closure_min_score {rule.loop_closure_min_score:g}"
         case Reason.OWN_RECENT_FRAME:
+            apart = abs(o.frame - q.frame)
             return (
-                f"the robot's own frame, {abs(o.frame - q.frame)} frames from the query, within the "
-                f"exclusion of {rule.exclusion}"
+                f"the robot's own frame, {apart} frame{'s' if apart != 1 else ''} from the query: within "
+                f"the exclusion of {rule.exclusion}"
             )
         case Reason.OUTRANKED:
             best = q.closure

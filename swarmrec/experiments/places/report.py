@@ -554,6 +554,7 @@ def _plots(
             summary.funnel.levels,
             {int(r): stops for r, stops in summary.funnel.by_robot.items()},
             out / "funnel.png",
+            order=[r.label for r in reversed(Reason)],
         )
 
 
@@ -608,7 +609,10 @@ def funnel_stats(
         distinct_candidates=sum(reasons.values()),
         by_stage={s.label: stages[s.label] for s in Stage if stages[s.label]},
         by_reason={r.label: reasons[r] for r in Reason if reasons[r]},
-        by_robot={r: dict(sorted(c.items())) for r, c in sorted(by_robot.items(), key=lambda kv: int(kv[0]))},
+        by_robot={
+            r: {x.label: c[x.label] for x in Reason if c[x.label]}
+            for r, c in sorted(by_robot.items(), key=lambda kv: int(kv[0]))
+        },
         levels=passed_stages(reasons.elements()),
         accepted=reasons[Reason.ACCEPTED],
         accepted_equals_loop_closures=reasons[Reason.ACCEPTED] == len(closures),
