@@ -9,6 +9,7 @@
             print(m.kind, m.robot, m.label_range, m.metrics_url)
         result = swarm.query(constellation)          # ranked matches, nothing stored
         closures = swarm.loop_closures(robot=3)
+        report = swarm.explain(robot=3, frame=120).report   # its loop-closure funnel
 
 :class:`SwarmClient` is the interface; :class:`ZenohClient` speaks zenoh to
 the router (and also drives replays: ``step``, ``replay``, raw ``call``s), and
@@ -195,6 +196,11 @@ class SwarmClient(abc.ABC):
     @abc.abstractmethod
     def loop_closures(self, robot: int, min_score: float = 0.0) -> list[pb.LoopClosure]:
         """The loop closures robot ``robot`` has found, oldest first."""
+
+    @abc.abstractmethod
+    def explain(self, robot: int, frame: int) -> pb.ExplainReply:
+        """What robot ``robot``'s query of its frame ``frame`` did, from its descriptor's
+        memory (the last ``explain_reports`` reports): the report and its funnel."""
 
     def alive(self) -> set[tuple[str, int]]:
         """(kind, robot) of every live service."""
@@ -450,6 +456,11 @@ class ZenohClient(SwarmClient):
         )
         return list(reply.loop_closures)
 
+    def explain(self, robot: int, frame: int, *, timeout_s: float | None = None) -> pb.ExplainReply:
+        key = keys.endpoint(self.swarm, "descriptor", robot, "explain")
+        request = pb.ExplainRequest(frame_index=frame)
+        return self._caller().call(key, request, pb.ExplainReply, target_robot=robot, timeout_s=timeout_s)
+
     def step(
         self, step: int, timeout_s: float, *, robot: int | None = None
     ) -> list[pb.StepReply | Exception]:
@@ -585,3 +596,9 @@ class GatewayClient(SwarmClient):
     def loop_closures(self, robot: int, min_score: float = 0.0) -> list[pb.LoopClosure]:
         request = gateway_pb2.RobotLoopClosuresRequest(robot_id=robot, min_score=min_score)
         return list(self._call("LoopClosures", request).loop_closures)
+
+    def explain(self, robot: int, frame: int) -> pb.ExplainReply:
+        reply: pb.ExplainReply = self._call(
+            "Explain", gateway_pb2.RobotExplainRequest(robot_id=robot, frame_index=frame)
+        )
+        return reply

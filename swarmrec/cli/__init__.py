@@ -34,6 +34,7 @@ COMMANDS: dict[str, str] = {
     "query": "swarmrec.cli.clients",
     "members": "swarmrec.cli.clients",
     "loop-closures": "swarmrec.cli.clients",
+    "explain": "swarmrec.cli.explain",
     "pki": "swarmrec.cli.pki",
 }
 

@@ -18,32 +18,37 @@ from swarmrec.datasets.labels import LabelMap, label_names
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.tls import TlsFiles
 
-__all__ = ["add"]
+__all__ = ["add", "add_connection_flags", "client_of"]
+
+
+def add_connection_flags(p: argparse.ArgumentParser, *, connect: str | None = "tls/127.0.0.1:7447") -> None:
+    """How a command reaches a running swarm: --connect, --swarm, --pki-dir, --identity, --timeout,
+    and --json (``connect``: the default router endpoint; None: no default)."""
+    default = f" (default {connect})" if connect else ""
+    p.add_argument(
+        "--connect",
+        default=connect,
+        help=f"router endpoint(s), comma-separated{default}, or the gRPC "
+        "gateway as grpc://host:port; a tcp/ endpoint is the insecure mode",
+    )
+    p.add_argument("--swarm", default="local", help="swarm name (default local)")
+    p.add_argument(
+        "--pki-dir",
+        type=Path,
+        default=os.environ.get("SWARMREC_PKI_DIR") or None,
+        help="the swarm's PKI folder (ca.pem and this client's pair; env SWARMREC_PKI_DIR)",
+    )
+    p.add_argument(
+        "--identity",
+        default=os.environ.get("SWARMREC_IDENTITY", ""),
+        help="common name of this client's certificate (default client.cli.<swarm>; env SWARMREC_IDENTITY)",
+    )
+    p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for answers (default 5)")
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
 
 
 def add(sub: Subparsers) -> None:
-    def common(p: argparse.ArgumentParser) -> None:
-        p.add_argument(
-            "--connect",
-            default="tls/127.0.0.1:7447",
-            help="router endpoint(s), comma-separated (default tls/127.0.0.1:7447), or the gRPC "
-            "gateway as grpc://host:port; a tcp/ endpoint is the insecure mode",
-        )
-        p.add_argument("--swarm", default="local", help="swarm name (default local)")
-        p.add_argument(
-            "--pki-dir",
-            type=Path,
-            default=os.environ.get("SWARMREC_PKI_DIR") or None,
-            help="the swarm's PKI folder (ca.pem and this client's pair; env SWARMREC_PKI_DIR)",
-        )
-        p.add_argument(
-            "--identity",
-            default=os.environ.get("SWARMREC_IDENTITY", ""),
-            help="common name of this client's certificate (default client.cli.<swarm>; "
-            "env SWARMREC_IDENTITY)",
-        )
-        p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for answers (default 5)")
-        p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    common = add_connection_flags
 
     p = sub.add_parser("query", help="ask a running swarm where a constellation was seen (nothing is stored)")
     p.add_argument(
@@ -64,7 +69,8 @@ def add(sub: Subparsers) -> None:
     p.set_defaults(handler=_loop_closures)
 
 
-def _client(args: argparse.Namespace) -> SwarmClient:
+def client_of(args: argparse.Namespace) -> SwarmClient:
+    """The client the flags of :func:`add_connection_flags` describe."""
     plaintext = args.connect.startswith("tcp/") or (
         args.connect.startswith(GRPC_SCHEME) and args.pki_dir is None
     )
@@ -87,7 +93,7 @@ def _query(args: argparse.Namespace) -> int:
     except OSError as e:
         raise ConfigError(f"cannot read {args.constellation}: {e.strerror}") from None
     constellation = parse_constellation(text, LabelMap(names), str(args.constellation))
-    with _client(args) as swarm:
+    with client_of(args) as swarm:
         result = swarm.query(constellation, preset=args.preset)
     matches = result.matches[: args.top]
     if args.json:
@@ -133,7 +139,7 @@ def _query(args: argparse.Namespace) -> int:
 
 
 def _members(args: argparse.Namespace) -> int:
-    with _client(args) as swarm:
+    with client_of(args) as swarm:
         members = swarm.members()
     if args.json:
         print(json.dumps([m.__dict__ for m in members]))
@@ -149,7 +155,7 @@ def _members(args: argparse.Namespace) -> int:
 
 
 def _loop_closures(args: argparse.Namespace) -> int:
-    with _client(args) as swarm:
+    with client_of(args) as swarm:
         closures = swarm.loop_closures(args.robot, args.min_score)
     if args.json:
         print(

@@ -10,7 +10,7 @@ from swarmrec.cli.common import Subparsers, add_dataset_flags, dataset_source
 from swarmrec.deployments.compose import ComposeDeployment
 from swarmrec.deployments.links import LinkSpec
 from swarmrec.experiments.places import PixelSettings, PlacesSettings, PlacesSummary, main
-from swarmrec.experiments.places.report import DetectorFigures
+from swarmrec.experiments.places.report import DetectorFigures, FunnelStats
 from swarmrec.services.settings import IndexSettings
 
 __all__ = ["add", "print_summary", "run"]
@@ -208,6 +208,8 @@ def print_summary(s: PlacesSummary, out: Path) -> None:
     if s.detector is not None:
         _print_detector(s.detector)
     print(f"  {q.queried} queries, {s.loop_closures.count} loop closures, {auc}")
+    if s.funnel is not None:
+        _print_funnel(s.funnel)
     lat = q.latency_ms
     if lat:
         print(f"  query latency p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms")
@@ -251,7 +253,20 @@ def print_summary(s: PlacesSummary, out: Path) -> None:
     t = s.timings
     start = f"start {t['start_s']:.1f} s, " if "start_s" in t else ""
     print(f"  time: {start}replay {t['replay_s']:.1f} s, total {t['total_s']:.1f} s")
-    print(f"  written to {out}/ (summary.json, pairs.csv, loop_closures.csv, *.png)")
+    print(f"  written to {out}/ (summary.json, pairs.csv, loop_closures.csv, funnel.csv, *.png)")
+
+
+def _print_funnel(f: FunnelStats) -> None:
+    stops = ", ".join(f"{reason.replace('_', ' ')} {n}" for reason, n in f.by_reason.items())
+    print(
+        f"  funnel: {f.candidates_returned} candidates returned ({f.distinct_candidates} distinct); "
+        f"{stops or 'none'}"
+    )
+    if f.inconsistent_queries or not f.accepted_equals_loop_closures:
+        print(
+            f"  funnel DOES NOT ADD UP: {f.inconsistent_queries} queries inconsistent, "
+            f"{f.accepted} accepted against the loop closures held"
+        )
 
 
 def _print_detector(d: DetectorFigures) -> None:

@@ -1,4 +1,4 @@
-"""Figures of an evaluation: similarity matrix, PR curves, holder load."""
+"""Figures of an evaluation: similarity matrix, PR curves, holder load, bytes, the loop-closure funnel."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import numpy.typing as npt
 from swarmrec.evaluation.bandwidth import HolderLoad
 from swarmrec.evaluation.pr import PRCurve
 
-__all__ = ["plot_bytes", "plot_holder_load", "plot_pr", "plot_similarity"]
+__all__ = ["plot_bytes", "plot_funnel", "plot_holder_load", "plot_pr", "plot_similarity"]
 
 
 def plot_similarity(
@@ -97,6 +97,45 @@ def plot_bytes(per_query_by_message: dict[str, float], path: Path) -> None:
         ax.text(v, y, f" {v:.1f}", va="center", fontsize=8)
     ax.set_xlabel(f"bytes per query between robots (total {sum(values):.1f} B)")
     ax.grid(axis="x", alpha=0.4)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_funnel(
+    levels: list[tuple[str, int]],
+    stops_by_robot: dict[int, dict[str, int]],
+    path: Path,
+    order: list[str] | None = None,
+) -> None:
+    """Left: the loop-closure funnel, candidates left after each stage. Right: where the
+    candidates of each robot's queries stopped, stacked by reason (in ``order`` from the
+    bottom; by name without it)."""
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 3.8), gridspec_kw={"width_ratios": [1, 1.3]})
+    names = [name for name, _n in levels][::-1]
+    values = [n for _name, n in levels][::-1]
+    top = max(values, default=0) or 1
+    left.barh(names, values, color="tab:blue")
+    for y, v in enumerate(values):
+        left.text(v, y, f" {v} ({100 * v / top:.1f} %)", va="center", fontsize=8)
+    left.set_xlim(0, top * 1.35)
+    left.set_xlabel("candidates (distinct frames per query)")
+    left.set_title("the loop-closure funnel")
+    left.grid(axis="x", alpha=0.4)
+    robots = sorted(stops_by_robot)
+    present = {r for stops in stops_by_robot.values() for r in stops}
+    reasons = [r for r in order if r in present] if order else sorted(present)
+    colors = plt.get_cmap("tab20")
+    bottom = np.zeros(len(robots))
+    for i, reason in enumerate(reasons):
+        counts = np.array([stops_by_robot[r].get(reason, 0) for r in robots], dtype=np.float64)
+        right.bar(robots, counts, bottom=bottom, label=reason, color=colors(i % colors.N))
+        bottom += counts
+    right.set_xlabel("querying robot")
+    right.set_ylabel("candidates")
+    right.set_title("where each robot's candidates stopped")
+    right.set_xticks(robots)
+    right.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

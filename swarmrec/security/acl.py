@@ -93,6 +93,7 @@ _CLIENT_QUERIES = (
     ("index-shard", "placement"),
     ("verifier", "verify"),
     ("descriptor", "loop_closures"),
+    ("descriptor", "explain"),
     ("fusion", "posterior"),
 )
 # What an operator adds: driving the replay (lock-step steps, free replay, classifier views).

@@ -16,10 +16,15 @@ Endpoints:
   without storing anything twice (a loop closure is kept once per frame).
   The best verified match at least ``loop_closure_min_score`` good (and, on
   the robot's own trajectory, more than ``exclusion`` frames back) becomes a
-  loop closure, published on ``events/loop_closure/<robot>``; every report is
-  published on ``events/query/<robot>``.
+  loop closure (:class:`swarmrec.core.funnel.ClosureRule`, the one rule),
+  published on ``events/loop_closure/<robot>``; every report, with where each
+  candidate stopped in the loop-closure funnel, is published on
+  ``events/query/<robot>`` and counted in ``swarmrec_funnel_candidates_total``.
 * ``loop_closures``: :class:`LoopClosuresRequest` -> :class:`LoopClosureList`,
   kept in its record log (``<data_dir>/loop-closures.log``) across restarts.
+* ``explain``: :class:`ExplainRequest` -> :class:`ExplainReply`, the query
+  report of one frame, from the last ``explain_reports`` kept in memory (a frame
+  older than those is answered AGED_OUT; the memory is lost on restart).
 """
 
 from __future__ import annotations
@@ -27,7 +32,9 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections import OrderedDict
 
+from swarmrec.core.funnel import ClosureRule, Reason, settle
 from swarmrec.core.placement import groups_from_bounds
 from swarmrec.core.presets import get_preset
 from swarmrec.errors import AlreadyExists, CallError, ErrorCode, InvalidArgument, RemoteError, Unavailable
@@ -37,9 +44,15 @@ from swarmrec.services.metrics import DescriptorMetrics
 from swarmrec.services.pending import PendingStores
 from swarmrec.services.protocol import QueryPlan, two_step_query
 from swarmrec.services.routing import LiveShards, Routing
-from swarmrec.services.settings import IndexSettings, PlaceSettings
+from swarmrec.services.settings import ExplainSettings, IndexSettings, PlaceSettings
 from swarmrec.wire import messages as pb
-from swarmrec.wire.codec import check_fields, constellation_from_proto, encode
+from swarmrec.wire.codec import (
+    check_fields,
+    constellation_from_proto,
+    encode,
+    outcomes_from_proto,
+    outcomes_to_proto,
+)
 
 __all__ = ["Descriptor"]
 
@@ -75,11 +88,18 @@ class Descriptor(ServiceBase):
         self.pending = PendingStores(ctx.open_log("pending-stores"), self.index.pending_capacity)
         self.metrics.pending_stores.set(len(self.pending))
         self._retrier: threading.Thread | None = None
+        self.rule = ClosureRule(self.places.loop_closure_min_score, self.preset.exclusion)
         self.lock = threading.Lock()
         self.closure_log = ctx.open_log("loop-closures")
         self.closures = [pb.LoopClosure.FromString(r) for r in self.closure_log.records()]
         # Query frames that have their loop closure: a frame processed again adds none.
         self.closed = {c.query_frame_index for c in self.closures}
+        # The last reports, serialized (a few hundred bytes each), for explain; and one bit
+        # per frame index processed since the start (128 KiB for every index a frame may
+        # have), so a frame that aged out is told from one never seen.
+        self.reports_kept = ctx.settings(ExplainSettings).explain_reports
+        self.reports: OrderedDict[int, bytes] = OrderedDict()
+        self.seen = bytearray(MAX_FRAME_INDEX // 8)
 
     def member_info(self) -> pb.MemberInfo:
         return pb.MemberInfo(n_labels=self.places.n_labels, pending_items=len(self.pending))
@@ -172,10 +192,12 @@ class Descriptor(ServiceBase):
                 endpoint="store",
             )
         except RemoteError as e:
+            self.metrics.frames.labels("not_stored").inc()
             if e.code == ErrorCode.ALREADY_EXISTS:
                 raise AlreadyExists(f"frame {msg.frame_index}: {e.message}") from None
             raise Unavailable(f"own verifier did not store the frame: {e}") from None
         except CallError as e:
+            self.metrics.frames.labels("not_stored").inc()
             # Without its own verifier the robot cannot answer for this frame later.
             raise Unavailable(f"own verifier did not store the frame: {e}") from None
         if len(c) >= self.preset.min_objects:
@@ -192,44 +214,97 @@ class Descriptor(ServiceBase):
             self.metrics.pending_stores.set(len(self.pending))
         else:
             report = pb.QueryReport(robot_id=robot, frame_index=msg.frame_index, queried=False)
+        report.n_objects = len(c)
         report.duration_us = min(int((time.perf_counter() - t0) * 1e6), 2**32 - 1)
         self.metrics.query_seconds.observe(report.duration_us / 1e6)
+        self.metrics.frames.labels("queried" if report.queried else "too_few_objects").inc()
         if report.queried:
             self._loop_closure(report)
+        for o in report.candidates:
+            reason = Reason.of(o.reason)
+            self.metrics.funnel.labels(reason.stage.label, reason.label).inc()
+        self._remember(report)
         # Every frame's report, queried or not, so a listener can count frames.
         self.ctx.publish(keys.event(self.bus.swarm, "query", robot), report)
         return report
 
     def _loop_closure(self, report: pb.QueryReport) -> None:
+        """Keep and publish the loop closure the rule takes from the report's matches (if
+        any), and put the rule's verdict on each matched candidate of the report's funnel."""
         robot = self.bus.robot
-        for m in report.matches:  # best first
-            if m.score < self.places.loop_closure_min_score:
-                return
-            own_recent = (
-                m.match_robot_id == robot
-                and abs(m.match_frame_index - report.frame_index) <= self.preset.exclusion
+        matches = [(m.match_robot_id, m.match_frame_index, m.score) for m in report.matches]
+        closure = None
+        with self.lock:
+            # Under the lock: a frame processed twice at once still keeps one closure.
+            verdicts = self.rule.verdicts(
+                robot, report.frame_index, matches, already_closed=report.frame_index in self.closed
             )
-            if own_recent:
-                continue
-            closure = pb.LoopClosure(
-                query_robot_id=robot,
-                query_frame_index=report.frame_index,
-                match_robot_id=m.match_robot_id,
-                match_frame_index=m.match_frame_index,
-                score=m.score,
-                semantic_score=m.semantic_score,
-                n_matched=m.n_matched,
-                unix_time_ns=time.time_ns(),
-            )
-            with self.lock:
-                if report.frame_index in self.closed:
-                    return  # processed again: its closure is kept already
-                self.closure_log.append(encode(closure))
-                self.closures.append(closure)
-                self.closed.add(report.frame_index)
+            for m, verdict in zip(report.matches, verdicts, strict=True):
+                if verdict == Reason.ACCEPTED:
+                    closure = pb.LoopClosure(
+                        query_robot_id=robot,
+                        query_frame_index=report.frame_index,
+                        match_robot_id=m.match_robot_id,
+                        match_frame_index=m.match_frame_index,
+                        score=m.score,
+                        semantic_score=m.semantic_score,
+                        n_matched=m.n_matched,
+                        unix_time_ns=time.time_ns(),
+                    )
+                    self.closure_log.append(encode(closure))
+                    self.closures.append(closure)
+                    self.closed.add(report.frame_index)
+        settled = settle(
+            outcomes_from_proto(report),
+            {(r, f): v for (r, f, _score), v in zip(matches, verdicts, strict=True)},
+        )
+        del report.candidates[:]
+        report.candidates.extend(outcomes_to_proto(settled))
+        if closure is not None:
             self.metrics.loop_closures.inc()
             self.ctx.publish(keys.event(self.bus.swarm, "loop_closure", robot), closure)
-            return
+
+    def _remember(self, report: pb.QueryReport) -> None:
+        f = report.frame_index
+        data = report.SerializeToString() if self.reports_kept else b""
+        with self.lock:
+            self.seen[f >> 3] |= 1 << (f & 7)
+            if not self.reports_kept:
+                return
+            self.reports[f] = data
+            self.reports.move_to_end(f)
+            while len(self.reports) > self.reports_kept:
+                self.reports.popitem(last=False)
+
+    def explain(self, req: pb.ExplainRequest, _ctx: RequestContext) -> pb.ExplainReply:
+        check_fields(req, "frame_index")
+        f = req.frame_index
+        if f >= MAX_FRAME_INDEX:
+            raise InvalidArgument(f"frame index must be below {MAX_FRAME_INDEX}, got {f}")
+        reply = pb.ExplainReply(
+            robot_id=self.bus.robot,
+            reports_kept=self.reports_kept,
+            loop_closure_min_score=self.rule.min_score,
+            exclusion=self.rule.exclusion,
+            min_objects=self.preset.min_objects,
+            n_ret=self.preset.n_ret,
+            n_fq=self.preset.n_fq,
+        )
+        with self.lock:
+            data = self.reports.get(f)
+            seen = bool(self.seen[f >> 3] & (1 << (f & 7)))
+            reply.reports_held = len(self.reports)
+            if self.reports:
+                reply.oldest_frame_index = next(iter(self.reports))
+                reply.newest_frame_index = next(reversed(self.reports))
+        if data is not None:
+            reply.status = pb.ReportStatus.REPORT_STATUS_HELD
+            reply.report.ParseFromString(data)
+        elif seen:
+            reply.status = pb.ReportStatus.REPORT_STATUS_AGED_OUT
+        else:
+            reply.status = pb.ReportStatus.REPORT_STATUS_NOT_SEEN
+        return reply
 
     def loop_closures(self, req: pb.LoopClosuresRequest, _ctx: RequestContext) -> pb.LoopClosureList:
         check_fields(req)
@@ -251,5 +326,12 @@ class Descriptor(ServiceBase):
             pb.LoopClosureList,
             loop_closures,
             "the loop closures found so far",
+        ),
+        Endpoint(
+            "explain",
+            pb.ExplainRequest,
+            pb.ExplainReply,
+            explain,
+            "the query report of one frame, with where each candidate stopped (the last explain_reports)",
         ),
     )

@@ -7,7 +7,7 @@ and subscribe, never store), and serves ``swarmrec.v1.SwarmGateway``
 
 * unary calls: ``Members``, ``Query`` (the read-only two-step query run from the
   gateway's own session, through the shards' ``lookup``), ``LoopClosures``,
-  ``Status``;
+  ``Explain`` (a robot's descriptor's ``explain``), ``Status``;
 * server streams of live events: loop closures, query reports, fusion
   decisions, membership changes (liveliness, starting with who is alive);
 * the standard health service (``NOT_SERVING`` until the zenoh session is up
@@ -330,6 +330,19 @@ class Gateway(ServiceBase):
                 f"robot {req.robot_id} has no live descriptor", code=ErrorCode.NOT_FOUND
             ) from None
 
+    def explain(self, req: gateway_pb2.RobotExplainRequest, caller: _DeadlineCaller) -> pb.ExplainReply:
+        if not req.HasField("frame_index"):
+            raise InvalidArgument("RobotExplainRequest has no frame_index; it is required")
+        key = keys.endpoint(self.bus.swarm, "descriptor", req.robot_id, "explain")
+        try:
+            return caller.call(
+                key, pb.ExplainRequest(frame_index=req.frame_index), pb.ExplainReply, target_robot=None
+            )
+        except NoReply:
+            raise RequestError(
+                f"robot {req.robot_id} has no live descriptor", code=ErrorCode.NOT_FOUND
+            ) from None
+
     def status(self, caller: _DeadlineCaller) -> gateway_pb2.StatusReply:
         left = max(caller.deadline - time.monotonic(), 0.001)
         infos = self.swarm.member_infos(min(left, self.bus.request_timeout_s))
@@ -468,6 +481,9 @@ class _Servicer(gateway_pb2_grpc.SwarmGatewayServicer):  # type: ignore[misc, un
 
     def LoopClosures(self, request: Any, context: grpc.ServicerContext) -> Any:
         return self.g.unary("LoopClosures", context, lambda caller: self.g.loop_closures(request, caller))
+
+    def Explain(self, request: Any, context: grpc.ServicerContext) -> Any:
+        return self.g.unary("Explain", context, lambda caller: self.g.explain(request, caller))
 
     def Status(self, request: Any, context: grpc.ServicerContext) -> Any:
         return self.g.unary("Status", context, self.g.status)

@@ -4,8 +4,10 @@ The registry names one set per kind; the runner creates it in the service's
 Prometheus registry and the service takes it with ``ctx.metric_set(...)``. An
 index shard therefore exports shard metrics and nothing of fusion. Label values
 are small fixed sets: ``reason`` (why the fusion service rejected a message, or
-why the detector dropped a box, docs/fusion.md, docs/detector.md), ``outcome``
-(what the detector made of a frame), ``stage`` (a step of its frame pipeline).
+why the detector dropped a box, docs/fusion.md, docs/detector.md; where a query's
+candidate stopped, :class:`swarmrec.core.funnel.Reason`), ``outcome`` (what the
+detector or the descriptor made of a frame), ``stage`` (a step of the detector's
+frame pipeline, or of the loop-closure funnel).
 """
 
 from __future__ import annotations
@@ -15,9 +17,11 @@ from typing import ClassVar
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
+from swarmrec.core.funnel import Reason
 from swarmrec.runtime.metrics import LATENCY_BUCKETS, MetricSet
 
 __all__ = [
+    "DESCRIPTOR_FRAME_OUTCOMES",
     "DescriptorMetrics",
     "DetectorMetrics",
     "FusionMetrics",
@@ -108,6 +112,11 @@ class VerifierMetrics(MetricSet):
         )
 
 
+#: What a descriptor made of a frame: queried it, had too few objects to query, or its
+#: own verifier did not store it (the frame was refused).
+DESCRIPTOR_FRAME_OUTCOMES = ("queried", "too_few_objects", "not_stored")
+
+
 @dataclass
 class DescriptorMetrics(MetricSet):
     title: ClassVar[str] = "descriptor"
@@ -117,10 +126,12 @@ class DescriptorMetrics(MetricSet):
     pending_stores: Gauge
     store_retries: Counter
     placement_refreshes: Counter
+    frames: Counter
+    funnel: Counter
 
     @classmethod
     def create(cls, registry: CollectorRegistry) -> DescriptorMetrics:
-        return cls(
+        metrics = cls(
             pending_stores=Gauge(
                 "swarmrec_descriptor_pending_stores",
                 "Descriptor slices not yet acknowledged by every shard that must hold them (kept on disk)",
@@ -145,7 +156,28 @@ class DescriptorMetrics(MetricSet):
                 buckets=LATENCY_BUCKETS,
                 registry=registry,
             ),
+            frames=Counter(
+                "swarmrec_descriptor_frames",
+                "Frames this robot's descriptor processed, by outcome (queried, too_few_objects, not_stored)",
+                ("outcome",),
+                registry=registry,
+            ),
+            funnel=Counter(
+                "swarmrec_funnel_candidates",
+                "Candidates of this robot's queries, by the loop-closure funnel stage and reason they "
+                "stopped at (accepted: the loop closures)",
+                ("stage", "reason"),
+                registry=registry,
+            ),
         )
+        # Every label value exists from the start (at 0), so a rate over a run sees each one;
+        # the values are the enums', a fixed set.
+        for outcome in DESCRIPTOR_FRAME_OUTCOMES:
+            metrics.frames.labels(outcome)
+        for reason in Reason:
+            if reason not in (Reason.UNSPECIFIED, Reason.BELOW_SHARD_CUT, Reason.MATCHED):
+                metrics.funnel.labels(reason.stage.label, reason.label)
+        return metrics
 
 
 @dataclass

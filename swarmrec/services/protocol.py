@@ -8,7 +8,9 @@
 
 A peer that does not answer (gone, crashed, timed out) or answers with an
 error is recorded in the report and the query goes on with the others: an
-empty answer is never taken for "no match".
+empty answer is never taken for "no match". The report also records where
+each candidate stopped (:mod:`swarmrec.core.funnel`); that costs no byte
+between robots.
 
 The descriptor service runs this for its robot's frames; the client library
 runs it read-only (nothing is stored) to ask a running swarm.
@@ -24,6 +26,7 @@ import numpy as np
 import numpy.typing as npt
 
 from swarmrec.core.descriptor import semantic_descriptor
+from swarmrec.core.funnel import Reason, classify, verifier_failure
 from swarmrec.core.presets import Preset
 from swarmrec.core.selection import select_robots
 from swarmrec.core.types import Constellation
@@ -32,7 +35,12 @@ from swarmrec.runtime import keys
 from swarmrec.runtime.rpc import Caller, Pending
 from swarmrec.services.routing import Routing
 from swarmrec.wire import messages as pb
-from swarmrec.wire.codec import candidates_from_proto, match_scores, partial_descriptor_to_proto
+from swarmrec.wire.codec import (
+    candidates_from_proto,
+    match_scores,
+    outcomes_to_proto,
+    partial_descriptor_to_proto,
+)
 
 __all__ = ["ROUTE_ATTEMPTS", "QueryPlan", "ask_shards", "two_step_query"]
 
@@ -208,10 +216,12 @@ def two_step_query(
         except WireError:
             report.failed_shard_robot_ids.append(answered[g])
             continue
+        before = len(cand_robot)
         for c in found:
             if c.robot_id < plan.n_robots:
                 cand_robot.append(c.robot_id)
                 cand_frame.append(c.frame_index)
+        report.shard_candidates.add(robot_id=answered[g], n_candidates=len(cand_robot) - before)
     report.n_candidates = len(cand_robot)
     # Step 2: the full constellation to the chosen robots that have candidates.
     robots_arr = np.asarray(cand_robot, np.int64)
@@ -237,21 +247,25 @@ def two_step_query(
         key = keys.endpoint(plan.swarm, "verifier", r, "verify")
         verifying.append((r, caller.start(key, request, target_robot=r, endpoint="verify")))
     pairs: list[pb.VerifiedPair] = []
+    failures: dict[int, Reason] = {}
     for r, pending in verifying:
         try:
             vreply = pending.result(pb.VerifyReply)
-        except CallError:
+        except CallError as e:
             report.failed_verifier_robot_ids.append(r)
+            failures[r] = verifier_failure(e)
             continue
         if vreply.robot_id != r:
             caller.count_failure("verify", RemoteError.reason)
             report.failed_verifier_robot_ids.append(r)
+            failures[r] = Reason.VERIFIER_ERROR
             continue
         try:
             scored = [(m, *match_scores(m)) for m in vreply.matches]
         except WireError:
             caller.count_failure("verify", RemoteError.reason)
             report.failed_verifier_robot_ids.append(r)
+            failures[r] = Reason.VERIFIER_ERROR
             continue
         for m, score, semantic in scored:
             pairs.append(
@@ -265,6 +279,9 @@ def two_step_query(
             )
     pairs.sort(key=lambda p: (-p.score, p.match_robot_id, p.match_frame_index))
     report.matches.extend(pairs)
+    matched = [(p.match_robot_id, p.match_frame_index, p.score) for p in pairs]
+    funnel = classify(zip(cand_robot, cand_frame, strict=True), report.verified_robot_ids, failures, matched)
+    report.candidates.extend(outcomes_to_proto(funnel))
     if not read_only:
         finish_replica_stores(caller, stores, desc, wire, plan, answered, on_unstored)
     report.duration_us = min(int((time.perf_counter() - t0) * 1e6), 2**32 - 1)

@@ -41,6 +41,7 @@ from swarmrec.services.metrics import (
 from swarmrec.services.settings import (
     ClassifierSettings,
     DetectorSettings,
+    ExplainSettings,
     FusionSettings,
     GatewaySettings,
     IndexSettings,
@@ -160,9 +161,9 @@ for _entry in (
         "descriptor",
         pb.ServiceKind.SERVICE_KIND_DESCRIPTOR,
         "swarmrec.services.descriptor:Descriptor",
-        "the two-step query for each of its robot's frames; keeps the loop closures",
+        "the two-step query for each of its robot's frames; keeps the loop closures and explains them",
         stateful=True,
-        components=_INDEXED,
+        components=(*_INDEXED, ExplainSettings),
         metrics=DescriptorMetrics,
     ),
     ServiceSpec(

@@ -33,6 +33,7 @@ __all__ = [
     "DETECTOR_MODES",
     "ClassifierSettings",
     "DetectorSettings",
+    "ExplainSettings",
     "FusionSettings",
     "GatewaySettings",
     "IndexSettings",
@@ -136,6 +137,28 @@ class PlaceSettings(Component):
         if self.label_bounds:
             return np.asarray(self.label_bounds, np.int64)
         return label_bounds("even", self.n_labels, bus.n_robots)
+
+
+#: The most query reports a descriptor may be told to keep for ``explain`` (each ~300 B).
+MAX_EXPLAIN_REPORTS = 1_000_000
+
+
+@dataclass(frozen=True)
+class ExplainSettings(Component):
+    """What a descriptor keeps to explain its queries (swarmrec explain --connect)."""
+
+    title: ClassVar[str] = "explain"
+
+    explain_reports: int = setting(
+        4096,
+        "query reports a descriptor keeps in memory for its explain endpoint, the last N frames "
+        f"(0: none; at most {MAX_EXPLAIN_REPORTS:,}; about 300 bytes each)",
+    )
+
+    def problems(self) -> list[str]:
+        if not 0 <= self.explain_reports <= MAX_EXPLAIN_REPORTS:
+            return [f"explain_reports must be 0 .. {MAX_EXPLAIN_REPORTS}, got {self.explain_reports}"]
+        return []
 
 
 @dataclass(frozen=True)

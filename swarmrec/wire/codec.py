@@ -45,6 +45,7 @@ from google.protobuf.message import (  # type: ignore[import-untyped, unused-ign
 )
 from google.protobuf.unknown_fields import UnknownFieldSet  # type: ignore[import-untyped, unused-ignore]
 
+from swarmrec.core.funnel import CandidateOutcome, Reason
 from swarmrec.core.types import Constellation
 from swarmrec.errors import (
     LabelOutOfRangeError,
@@ -58,6 +59,7 @@ from swarmrec.wire.gen.swarmrec.v1 import (
     constellation_pb2,
     descriptor_pb2,
     errors_pb2,
+    events_pb2,
     query_pb2,
     verify_pb2,
 )
@@ -80,6 +82,8 @@ __all__ = [
     "error_reply",
     "match_scores",
     "matched_pairs_from_proto",
+    "outcomes_from_proto",
+    "outcomes_to_proto",
     "partial_descriptor_from_proto",
     "partial_descriptor_to_proto",
     "schema_name",
@@ -532,6 +536,36 @@ def matched_pairs_from_proto(match: verify_pb2.VerifyMatch, n_query: int) -> Int
         if np.unique(pairs[:, column]).size != pairs.shape[0]:
             raise WireError(f"a {side} object appears in more than one pair")
     return pairs
+
+
+# --- the loop-closure funnel -------------------------------------------------
+
+
+def outcomes_to_proto(outcomes: Iterable[CandidateOutcome]) -> list[events_pb2.CandidateOutcome]:
+    """A query's candidate outcomes as its report carries them: robot, frame and reason
+    (robot 0 and frame 0 cost no byte). The scores are not sent again: a scored
+    candidate's score is the report's match of the same robot and frame."""
+    return [
+        events_pb2.CandidateOutcome(
+            robot_id=_uint32("robot id", o.robot),
+            frame_index=_uint32("frame index", o.frame),
+            reason=events_pb2.FunnelReason.ValueType(o.reason),
+        )
+        for o in outcomes
+    ]
+
+
+def outcomes_from_proto(report: events_pb2.QueryReport) -> list[CandidateOutcome]:
+    """The candidate outcomes of ``report``, each with its score from the report's matches
+    (0 for a candidate without a match). A reason this version does not know reads as
+    UNSPECIFIED (a newer sender's), never as another one."""
+    scores = {(m.match_robot_id, m.match_frame_index): m.score for m in report.matches}
+    return [
+        CandidateOutcome(
+            c.robot_id, c.frame_index, Reason.of(c.reason), scores.get((c.robot_id, c.frame_index), 0.0)
+        )
+        for c in report.candidates
+    ]
 
 
 # --- errors -----------------------------------------------------------------

@@ -21,7 +21,14 @@ from swarmrec.wire.codec import schema_name
 from swarmrec.wire.gen.swarmrec.v1.constellation_pb2 import Constellation
 from swarmrec.wire.gen.swarmrec.v1.descriptor_pb2 import PartialDescriptor, SemanticDescriptor
 from swarmrec.wire.gen.swarmrec.v1.errors_pb2 import ErrorCode, ErrorReply
-from swarmrec.wire.gen.swarmrec.v1.events_pb2 import LoopClosure, QueryReport, VerifiedPair
+from swarmrec.wire.gen.swarmrec.v1.events_pb2 import (
+    CandidateOutcome,
+    FunnelReason,
+    LoopClosure,
+    QueryReport,
+    ShardCandidates,
+    VerifiedPair,
+)
 from swarmrec.wire.gen.swarmrec.v1.fusion_pb2 import (
     ClassifierOutput,
     ClassifyReply,
@@ -47,10 +54,13 @@ from swarmrec.wire.gen.swarmrec.v1.placement_pb2 import (
 )
 from swarmrec.wire.gen.swarmrec.v1.query_pb2 import CandidatesReply, PartialQuery
 from swarmrec.wire.gen.swarmrec.v1.replay_pb2 import (
+    ExplainReply,
+    ExplainRequest,
     LoopClosureList,
     LoopClosuresRequest,
     ReplayReply,
     ReplayRequest,
+    ReportStatus,
     StepReply,
     StepRequest,
     StoreReply,
@@ -60,6 +70,7 @@ from swarmrec.wire.gen.swarmrec.v1.verify_pb2 import VerifyMatch, VerifyReply, V
 __all__ = [
     "MESSAGE_TYPES",
     "AdoptRequest",
+    "CandidateOutcome",
     "CandidatesReply",
     "ClassifierOutput",
     "ClassifyReply",
@@ -67,6 +78,9 @@ __all__ = [
     "Constellation",
     "ErrorCode",
     "ErrorReply",
+    "ExplainReply",
+    "ExplainRequest",
+    "FunnelReason",
     "FusionPosterior",
     "FusionRoundStart",
     "FusionRoundStarted",
@@ -85,8 +99,10 @@ __all__ = [
     "QueryReport",
     "ReplayReply",
     "ReplayRequest",
+    "ReportStatus",
     "SemanticDescriptor",
     "ServiceKind",
+    "ShardCandidates",
     "ShardState",
     "ShardStore",
     "StepReply",
@@ -106,12 +122,15 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
     schema_name(cls): cls
     for cls in (
         AdoptRequest,
+        CandidateOutcome,
         CandidatesReply,
         ClassifierOutput,
         ClassifyReply,
         ClassifyRequest,
         Constellation,
         ErrorReply,
+        ExplainReply,
+        ExplainRequest,
         FusionPosterior,
         FusionRoundStart,
         FusionRoundStarted,
@@ -133,6 +152,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         SemanticDescriptor,
         ShardState,
         ShardStore,
+        ShardCandidates,
         StepReply,
         StepRequest,
         StoreReply,

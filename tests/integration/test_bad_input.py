@@ -179,6 +179,11 @@ def snapshot(s: Swarm) -> dict[str, Any]:
             pb.LoopClosureList,
         )
         out[f"descriptor {r} loop closures"] = closures.SerializeToString()
+        explained = reply_of(
+            request(s.session, s.key("descriptor", r, "explain"), pb.ExplainRequest(frame_index=STORED)),
+            pb.ExplainReply,
+        )
+        out[f"descriptor {r} explain"] = explained.SerializeToString()
         out[f"shard {r} stored"] = metric(s.url("index-shard", r), "swarmrec_shard_stored_descriptors")
         out[f"shard {r} stored queries"] = metric(
             s.url("index-shard", r), "swarmrec_shard_partial_queries_total"
@@ -291,6 +296,7 @@ REQUEST_OF = {
     ("verifier", "verify"): pb.VerifyRequest,
     ("descriptor", "process"): pb.Constellation,
     ("descriptor", "loop_closures"): pb.LoopClosuresRequest,
+    ("descriptor", "explain"): pb.ExplainRequest,
     ("detector", "step"): pb.StepRequest,
     ("detector", "replay"): pb.ReplayRequest,
     ("detector", "classify"): pb.ClassifyRequest,
@@ -305,6 +311,8 @@ WRONG_SCHEMA: dict[type[Message], Message] = {
     pb.Constellation: pb.PartialQuery(descriptor=pb.PartialDescriptor(label_lo=40, label_hi=80)),
     pb.VerifyRequest: pb.Constellation(robot_id=1, labels=[1], positions_mm=[1, 2, 3]),
     pb.LoopClosuresRequest: pb.StepRequest(step=1),
+    # Field 1 as a float: a wire type ExplainRequest's frame_index does not have.
+    pb.ExplainRequest: pb.LoopClosuresRequest(min_score=0.5),
     pb.StepRequest: pb.ReplayRequest(rate_hz=1.0),
     pb.ReplayRequest: pb.StepRequest(step=0),
     pb.ClassifyRequest: pb.StepRequest(step=0),
@@ -320,6 +328,7 @@ NO_ENCODING_CODE: dict[type[Message], str] = {
     pb.Constellation: "ERROR_CODE_INVALID_ARGUMENT",
     pb.VerifyRequest: "ERROR_CODE_MALFORMED",
     pb.LoopClosuresRequest: "ERROR_CODE_MALFORMED",
+    pb.ExplainRequest: "ERROR_CODE_MALFORMED",
     pb.StepRequest: "ERROR_CODE_MALFORMED",
     pb.ReplayRequest: "ERROR_CODE_MALFORMED",
     pb.ClassifyRequest: "ERROR_CODE_FAILED_PRECONDITION",
@@ -437,6 +446,10 @@ SPECIFIC: dict[tuple[str, int, str], list[tuple[str, Callable[[], Message], str]
         ("infinite min score (nothing could reach it)",
          lambda: pb.LoopClosuresRequest(min_score=math.inf), INVALID),
         ("-inf min score", lambda: pb.LoopClosuresRequest(min_score=-math.inf), INVALID),
+    ],
+    ("descriptor", 1, "explain"): [
+        ("empty payload (no frame index)", lambda: pb.ExplainRequest(), INVALID),
+        ("frame index 2**20", lambda: pb.ExplainRequest(frame_index=F20), INVALID),
     ],
     ("detector", 1, "step"): [
         ("empty payload (no step)", lambda: pb.StepRequest(), INVALID),

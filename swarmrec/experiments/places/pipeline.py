@@ -287,6 +287,8 @@ def main(
     timings["total_s"] = time.perf_counter() - t_start
     places = spec.component(PlaceSettings)
     assert isinstance(places, PlaceSettings)
+    replayed = spec.component(DetectorSettings)
+    assert isinstance(replayed, DetectorSettings)
     record = RunRecord(
         seq=seq,
         wire_seq=as_on_the_wire(seq, exact=places.exact_positions),
@@ -303,6 +305,9 @@ def main(
         loop_closure_min_score=places.loop_closure_min_score,
         index=index_state,
         detector=detector,
+        # From pixels the constellations are the detections written back above.
+        dataset_folder=out / "detections" if prepared.pixels is not None else Path(replayed.dataset),
+        labels_file=replayed.labels_file,
         links=LinkReport(
             settings.link.rate_kbps, settings.link.latency_ms, settings.schedule_unit, sorted(link_events)
         )

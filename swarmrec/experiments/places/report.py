@@ -6,12 +6,18 @@ as the deployment read them at the end of the run, not from a formula:
 (``swarmrec_message_bytes_sent_total{scope="swarm"}``). The summary is a typed
 record (:class:`PlacesSummary`); ``summary.json`` is its dictionary. The files
 are described in docs/swarm.md ("The main job").
+
+The loop-closure funnel (``funnel.csv``, ``funnel_queries.csv``, ``funnel`` in the
+summary, ``funnel.png``) is read from the query reports the descriptors sent
+back: where each candidate of each query stopped, and why (docs/swarm.md, "Why
+was a loop closure not found"); the run checks that it adds up.
 """
 
 from __future__ import annotations
 
 import csv
 import json
+from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,24 +26,27 @@ import numpy as np
 import numpy.typing as npt
 
 from swarmrec.client import IndexState
+from swarmrec.core.funnel import Reason, Stage, passed_stages
 from swarmrec.core.presets import Preset
 from swarmrec.core.types import ConstellationSequence, Trajectory
 from swarmrec.datasets.constellations import label_counts
 from swarmrec.deployments.metrics import Scrape
 from swarmrec.evaluation.bandwidth import HolderLoad
 from swarmrec.evaluation.groundtruth import ground_truth
-from swarmrec.evaluation.plots import plot_bytes, plot_holder_load, plot_pr, plot_similarity
+from swarmrec.evaluation.plots import plot_bytes, plot_funnel, plot_holder_load, plot_pr, plot_similarity
 from swarmrec.evaluation.pr import PRCurve, precision_recall
 from swarmrec.evaluation.scoring import ScoreMatrix, decentralized_marks, score_decentralized
 from swarmrec.experiments.places.replay import Replay
 from swarmrec.experiments.places.settings import PlacesSettings
 from swarmrec.wire import messages as pb
+from swarmrec.wire.codec import outcomes_from_proto
 
 __all__ = [
     "ByteStats",
     "ClosureStats",
     "DatasetInfo",
     "DetectorFigures",
+    "FunnelStats",
     "OfflineCheck",
     "PairStats",
     "PlacesSummary",
@@ -56,6 +65,10 @@ class DatasetInfo:
     frames: int
     labels: int
     groundtruth: bool
+    #: The constellation files the detectors replayed (or the detections read back), and
+    #: their label list ("": COCO): what ``swarmrec explain`` reads again.
+    folder: str = ""
+    labels_file: str = ""
 
 
 @dataclass
@@ -108,9 +121,12 @@ class ByteStats:
 class ShardLoad:
     partial_queries: list[int]
     balance_ratio: float
+    #: The shards' own counters at the end (a shard that died or restarted lost its count).
+    scraped: list[int] = field(default_factory=list)
     note: str = (
-        "partial queries served per index shard (swarmrec_shard_partial_queries_total); "
-        "balance_ratio is the busiest shard over the mean"
+        "partial queries each index shard answered, counted from the query reports (which shard "
+        "answered each label group), so a shard killed mid-run keeps its count; scraped: the shards' "
+        "swarmrec_shard_partial_queries_total at the end; balance_ratio is the busiest shard over the mean"
     )
 
 
@@ -207,6 +223,43 @@ class DetectorFigures:
 
 
 @dataclass
+class FunnelStats:
+    """The loop-closure funnel of every query of the run (docs/swarm.md)."""
+
+    frames: int
+    queried: int
+    #: Frames with fewer objects than the preset's min_objects: not queried.
+    too_few_objects: int
+    #: Candidates the shards returned, every shard's counted (a frame two shards
+    #: returned counts twice), and the distinct frames among them per query.
+    candidates_returned: int
+    distinct_candidates: int
+    #: Distinct candidates by the stage and by the reason they stopped at.
+    by_stage: dict[str, int]
+    by_reason: dict[str, int]
+    #: By querying robot, then reason.
+    by_robot: dict[str, dict[str, int]]
+    #: Candidates left after each stage (returned, robot chosen, verifier answered, matched, accepted).
+    levels: list[tuple[str, int]]
+    accepted: int
+    #: accepted == the loop closures the descriptors hold.
+    accepted_equals_loop_closures: bool
+    #: Queries whose funnel does not add up (shard counts against n_candidates, one outcome
+    #: per distinct candidate, a reason for each, at most one accepted); 0 when it does.
+    inconsistent_queries: int
+    #: swarmrec_funnel_candidates_total by reason, scraped from the descriptors.
+    scraped_by_reason: dict[str, float]
+    #: Mean serialized QueryReport, with and without the funnel's fields, bytes.
+    report_bytes_mean: float
+    report_bytes_mean_without_funnel: float
+    note: str = (
+        "each distinct candidate of a query ends at exactly one stage (shard, selection, verification, "
+        "closure); a report travels from the descriptor to its own detector and to listeners of "
+        "events/query, never between robots, so the funnel adds no byte between robots"
+    )
+
+
+@dataclass
 class PlacesSummary:
     """Everything a run reports; ``summary.json`` holds :meth:`to_dict`."""
 
@@ -228,6 +281,7 @@ class PlacesSummary:
     links: LinkReport | None = None
     detector: DetectorFigures | None = None
     index: IndexSummary | None = None
+    funnel: FunnelStats | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The summary as JSON-ready data; optional parts absent from the run are left out."""
@@ -357,6 +411,9 @@ class RunRecord:
     index: IndexState | None = None
     detector: DetectorFigures | None = None
     links: LinkReport | None = None
+    #: Where the replayed constellations are on disk, and their label list (None: COCO).
+    dataset_folder: Path | None = None
+    labels_file: Path | None = None
 
 
 def _index_summary(state: IndexState, metrics: Scrape, replicas: int) -> IndexSummary:
@@ -380,8 +437,9 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
     matrix, conflicts = pair_matrix(replay.reports, wire_seq, run.blocks, run.preset)
     queried = [r for r in replay.reports if r.queried]
     n_slots = settings.robots * max((len(b) for b in run.blocks), default=0)
-    shard_load = metrics.per_service("swarmrec_shard_partial_queries_total", "index-shard")
-    loads = [int(shard_load.get(r, 0)) for r in range(settings.robots)]
+    scraped = metrics.per_service("swarmrec_shard_partial_queries_total", "index-shard")
+    answered = Counter(sc.robot_id for r in queried for sc in r.shard_candidates)
+    loads = [int(answered.get(r, 0)) for r in range(settings.robots)]
     mean_load = float(np.mean(loads)) if loads else 0.0
     missing_by_robot: dict[str, int] = {}
     for r, _t in replay.missing:
@@ -393,6 +451,8 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
             frames=len(seq),
             labels=seq.n_labels,
             groundtruth=run.trajectory is not None,
+            folder=str(run.dataset_folder.resolve()) if run.dataset_folder else "",
+            labels_file=str(run.labels_file.resolve()) if run.labels_file else "",
         ),
         swarm=SwarmInfo(
             robots=settings.robots,
@@ -420,6 +480,7 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
         shard_load=ShardLoad(
             partial_queries=loads,
             balance_ratio=float(max(loads) / mean_load) if mean_load > 0 else 0.0,
+            scraped=[int(scraped.get(r, 0)) for r in range(settings.robots)],
         ),
         rejected_requests=metrics.total("swarmrec_rejected_requests_total"),
         peer_failures=metrics.by_label("swarmrec_peer_failures_total", "reason"),
@@ -438,6 +499,7 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
         summary.detector = _detector_figures(run.detector, metrics)
     if run.index is not None:
         summary.index = _index_summary(run.index, metrics, settings.index.replicas)
+    summary.funnel = funnel_stats(replay.reports, run.closures, metrics)
     # Frames delivered late were stored after their step: the lock-step identity is off then.
     if settings.check_offline and settings.lockstep and not replay.missing and not replay.late:
         summary.offline_check = _compare_offline(matrix, wire_seq, settings.robots, run.preset, run.bounds)
@@ -454,6 +516,7 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
             summary.positions_effect = _positions_effect(run, settings.robots, gt.closures)
     _write_pairs(out / "pairs.csv", matrix, wire_seq)
     _write_closures(out / "loop_closures.csv", run.closures, run.blocks, seq, truth)
+    write_funnel(out, replay.reports, run.closures, run.blocks, seq)
     if settings.plots:
         _plots(settings, summary, dense, curves, wire_seq, run.bounds, loads)
     (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
@@ -537,3 +600,166 @@ def _plots(
     load = HolderLoad(bounds=[int(b) for b in bounds], partial_queries=loads, labels=labels, objects=objects)
     plot_holder_load(load, counts, seq.label_names, out / "shard_load.png")
     plot_bytes(summary.bytes.per_query_by_message, out / "bytes_per_query.png")
+    if summary.funnel is not None:
+        plot_funnel(
+            summary.funnel.levels,
+            {int(r): stops for r, stops in summary.funnel.by_robot.items()},
+            out / "funnel.png",
+            order=[r.label for r in reversed(Reason)],
+        )
+
+
+# --- the loop-closure funnel ---------------------------------------------------------
+
+
+def _funnel_fields_cleared(report: pb.QueryReport) -> pb.QueryReport:
+    bare = pb.QueryReport()
+    bare.CopyFrom(report)
+    for name in ("n_objects", "shard_candidates", "candidates"):
+        bare.ClearField(name)
+    return bare
+
+
+def _adds_up(report: pb.QueryReport) -> bool:
+    """One query's funnel is consistent: the shards' counts sum to n_candidates, each
+    distinct candidate has one known reason, and at most one is the loop closure."""
+    outcomes = outcomes_from_proto(report)
+    keys = [(o.robot, o.frame) for o in outcomes]
+    returned = sum(s.n_candidates for s in report.shard_candidates)
+    return (
+        returned == report.n_candidates
+        and len(set(keys)) == len(keys) <= returned
+        and all(o.reason != Reason.UNSPECIFIED for o in outcomes)
+        and sum(o.reason == Reason.ACCEPTED for o in outcomes) <= 1
+        and (report.queried or not outcomes)
+    )
+
+
+def funnel_stats(
+    reports: list[pb.QueryReport], closures: list[pb.LoopClosure], metrics: Scrape
+) -> FunnelStats:
+    """The funnel of ``reports``, checked against the loop closures the descriptors hold."""
+    reasons: Counter[Reason] = Counter()
+    by_robot: dict[str, Counter[str]] = {}
+    for rep in reports:
+        mine = by_robot.setdefault(str(rep.robot_id), Counter())
+        for o in outcomes_from_proto(rep):
+            reasons[o.reason] += 1
+            mine[o.reason.label] += 1
+    stages: Counter[str] = Counter()
+    for reason, n in reasons.items():
+        stages[reason.stage.label] += n
+    sizes = [len(r.SerializeToString()) for r in reports]
+    bare = [len(_funnel_fields_cleared(r).SerializeToString()) for r in reports]
+    queried = sum(r.queried for r in reports)
+    return FunnelStats(
+        frames=len(reports),
+        queried=queried,
+        too_few_objects=len(reports) - queried,
+        candidates_returned=sum(r.n_candidates for r in reports),
+        distinct_candidates=sum(reasons.values()),
+        by_stage={s.label: stages[s.label] for s in Stage if stages[s.label]},
+        by_reason={r.label: reasons[r] for r in Reason if reasons[r]},
+        by_robot={
+            r: {x.label: c[x.label] for x in Reason if c[x.label]}
+            for r, c in sorted(by_robot.items(), key=lambda kv: int(kv[0]))
+        },
+        levels=passed_stages(reasons.elements()),
+        accepted=reasons[Reason.ACCEPTED],
+        accepted_equals_loop_closures=reasons[Reason.ACCEPTED] == len(closures),
+        inconsistent_queries=sum(not _adds_up(r) for r in reports),
+        scraped_by_reason=metrics.by_label("swarmrec_funnel_candidates_total", "reason"),
+        report_bytes_mean=float(np.mean(sizes)) if sizes else 0.0,
+        report_bytes_mean_without_funnel=float(np.mean(bare)) if bare else 0.0,
+    )
+
+
+#: funnel.csv's columns: one row per distinct candidate of each query.
+FUNNEL_COLUMNS = (
+    "query_robot",
+    "query_frame",
+    "candidate_robot",
+    "candidate_frame",
+    "stage",
+    "reason",
+    "score",
+    "query_frame_id",
+    "candidate_frame_id",
+)
+#: funnel_queries.csv's columns: one row per frame a descriptor reported on.
+QUERY_COLUMNS = (
+    "robot",
+    "frame",
+    "frame_id",
+    "queried",
+    "n_objects",
+    "n_candidates",
+    "shard_candidates",
+    "failed_shards",
+    "verified_robots",
+    "failed_verifiers",
+    "loop_closure",
+)
+
+#: Reasons of a candidate that was never scored (no score column).
+_NOT_SCORED = frozenset({Reason.ROBOT_NOT_CHOSEN, Reason.VERIFIER_UNREACHABLE, Reason.VERIFIER_TIMEOUT,
+                         Reason.VERIFIER_ERROR, Reason.BELOW_SHARD_CUT})  # fmt: skip
+
+
+def _frame_id(seq: ConstellationSequence, blocks: list[range], robot: int, frame: int) -> str:
+    if robot < len(blocks) and frame < len(blocks[robot]):
+        return seq.frame_ids[blocks[robot][frame]]
+    return ""
+
+
+def write_funnel(
+    out: Path,
+    reports: list[pb.QueryReport],
+    closures: list[pb.LoopClosure],
+    blocks: list[range],
+    seq: ConstellationSequence,
+) -> None:
+    """``funnel.csv`` (every candidate of every query, where it stopped) and
+    ``funnel_queries.csv`` (every frame: queried or why not, what each shard returned,
+    who verified, its loop closure)."""
+    ordered = sorted(reports, key=lambda r: (r.robot_id, r.frame_index))
+    closure_of = {(c.query_robot_id, c.query_frame_index): c for c in closures}
+    with (out / "funnel.csv").open("w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f)
+        w.writerow(FUNNEL_COLUMNS)
+        for rep in ordered:
+            q_id = _frame_id(seq, blocks, rep.robot_id, rep.frame_index)
+            for o in outcomes_from_proto(rep):
+                w.writerow(
+                    [
+                        rep.robot_id,
+                        rep.frame_index,
+                        o.robot,
+                        o.frame,
+                        o.stage.label,
+                        o.reason.label,
+                        "" if o.reason in _NOT_SCORED else repr(o.score),
+                        q_id,
+                        _frame_id(seq, blocks, o.robot, o.frame),
+                    ]
+                )
+    with (out / "funnel_queries.csv").open("w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f)
+        w.writerow(QUERY_COLUMNS)
+        for rep in ordered:
+            c = closure_of.get((rep.robot_id, rep.frame_index))
+            w.writerow(
+                [
+                    rep.robot_id,
+                    rep.frame_index,
+                    _frame_id(seq, blocks, rep.robot_id, rep.frame_index),
+                    int(rep.queried),
+                    rep.n_objects,
+                    rep.n_candidates,
+                    " ".join(f"{s.robot_id}:{s.n_candidates}" for s in rep.shard_candidates),
+                    " ".join(str(r) for r in rep.failed_shard_robot_ids),
+                    " ".join(str(r) for r in rep.verified_robot_ids),
+                    " ".join(str(r) for r in rep.failed_verifier_robot_ids),
+                    "" if c is None else f"{c.match_robot_id}:{c.match_frame_index}",
+                ]
+            )

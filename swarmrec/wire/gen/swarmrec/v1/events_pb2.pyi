@@ -1,10 +1,40 @@
 from google.protobuf.internal import containers as _containers
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
 from collections.abc import Iterable as _Iterable, Mapping as _Mapping
 from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 
 DESCRIPTOR: _descriptor.FileDescriptor
+
+class FunnelReason(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    FUNNEL_REASON_UNSPECIFIED: _ClassVar[FunnelReason]
+    FUNNEL_REASON_BELOW_SHARD_CUT: _ClassVar[FunnelReason]
+    FUNNEL_REASON_ROBOT_NOT_CHOSEN: _ClassVar[FunnelReason]
+    FUNNEL_REASON_VERIFIER_UNREACHABLE: _ClassVar[FunnelReason]
+    FUNNEL_REASON_VERIFIER_TIMEOUT: _ClassVar[FunnelReason]
+    FUNNEL_REASON_VERIFIER_ERROR: _ClassVar[FunnelReason]
+    FUNNEL_REASON_TOO_FEW_MATCHES: _ClassVar[FunnelReason]
+    FUNNEL_REASON_MATCHED: _ClassVar[FunnelReason]
+    FUNNEL_REASON_BELOW_SCORE_THRESHOLD: _ClassVar[FunnelReason]
+    FUNNEL_REASON_OWN_RECENT_FRAME: _ClassVar[FunnelReason]
+    FUNNEL_REASON_OUTRANKED: _ClassVar[FunnelReason]
+    FUNNEL_REASON_ALREADY_CLOSED: _ClassVar[FunnelReason]
+    FUNNEL_REASON_ACCEPTED: _ClassVar[FunnelReason]
+FUNNEL_REASON_UNSPECIFIED: FunnelReason
+FUNNEL_REASON_BELOW_SHARD_CUT: FunnelReason
+FUNNEL_REASON_ROBOT_NOT_CHOSEN: FunnelReason
+FUNNEL_REASON_VERIFIER_UNREACHABLE: FunnelReason
+FUNNEL_REASON_VERIFIER_TIMEOUT: FunnelReason
+FUNNEL_REASON_VERIFIER_ERROR: FunnelReason
+FUNNEL_REASON_TOO_FEW_MATCHES: FunnelReason
+FUNNEL_REASON_MATCHED: FunnelReason
+FUNNEL_REASON_BELOW_SCORE_THRESHOLD: FunnelReason
+FUNNEL_REASON_OWN_RECENT_FRAME: FunnelReason
+FUNNEL_REASON_OUTRANKED: FunnelReason
+FUNNEL_REASON_ALREADY_CLOSED: FunnelReason
+FUNNEL_REASON_ACCEPTED: FunnelReason
 
 class LoopClosure(_message.Message):
     __slots__ = ("query_robot_id", "query_frame_index", "match_robot_id", "match_frame_index", "score", "semantic_score", "n_matched", "unix_time_ns")
@@ -41,7 +71,7 @@ class VerifiedPair(_message.Message):
     def __init__(self, match_robot_id: _Optional[int] = ..., match_frame_index: _Optional[int] = ..., score: _Optional[float] = ..., semantic_score: _Optional[float] = ..., n_matched: _Optional[int] = ...) -> None: ...
 
 class QueryReport(_message.Message):
-    __slots__ = ("robot_id", "frame_index", "queried", "matches", "verified_robot_ids", "failed_shard_robot_ids", "failed_verifier_robot_ids", "n_candidates", "duration_us")
+    __slots__ = ("robot_id", "frame_index", "queried", "matches", "verified_robot_ids", "failed_shard_robot_ids", "failed_verifier_robot_ids", "n_candidates", "duration_us", "n_objects", "shard_candidates", "candidates")
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     FRAME_INDEX_FIELD_NUMBER: _ClassVar[int]
     QUERIED_FIELD_NUMBER: _ClassVar[int]
@@ -51,6 +81,9 @@ class QueryReport(_message.Message):
     FAILED_VERIFIER_ROBOT_IDS_FIELD_NUMBER: _ClassVar[int]
     N_CANDIDATES_FIELD_NUMBER: _ClassVar[int]
     DURATION_US_FIELD_NUMBER: _ClassVar[int]
+    N_OBJECTS_FIELD_NUMBER: _ClassVar[int]
+    SHARD_CANDIDATES_FIELD_NUMBER: _ClassVar[int]
+    CANDIDATES_FIELD_NUMBER: _ClassVar[int]
     robot_id: int
     frame_index: int
     queried: bool
@@ -60,4 +93,25 @@ class QueryReport(_message.Message):
     failed_verifier_robot_ids: _containers.RepeatedScalarFieldContainer[int]
     n_candidates: int
     duration_us: int
-    def __init__(self, robot_id: _Optional[int] = ..., frame_index: _Optional[int] = ..., queried: _Optional[bool] = ..., matches: _Optional[_Iterable[_Union[VerifiedPair, _Mapping]]] = ..., verified_robot_ids: _Optional[_Iterable[int]] = ..., failed_shard_robot_ids: _Optional[_Iterable[int]] = ..., failed_verifier_robot_ids: _Optional[_Iterable[int]] = ..., n_candidates: _Optional[int] = ..., duration_us: _Optional[int] = ...) -> None: ...
+    n_objects: int
+    shard_candidates: _containers.RepeatedCompositeFieldContainer[ShardCandidates]
+    candidates: _containers.RepeatedCompositeFieldContainer[CandidateOutcome]
+    def __init__(self, robot_id: _Optional[int] = ..., frame_index: _Optional[int] = ..., queried: _Optional[bool] = ..., matches: _Optional[_Iterable[_Union[VerifiedPair, _Mapping]]] = ..., verified_robot_ids: _Optional[_Iterable[int]] = ..., failed_shard_robot_ids: _Optional[_Iterable[int]] = ..., failed_verifier_robot_ids: _Optional[_Iterable[int]] = ..., n_candidates: _Optional[int] = ..., duration_us: _Optional[int] = ..., n_objects: _Optional[int] = ..., shard_candidates: _Optional[_Iterable[_Union[ShardCandidates, _Mapping]]] = ..., candidates: _Optional[_Iterable[_Union[CandidateOutcome, _Mapping]]] = ...) -> None: ...
+
+class ShardCandidates(_message.Message):
+    __slots__ = ("robot_id", "n_candidates")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    N_CANDIDATES_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    n_candidates: int
+    def __init__(self, robot_id: _Optional[int] = ..., n_candidates: _Optional[int] = ...) -> None: ...
+
+class CandidateOutcome(_message.Message):
+    __slots__ = ("robot_id", "frame_index", "reason")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    FRAME_INDEX_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    frame_index: int
+    reason: FunnelReason
+    def __init__(self, robot_id: _Optional[int] = ..., frame_index: _Optional[int] = ..., reason: _Optional[_Union[FunnelReason, str]] = ...) -> None: ...

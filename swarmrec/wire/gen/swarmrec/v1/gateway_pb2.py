@@ -29,7 +29,7 @@ from . import health_pb2 as swarmrec_dot_v1_dot_health__pb2
 from . import replay_pb2 as swarmrec_dot_v1_dot_replay__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x19swarmrec/v1/gateway.proto\x12\x0bswarmrec.v1\x1a\x1fswarmrec/v1/constellation.proto\x1a\x18swarmrec/v1/events.proto\x1a\x18swarmrec/v1/fusion.proto\x1a\x18swarmrec/v1/health.proto\x1a\x18swarmrec/v1/replay.proto\"\x10\n\x0eMembersRequest\"8\n\x0cMembersReply\x12(\n\x07members\x18\x01 \x03(\x0b\x32\x17.swarmrec.v1.MemberInfo\"Q\n\x0cQueryRequest\x12\x31\n\rconstellation\x18\x01 \x01(\x0b\x32\x1a.swarmrec.v1.Constellation\x12\x0e\n\x06preset\x18\x02 \x01(\t\"\xc2\x01\n\nQueryReply\x12*\n\x07matches\x18\x01 \x03(\x0b\x32\x19.swarmrec.v1.VerifiedPair\x12\x14\n\x0cn_candidates\x18\x02 \x01(\r\x12\x1a\n\x12verified_robot_ids\x18\x03 \x03(\r\x12\x1e\n\x16\x66\x61iled_shard_robot_ids\x18\x04 \x03(\r\x12!\n\x19\x66\x61iled_verifier_robot_ids\x18\x05 \x03(\r\x12\x13\n\x0b\x64uration_us\x18\x06 \x01(\r\"?\n\x18RobotLoopClosuresRequest\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x11\n\tmin_score\x18\x02 \x01(\x02\"\x0f\n\rStatusRequest\"\xfd\x01\n\x0bStatusReply\x12\r\n\x05swarm\x18\x01 \x01(\t\x12\x0f\n\x07version\x18\x02 \x01(\t\x12\x0f\n\x07serving\x18\x03 \x01(\x08\x12\x10\n\x08n_robots\x18\x04 \x01(\r\x12\x46\n\x10services_by_kind\x18\x05 \x03(\x0b\x32,.swarmrec.v1.StatusReply.ServicesByKindEntry\x12\x16\n\x0ezenoh_security\x18\x06 \x01(\t\x12\x14\n\x0copen_streams\x18\x07 \x01(\r\x1a\x35\n\x13ServicesByKindEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\r:\x02\x38\x01\"!\n\x0cWatchRequest\x12\x11\n\trobot_ids\x18\x01 \x03(\r\"A\n\x10MembershipChange\x12\x0c\n\x04kind\x18\x01 \x01(\t\x12\x10\n\x08robot_id\x18\x02 \x01(\r\x12\r\n\x05\x61live\x18\x03 \x01(\x08\x32\xd1\x04\n\x0cSwarmGateway\x12\x41\n\x07Members\x12\x1b.swarmrec.v1.MembersRequest\x1a\x19.swarmrec.v1.MembersReply\x12;\n\x05Query\x12\x19.swarmrec.v1.QueryRequest\x1a\x17.swarmrec.v1.QueryReply\x12S\n\x0cLoopClosures\x12%.swarmrec.v1.RobotLoopClosuresRequest\x1a\x1c.swarmrec.v1.LoopClosureList\x12>\n\x06Status\x12\x1a.swarmrec.v1.StatusRequest\x1a\x18.swarmrec.v1.StatusReply\x12J\n\x11WatchLoopClosures\x12\x19.swarmrec.v1.WatchRequest\x1a\x18.swarmrec.v1.LoopClosure0\x01\x12J\n\x11WatchQueryReports\x12\x19.swarmrec.v1.WatchRequest\x1a\x18.swarmrec.v1.QueryReport0\x01\x12\x45\n\x0bWatchFusion\x12\x19.swarmrec.v1.WatchRequest\x1a\x19.swarmrec.v1.FusionUpdate0\x01\x12M\n\x0fWatchMembership\x12\x19.swarmrec.v1.WatchRequest\x1a\x1d.swarmrec.v1.MembershipChange0\x01\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x19swarmrec/v1/gateway.proto\x12\x0bswarmrec.v1\x1a\x1fswarmrec/v1/constellation.proto\x1a\x18swarmrec/v1/events.proto\x1a\x18swarmrec/v1/fusion.proto\x1a\x18swarmrec/v1/health.proto\x1a\x18swarmrec/v1/replay.proto\"\x10\n\x0eMembersRequest\"8\n\x0cMembersReply\x12(\n\x07members\x18\x01 \x03(\x0b\x32\x17.swarmrec.v1.MemberInfo\"Q\n\x0cQueryRequest\x12\x31\n\rconstellation\x18\x01 \x01(\x0b\x32\x1a.swarmrec.v1.Constellation\x12\x0e\n\x06preset\x18\x02 \x01(\t\"\xc2\x01\n\nQueryReply\x12*\n\x07matches\x18\x01 \x03(\x0b\x32\x19.swarmrec.v1.VerifiedPair\x12\x14\n\x0cn_candidates\x18\x02 \x01(\r\x12\x1a\n\x12verified_robot_ids\x18\x03 \x03(\r\x12\x1e\n\x16\x66\x61iled_shard_robot_ids\x18\x04 \x03(\r\x12!\n\x19\x66\x61iled_verifier_robot_ids\x18\x05 \x03(\r\x12\x13\n\x0b\x64uration_us\x18\x06 \x01(\r\"?\n\x18RobotLoopClosuresRequest\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x11\n\tmin_score\x18\x02 \x01(\x02\"Q\n\x13RobotExplainRequest\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x18\n\x0b\x66rame_index\x18\x02 \x01(\rH\x00\x88\x01\x01\x42\x0e\n\x0c_frame_index\"\x0f\n\rStatusRequest\"\xfd\x01\n\x0bStatusReply\x12\r\n\x05swarm\x18\x01 \x01(\t\x12\x0f\n\x07version\x18\x02 \x01(\t\x12\x0f\n\x07serving\x18\x03 \x01(\x08\x12\x10\n\x08n_robots\x18\x04 \x01(\r\x12\x46\n\x10services_by_kind\x18\x05 \x03(\x0b\x32,.swarmrec.v1.StatusReply.ServicesByKindEntry\x12\x16\n\x0ezenoh_security\x18\x06 \x01(\t\x12\x14\n\x0copen_streams\x18\x07 \x01(\r\x1a\x35\n\x13ServicesByKindEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\r:\x02\x38\x01\"!\n\x0cWatchRequest\x12\x11\n\trobot_ids\x18\x01 \x03(\r\"A\n\x10MembershipChange\x12\x0c\n\x04kind\x18\x01 \x01(\t\x12\x10\n\x08robot_id\x18\x02 \x01(\r\x12\r\n\x05\x61live\x18\x03 \x01(\x08\x32\x99\x05\n\x0cSwarmGateway\x12\x41\n\x07Members\x12\x1b.swarmrec.v1.MembersRequest\x1a\x19.swarmrec.v1.MembersReply\x12;\n\x05Query\x12\x19.swarmrec.v1.QueryRequest\x1a\x17.swarmrec.v1.QueryReply\x12S\n\x0cLoopClosures\x12%.swarmrec.v1.RobotLoopClosuresRequest\x1a\x1c.swarmrec.v1.LoopClosureList\x12\x46\n\x07\x45xplain\x12 .swarmrec.v1.RobotExplainRequest\x1a\x19.swarmrec.v1.ExplainReply\x12>\n\x06Status\x12\x1a.swarmrec.v1.StatusRequest\x1a\x18.swarmrec.v1.StatusReply\x12J\n\x11WatchLoopClosures\x12\x19.swarmrec.v1.WatchRequest\x1a\x18.swarmrec.v1.LoopClosure0\x01\x12J\n\x11WatchQueryReports\x12\x19.swarmrec.v1.WatchRequest\x1a\x18.swarmrec.v1.QueryReport0\x01\x12\x45\n\x0bWatchFusion\x12\x19.swarmrec.v1.WatchRequest\x1a\x19.swarmrec.v1.FusionUpdate0\x01\x12M\n\x0fWatchMembership\x12\x19.swarmrec.v1.WatchRequest\x1a\x1d.swarmrec.v1.MembershipChange0\x01\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -48,16 +48,18 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_QUERYREPLY']._serialized_end=533
   _globals['_ROBOTLOOPCLOSURESREQUEST']._serialized_start=535
   _globals['_ROBOTLOOPCLOSURESREQUEST']._serialized_end=598
-  _globals['_STATUSREQUEST']._serialized_start=600
-  _globals['_STATUSREQUEST']._serialized_end=615
-  _globals['_STATUSREPLY']._serialized_start=618
-  _globals['_STATUSREPLY']._serialized_end=871
-  _globals['_STATUSREPLY_SERVICESBYKINDENTRY']._serialized_start=818
-  _globals['_STATUSREPLY_SERVICESBYKINDENTRY']._serialized_end=871
-  _globals['_WATCHREQUEST']._serialized_start=873
-  _globals['_WATCHREQUEST']._serialized_end=906
-  _globals['_MEMBERSHIPCHANGE']._serialized_start=908
-  _globals['_MEMBERSHIPCHANGE']._serialized_end=973
-  _globals['_SWARMGATEWAY']._serialized_start=976
-  _globals['_SWARMGATEWAY']._serialized_end=1569
+  _globals['_ROBOTEXPLAINREQUEST']._serialized_start=600
+  _globals['_ROBOTEXPLAINREQUEST']._serialized_end=681
+  _globals['_STATUSREQUEST']._serialized_start=683
+  _globals['_STATUSREQUEST']._serialized_end=698
+  _globals['_STATUSREPLY']._serialized_start=701
+  _globals['_STATUSREPLY']._serialized_end=954
+  _globals['_STATUSREPLY_SERVICESBYKINDENTRY']._serialized_start=901
+  _globals['_STATUSREPLY_SERVICESBYKINDENTRY']._serialized_end=954
+  _globals['_WATCHREQUEST']._serialized_start=956
+  _globals['_WATCHREQUEST']._serialized_end=989
+  _globals['_MEMBERSHIPCHANGE']._serialized_start=991
+  _globals['_MEMBERSHIPCHANGE']._serialized_end=1056
+  _globals['_SWARMGATEWAY']._serialized_start=1059
+  _globals['_SWARMGATEWAY']._serialized_end=1724
 # @@protoc_insertion_point(module_scope)

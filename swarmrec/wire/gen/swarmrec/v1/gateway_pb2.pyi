@@ -53,6 +53,14 @@ class RobotLoopClosuresRequest(_message.Message):
     min_score: float
     def __init__(self, robot_id: _Optional[int] = ..., min_score: _Optional[float] = ...) -> None: ...
 
+class RobotExplainRequest(_message.Message):
+    __slots__ = ("robot_id", "frame_index")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    FRAME_INDEX_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    frame_index: int
+    def __init__(self, robot_id: _Optional[int] = ..., frame_index: _Optional[int] = ...) -> None: ...
+
 class StatusRequest(_message.Message):
     __slots__ = ()
     def __init__(self) -> None: ...

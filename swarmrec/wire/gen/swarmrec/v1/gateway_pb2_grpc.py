@@ -56,6 +56,11 @@ class SwarmGatewayStub:
                 request_serializer=swarmrec_dot_v1_dot_gateway__pb2.RobotLoopClosuresRequest.SerializeToString,
                 response_deserializer=swarmrec_dot_v1_dot_replay__pb2.LoopClosureList.FromString,
                 _registered_method=True)
+        self.Explain = channel.unary_unary(
+                '/swarmrec.v1.SwarmGateway/Explain',
+                request_serializer=swarmrec_dot_v1_dot_gateway__pb2.RobotExplainRequest.SerializeToString,
+                response_deserializer=swarmrec_dot_v1_dot_replay__pb2.ExplainReply.FromString,
+                _registered_method=True)
         self.Status = channel.unary_unary(
                 '/swarmrec.v1.SwarmGateway/Status',
                 request_serializer=swarmrec_dot_v1_dot_gateway__pb2.StatusRequest.SerializeToString,
@@ -106,6 +111,14 @@ class SwarmGatewayServicer:
 
     def LoopClosures(self, request, context):
         """The loop closures one robot has found, oldest first.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def Explain(self, request, context):
+        """What one robot's query of one of its frames did: its report, with where each
+        candidate stopped in the loop-closure funnel (the robot's descriptor's explain).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -163,6 +176,11 @@ def add_SwarmGatewayServicer_to_server(servicer, server):
                     servicer.LoopClosures,
                     request_deserializer=swarmrec_dot_v1_dot_gateway__pb2.RobotLoopClosuresRequest.FromString,
                     response_serializer=swarmrec_dot_v1_dot_replay__pb2.LoopClosureList.SerializeToString,
+            ),
+            'Explain': grpc.unary_unary_rpc_method_handler(
+                    servicer.Explain,
+                    request_deserializer=swarmrec_dot_v1_dot_gateway__pb2.RobotExplainRequest.FromString,
+                    response_serializer=swarmrec_dot_v1_dot_replay__pb2.ExplainReply.SerializeToString,
             ),
             'Status': grpc.unary_unary_rpc_method_handler(
                     servicer.Status,
@@ -275,6 +293,33 @@ class SwarmGateway:
             '/swarmrec.v1.SwarmGateway/LoopClosures',
             swarmrec_dot_v1_dot_gateway__pb2.RobotLoopClosuresRequest.SerializeToString,
             swarmrec_dot_v1_dot_replay__pb2.LoopClosureList.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Explain(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/swarmrec.v1.SwarmGateway/Explain',
+            swarmrec_dot_v1_dot_gateway__pb2.RobotExplainRequest.SerializeToString,
+            swarmrec_dot_v1_dot_replay__pb2.ExplainReply.FromString,
             options,
             channel_credentials,
             insecure,

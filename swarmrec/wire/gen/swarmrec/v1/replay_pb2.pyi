@@ -1,11 +1,23 @@
 from . import events_pb2 as _events_pb2
 from google.protobuf.internal import containers as _containers
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
 from collections.abc import Iterable as _Iterable, Mapping as _Mapping
 from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 
 DESCRIPTOR: _descriptor.FileDescriptor
+
+class ReportStatus(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    REPORT_STATUS_UNSPECIFIED: _ClassVar[ReportStatus]
+    REPORT_STATUS_HELD: _ClassVar[ReportStatus]
+    REPORT_STATUS_AGED_OUT: _ClassVar[ReportStatus]
+    REPORT_STATUS_NOT_SEEN: _ClassVar[ReportStatus]
+REPORT_STATUS_UNSPECIFIED: ReportStatus
+REPORT_STATUS_HELD: ReportStatus
+REPORT_STATUS_AGED_OUT: ReportStatus
+REPORT_STATUS_NOT_SEEN: ReportStatus
 
 class StepRequest(_message.Message):
     __slots__ = ("step",)
@@ -64,3 +76,37 @@ class LoopClosureList(_message.Message):
     robot_id: int
     loop_closures: _containers.RepeatedCompositeFieldContainer[_events_pb2.LoopClosure]
     def __init__(self, robot_id: _Optional[int] = ..., loop_closures: _Optional[_Iterable[_Union[_events_pb2.LoopClosure, _Mapping]]] = ...) -> None: ...
+
+class ExplainRequest(_message.Message):
+    __slots__ = ("frame_index",)
+    FRAME_INDEX_FIELD_NUMBER: _ClassVar[int]
+    frame_index: int
+    def __init__(self, frame_index: _Optional[int] = ...) -> None: ...
+
+class ExplainReply(_message.Message):
+    __slots__ = ("robot_id", "status", "report", "reports_kept", "reports_held", "oldest_frame_index", "newest_frame_index", "loop_closure_min_score", "exclusion", "min_objects", "n_ret", "n_fq")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    STATUS_FIELD_NUMBER: _ClassVar[int]
+    REPORT_FIELD_NUMBER: _ClassVar[int]
+    REPORTS_KEPT_FIELD_NUMBER: _ClassVar[int]
+    REPORTS_HELD_FIELD_NUMBER: _ClassVar[int]
+    OLDEST_FRAME_INDEX_FIELD_NUMBER: _ClassVar[int]
+    NEWEST_FRAME_INDEX_FIELD_NUMBER: _ClassVar[int]
+    LOOP_CLOSURE_MIN_SCORE_FIELD_NUMBER: _ClassVar[int]
+    EXCLUSION_FIELD_NUMBER: _ClassVar[int]
+    MIN_OBJECTS_FIELD_NUMBER: _ClassVar[int]
+    N_RET_FIELD_NUMBER: _ClassVar[int]
+    N_FQ_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    status: ReportStatus
+    report: _events_pb2.QueryReport
+    reports_kept: int
+    reports_held: int
+    oldest_frame_index: int
+    newest_frame_index: int
+    loop_closure_min_score: float
+    exclusion: int
+    min_objects: int
+    n_ret: int
+    n_fq: int
+    def __init__(self, robot_id: _Optional[int] = ..., status: _Optional[_Union[ReportStatus, str]] = ..., report: _Optional[_Union[_events_pb2.QueryReport, _Mapping]] = ..., reports_kept: _Optional[int] = ..., reports_held: _Optional[int] = ..., oldest_frame_index: _Optional[int] = ..., newest_frame_index: _Optional[int] = ..., loop_closure_min_score: _Optional[float] = ..., exclusion: _Optional[int] = ..., min_objects: _Optional[int] = ..., n_ret: _Optional[int] = ..., n_fq: _Optional[int] = ...) -> None: ...

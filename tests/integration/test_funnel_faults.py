@@ -1,0 +1,111 @@
+"""A verifier that stops answering shows in the loop-closure funnel, candidate by candidate.
+
+Three robots replay 300 synthetic frames in lock-step. After step 20 robot 2's
+verifier is frozen (SIGSTOP) for four steps, then thawed (SIGCONT); after step 60
+robot 1's verifier is killed (SIGKILL). Robot 2's candidates in the frozen steps
+must end at the verification stage as ``verifier_timeout``; robot 1's after the kill
+as ``verifier_unreachable``; no candidate anywhere else fails verification, and the
+funnel still adds up.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import os
+import signal
+from pathlib import Path
+
+import pytest
+
+from swarmrec.datasets.source import DatasetSource
+from swarmrec.deployments.base import Deployment
+from swarmrec.deployments.local import LocalDeployment
+from swarmrec.experiments.places import PlacesSettings, main
+
+ROBOTS, FRAMES = 3, 300
+FROZEN, THAWED, KILLED = 20, 24, 60  # after these steps
+STOPPED, DEAD = 2, 1  # whose verifier
+# Right after the kill the router may not have noticed yet: a query can still time out.
+SETTLED = KILLED + 3
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with path.open(encoding="utf-8") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.mark.slow
+def test_candidates_of_a_frozen_verifier_time_out_and_of_a_dead_one_are_unreachable(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    settings = PlacesSettings(
+        source=DatasetSource(frames=FRAMES),
+        robots=ROBOTS,
+        out=out,
+        swarm="funnel-faults",
+        request_timeout_s=2.0,
+        progress=False,
+        plots=False,
+    )
+    held: list[LocalDeployment] = []
+
+    def hook(swarm: Deployment) -> None:
+        assert isinstance(swarm, LocalDeployment)
+        held.append(swarm)
+
+    frozen: list[int] = []  # the pid of the verifier while it is stopped
+
+    def on_step(t: int) -> None:
+        if t == FROZEN:
+            frozen.append(held[0].find("verifier", STOPPED).proc.pid)
+            os.kill(frozen[0], signal.SIGSTOP)
+        elif t == THAWED:
+            os.kill(frozen.pop(), signal.SIGCONT)
+        elif t == KILLED:
+            proc = held[0].find("verifier", DEAD).proc
+            proc.send_signal(signal.SIGKILL)
+            proc.wait(timeout=10)
+
+    try:
+        summary = main(settings, swarm_hook=hook, on_step=on_step)
+    finally:
+        for pid in frozen:  # a failure between the two steps must not leave it stopped
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGCONT)
+
+    rows = _rows(out / "funnel.csv")
+    queries = {(int(q["robot"]), int(q["frame"])): q for q in _rows(out / "funnel_queries.csv")}
+    timeouts = unreachable = 0
+    for r in rows:
+        qr, step, cand = int(r["query_robot"]), int(r["query_frame"]), int(r["candidate_robot"])
+        q = queries[(qr, step)]
+        verified = cand in {int(v) for v in q["verified_robots"].split()}
+        failed = {int(v) for v in q["failed_verifiers"].split()}
+        if FROZEN < step <= THAWED and cand == STOPPED and verified:
+            assert r["reason"] == "verifier_timeout" and r["stage"] == "verification", r
+            assert STOPPED in failed
+            assert r["score"] == ""  # never scored
+            timeouts += 1
+        elif step > SETTLED and cand == DEAD and verified:
+            assert r["reason"] == "verifier_unreachable" and r["stage"] == "verification", r
+            assert DEAD in failed
+            unreachable += 1
+        elif step <= FROZEN or THAWED < step <= KILLED or (step > SETTLED and cand != DEAD):
+            assert not r["reason"].startswith("verifier_"), r
+    assert timeouts > 0 and unreachable > 0
+    # The frozen robot missed its own steps (its descriptor could not store in its verifier),
+    # the dead verifier's robot every step after the kill; the others none.
+    missing = summary.queries.missing_by_robot
+    assert (
+        set(missing) <= {str(STOPPED), str(DEAD)}
+        and missing.get(str(DEAD), 0) >= FRAMES // ROBOTS - KILLED - 2
+    )
+    funnel = summary.funnel
+    assert funnel is not None
+    assert funnel.inconsistent_queries == 0 and funnel.accepted_equals_loop_closures
+    assert funnel.by_reason.get("verifier_timeout", 0) >= timeouts
+    assert funnel.by_reason["verifier_unreachable"] >= unreachable
+    # The descriptors counted the same (a robot's counters are read before its services stop).
+    scraped = funnel.scraped_by_reason
+    assert scraped["verifier_timeout"] == funnel.by_reason.get("verifier_timeout", 0)
+    assert scraped["verifier_unreachable"] == funnel.by_reason["verifier_unreachable"]
