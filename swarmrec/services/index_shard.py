@@ -432,6 +432,7 @@ class IndexShard(ServiceBase):
         )
 
     def lookup(self, req: pb.PartialQuery, ctx: RequestContext) -> pb.CandidatesReply:
+        check_fields(req, "descriptor")
         if not req.read_only:
             raise InvalidArgument("lookup never stores: send read_only = true (descriptors use query)")
         return self.query(req, ctx)

@@ -62,7 +62,7 @@ from swarmrec.deployments.local import LocalDeployment
 from swarmrec.deployments.metrics import read_metrics
 from swarmrec.services.limits import MAX_FRAME_GAP, MAX_FRAME_INDEX, MAX_N_RET
 from swarmrec.services.registry import WORKLOADS, spec
-from swarmrec.services.settings import DetectorSettings, PlaceSettings
+from swarmrec.services.settings import DetectorSettings, IndexSettings, PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import (
     constellation_from_proto,
@@ -115,7 +115,9 @@ class Swarm:
 def seeded_swarm(tmp: Path, name: str, place: PlaceSettings, **bus: object) -> Iterator[Swarm]:
     """A running 2-robot places swarm fed SEEDED_STEPS lock-step steps of the synthetic office."""
     dataset = write_office(tmp / "dataset", n_frames=200)
-    parts = (place, DetectorSettings(dataset=str(dataset)))
+    # One replica a group: shard r holds label range r alone (the paper's layout), so a shard
+    # refuses the other's range.
+    parts = (place, IndexSettings(replicas=1), DetectorSettings(dataset=str(dataset)))
     with (
         running_swarm(tmp, name, *parts, robots=N_ROBOTS, security="insecure", **bus) as local,
         local.client(5.0) as client,
@@ -125,10 +127,12 @@ def seeded_swarm(tmp: Path, name: str, place: PlaceSettings, **bus: object) -> I
             assert sorted(r.robot_id for r in replies if isinstance(r, pb.StepReply)) == [0, 1], replies
         seq = read_constellations(dataset)
         blocks = split_frames(len(seq), N_ROBOTS)
-        # Exactly as the detector sent them (the paper preset carries exact positions).
+        # Exactly as the detector sent them (positions as the swarm's settings put them on the wire).
         probe = {r: blocks[r][PROBE_STEP] for r in range(N_ROBOTS)}
         frames = {
-            r: constellation_to_proto(seq.constellations[g], r, PROBE_STEP, seq.frame_ids[g], exact=True)
+            r: constellation_to_proto(
+                seq.constellations[g], r, PROBE_STEP, seq.frame_ids[g], exact=place.exact_positions
+            )
             for r, g in probe.items()
         }
         assert all(len(f.labels) >= 3 for f in frames.values())  # they verify against themselves
@@ -194,7 +198,13 @@ def snapshot(s: Swarm) -> dict[str, Any]:
         )
     # Every record log, byte for byte (4-byte length + protobuf per record).
     logs = sorted(s.local.data_dir.rglob("*.log"))
-    assert {p.name for p in logs} == {"index-shard.log", "verifier.log", "loop-closures.log"}
+    assert {p.name for p in logs} == {
+        "index-shard.log",
+        "verifier.log",
+        "loop-closures.log",
+        "pending-stores.log",  # the descriptors' stores waiting for a shard (none here)
+        "outbox.log",  # the detectors' frames waiting for their descriptor
+    }
     for path in logs:
         out[f"file {path.relative_to(s.local.data_dir)}"] = path.read_bytes()
     # The seeded frames are really there (the comparison is about something).
@@ -292,6 +302,10 @@ def msg_case(kind: str, robot: int, endpoint: str, make: Callable[[], Message], 
 REQUEST_OF = {
     ("index-shard", "query"): pb.PartialQuery,
     ("index-shard", "lookup"): pb.PartialQuery,
+    ("index-shard", "store"): pb.ShardStore,
+    ("index-shard", "placement"): pb.PlacementRequest,
+    ("index-shard", "adopt"): pb.AdoptRequest,
+    ("index-shard", "transfer"): pb.TransferRequest,
     ("verifier", "store"): pb.Constellation,
     ("verifier", "verify"): pb.VerifyRequest,
     ("descriptor", "process"): pb.Constellation,
@@ -308,6 +322,10 @@ assert {
 # A well-formed message of another endpoint, sent with its schema in the encoding.
 WRONG_SCHEMA: dict[type[Message], Message] = {
     pb.PartialQuery: pb.VerifyRequest(query=constellation(1)),
+    pb.ShardStore: pb.PartialQuery(descriptor=pb.PartialDescriptor(label_lo=40, label_hi=80)),
+    pb.PlacementRequest: pb.StepRequest(step=1),
+    pb.AdoptRequest: pb.StepRequest(step=1),
+    pb.TransferRequest: pb.LoopClosuresRequest(min_score=0.5),
     pb.Constellation: pb.PartialQuery(descriptor=pb.PartialDescriptor(label_lo=40, label_hi=80)),
     pb.VerifyRequest: pb.Constellation(robot_id=1, labels=[1], positions_mm=[1, 2, 3]),
     pb.LoopClosuresRequest: pb.StepRequest(step=1),
@@ -325,6 +343,12 @@ WRONG_SCHEMA: dict[type[Message], Message] = {
 # ClassifyRequest of round 0, which a replaying detector does not serve.
 NO_ENCODING_CODE: dict[type[Message], str] = {
     pb.PartialQuery: "ERROR_CODE_MALFORMED",
+    # Field 3 (a PartialQuery's descriptor), field 1 as a varint where a Placement is a
+    # message, field 1 as a fixed32 where a group is a varint: fields the schemas do not have.
+    pb.ShardStore: "ERROR_CODE_MALFORMED",
+    pb.PlacementRequest: "ERROR_CODE_MALFORMED",
+    pb.AdoptRequest: "ERROR_CODE_MALFORMED",
+    pb.TransferRequest: "ERROR_CODE_MALFORMED",
     pb.Constellation: "ERROR_CODE_INVALID_ARGUMENT",
     pb.VerifyRequest: "ERROR_CODE_MALFORMED",
     pb.LoopClosuresRequest: "ERROR_CODE_MALFORMED",
@@ -375,7 +399,8 @@ SPECIFIC: dict[tuple[str, int, str], list[tuple[str, Callable[[], Message], str]
     ("index-shard", 1, "query"): [
         ("empty payload (no descriptor)", lambda: pb.PartialQuery(), INVALID),
         ("a label range past the label list", lambda: partial(40, 90, [45], [1]), UNKNOWN),
-        ("the other shard's label range", lambda: partial(0, 40, [1], [1]), INVALID),
+        # A group another shard owns (placement version 0, one replica a group).
+        ("the other shard's label range", lambda: partial(0, 40, [1], [1]), PRECONDITION),
         ("an empty label range", lambda: partial(40, 40, [], []), INVALID),
         ("a slice with no labels", lambda: partial(40, 80, [], []), INVALID),
         ("more labels than counts", lambda: partial(40, 80, [1, 2], [1]), INVALID),
@@ -391,6 +416,28 @@ SPECIFIC: dict[tuple[str, int, str], list[tuple[str, Callable[[], Message], str]
         ("301 objects", lambda: partial(40, 80, [1, 2, 3, 4], [100, 100, 100, 1], frame_index=90), TOO_LARGE),
         ("a well-formed query over the size limit",
          lambda: big(partial(40, 80, list(range(40)) * 60, [1] * 2400)), TOO_LARGE),
+    ],
+    ("index-shard", 1, "store"): [
+        ("empty payload (no descriptor)", lambda: pb.ShardStore(), INVALID),
+        ("a placement version the shard does not follow",
+         lambda: pb.ShardStore(descriptor=partial(40, 80, [1], [1], frame_index=90).descriptor,
+                               placement_version=7), PRECONDITION),
+        ("a label group the shard does not hold",
+         lambda: pb.ShardStore(descriptor=partial(0, 40, [1], [1], frame_index=90).descriptor), PRECONDITION),
+        ("robot id >= n_robots",
+         lambda: pb.ShardStore(descriptor=partial(40, 80, [1], [1], robot_id=N_ROBOTS).descriptor), INVALID),
+    ],
+    ("index-shard", 1, "adopt"): [
+        ("empty payload (no placement)", lambda: pb.AdoptRequest(), INVALID),
+        ("a placement from a client, not from the coordinator (the lowest live shard)",
+         lambda: pb.AdoptRequest(placement=pb.Placement(
+             version=9, group_bounds=[0, 40, 80], members=[1], replicas=1,
+             groups=[pb.GroupOwners(owners=[1]), pb.GroupOwners(owners=[1])])), PRECONDITION),
+    ],
+    ("index-shard", 1, "transfer"): [
+        ("a group the swarm does not have", lambda: pb.TransferRequest(group=5), INVALID),
+        ("a start row past 2**40", lambda: pb.TransferRequest(group=1, start_row=2**40), INVALID),
+        ("a group the shard does not own", lambda: pb.TransferRequest(group=0), PRECONDITION),
     ],
     ("index-shard", 0, "query"): [
         ("a label outside the slice's range", lambda: partial(0, 40, [45], [1]), INVALID),
@@ -493,7 +540,9 @@ def test_a_bad_request_gets_its_error_code_is_counted_and_changes_nothing(swarm:
 
 
 #: Counters a valid request moves, which a store-by-store comparison leaves out.
-COUNTERS = ("stored queries", "frames queried")
+# What a valid request moves without storing anything: counters, and the descriptor's
+# memory of the reports it made (explain: a frame processed again is its newest report).
+COUNTERS = ("stored queries", "frames queried", "explain")
 
 
 def stores(snap: dict[str, Any]) -> dict[str, Any]:
