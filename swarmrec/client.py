@@ -104,6 +104,8 @@ class Member:
     stored_items: int = 0
     #: A descriptor's slices not yet acknowledged by every shard that must hold them.
     pending_items: int = 0
+    #: An index shard's label groups, [lo, hi) each (label_range is the first).
+    label_ranges: tuple[tuple[int, int], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -142,6 +144,7 @@ def member_of(info: pb.MemberInfo) -> Member:
         metrics_url=info.metrics_url,
         stored_items=info.stored_items,
         pending_items=info.pending_items,
+        label_ranges=tuple(zip(info.label_ranges[::2], info.label_ranges[1::2], strict=False)),
     )
 
 

@@ -149,7 +149,8 @@ def _members(args: argparse.Namespace) -> int:
         return 3
     print(f"{'service':<12} {'robot':>5} {'labels':>10} {'stored':>7} {'version':>8}  metrics")
     for m in members:
-        rng = f"{m.label_range[0]}-{m.label_range[1]}" if m.label_range else ""
+        # A shard's label groups (two replicas each by default, so several a shard).
+        rng = ",".join(f"{lo}-{hi}" for lo, hi in m.label_ranges)
         print(f"{m.kind:<12} {m.robot:>5} {rng:>10} {m.stored_items:>7} {m.version:>8}  {m.metrics_url}")
     return 0
 

@@ -214,6 +214,11 @@ def print_summary(s: PlacesSummary, out: Path) -> None:
     if lat:
         print(f"  query latency p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms")
     print(f"  measured bytes between robots: {b.per_query:.1f} B per query ({b.per_frame:.1f} B per frame)")
+    if b.replication_per_query or b.index_control_per_query:
+        print(
+            f"  and per query: {b.replication_per_query:.1f} B storing replicas, "
+            f"{b.index_control_per_query:.1f} B index control; {b.all_per_query:.1f} B in all"
+        )
     print(f"  partial queries per shard {load.partial_queries}; busiest / mean = {load.balance_ratio:.2f}")
     if s.index is not None:
         ix = s.index

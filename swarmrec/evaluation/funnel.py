@@ -28,10 +28,11 @@ Counts = npt.NDArray[np.int64]
 
 @dataclass(frozen=True)
 class ShardCut:
-    """One shard asked by a query, and where one stored frame stood in its answer."""
+    """One label group asked by a query, and where one stored frame stood in the answer
+    of the shard that answered for it (every replica of a group answers alike)."""
 
-    #: The shard (its robot) and its label range [lo, hi).
-    shard: int
+    #: The label group and its range [lo, hi).
+    group: int
     lo: int
     hi: int
     #: The frame (robot, robot-local index) this is about.

@@ -317,7 +317,11 @@ class IndexShard(ServiceBase):
             owned = self.placement.groups_of(self.shard)
             lo, hi = self.groups[owned[0]] if owned else (0, 0)
             return pb.MemberInfo(
-                label_lo=lo, label_hi=hi, stored_items=self.stored, n_labels=self.places.n_labels
+                label_lo=lo,
+                label_hi=hi,
+                stored_items=self.stored,
+                n_labels=self.places.n_labels,
+                label_ranges=[b for g in owned for b in self.groups[g]],
             )
 
     def serving(self, ready: bool) -> None:

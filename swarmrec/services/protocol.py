@@ -221,7 +221,7 @@ def two_step_query(
             if c.robot_id < plan.n_robots:
                 cand_robot.append(c.robot_id)
                 cand_frame.append(c.frame_index)
-        report.shard_candidates.add(robot_id=answered[g], n_candidates=len(cand_robot) - before)
+        report.shard_candidates.add(robot_id=answered[g], n_candidates=len(cand_robot) - before, group=g)
     report.n_candidates = len(cand_robot)
     # Step 2: the full constellation to the chosen robots that have candidates.
     robots_arr = np.asarray(cand_robot, np.int64)

@@ -22,11 +22,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-
-from swarmrec.client import SwarmClient
 from swarmrec.services.common import label_bounds_of
 from swarmrec.services.config import ServiceSettings
 from swarmrec.swarm.attached import main_attached
+
+from swarmrec.client import SwarmClient
 from tests.conftest import REPO
 from tests.unit.test_k8s_manifests import ROBOT_KINDS, cluster_env
 

@@ -79,8 +79,9 @@ def test_members_lists_every_service_and_the_shard_ranges_cover_the_label_list(r
     assert sorted((m["kind"], m["robot"]) for m in members) == sorted(
         [("router", 0), ("gateway", 0)] + [(k, r) for k in KINDS for r in range(N_ROBOTS)]
     )
-    ranges = sorted(tuple(m["label_range"]) for m in members if m["kind"] == "index-shard")
-    assert ranges == [(0, 40), (40, 80)]
+    # Two replicas a group (the default): each shard of the two owns both label groups.
+    ranges = [sorted(tuple(r) for r in m["label_ranges"]) for m in members if m["kind"] == "index-shard"]
+    assert ranges == [[(0, 40), (40, 80)], [(0, 40), (40, 80)]]
     assert all(m["label_range"] is None for m in members if m["kind"] != "index-shard")
     assert {m["n_labels"] for m in members if m["kind"] not in ("router", "gateway")} == {80}
     assert all(m["metrics_url"].startswith("http://127.0.0.1:") for m in members)
@@ -93,7 +94,7 @@ def test_members_prints_a_table_by_default(running: Running) -> None:
     lines = done.stdout.splitlines()
     assert lines[0].split() == ["service", "robot", "labels", "stored", "version", "metrics"]
     assert len(lines) == 1 + 4 * N_ROBOTS + 2  # and the router and the gateway
-    assert any(line.split()[:3] == ["index-shard", "1", "40-80"] for line in lines)
+    assert any(line.split()[:3] == ["index-shard", "1", "0-40,40-80"] for line in lines)
     # Each verifier holds its own robot's replayed frames, one a step.
     verifiers = [line.split() for line in lines if line.startswith("verifier")]
     assert [(v[1], v[2]) for v in verifiers] == [(str(r), str(STEPS)) for r in range(N_ROBOTS)]

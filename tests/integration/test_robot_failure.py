@@ -27,6 +27,7 @@ from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.experiments.places import PlacesSettings, main
 from swarmrec.runtime import keys
+from swarmrec.services.settings import IndexSettings
 from swarmrec.wire import messages as pb
 from tests.integration.support import wait_until
 
@@ -35,16 +36,22 @@ STEPS = FRAMES // ROBOTS
 
 
 @pytest.mark.slow
-def test_a_robot_killed_mid_run_is_reported_missing_and_the_others_keep_querying(tmp_path: Path) -> None:
+@pytest.mark.parametrize("replicas", [1, 2])
+def test_a_robot_killed_mid_run_is_reported_missing_and_the_others_keep_querying(
+    tmp_path: Path, replicas: int
+) -> None:
     out = tmp_path / "run"
     settings = PlacesSettings(
         source=DatasetSource(frames=FRAMES),
         robots=ROBOTS,
         out=out,
-        swarm="robot-failure",
+        swarm=f"robot-failure-{replicas}",
         request_timeout_s=2.0,
         progress=False,
         plots=False,
+        # One replica a group: the dead robot's label range goes with it. Two (the default):
+        # the other owner of each of its groups answers, and no query fails at a shard.
+        index=IndexSettings(replicas=replicas, rebalance_target=1000.0),
     )
     held: list[LocalDeployment] = []
     reports: list[pb.QueryReport] = []
@@ -96,7 +103,7 @@ def test_a_robot_killed_mid_run_is_reported_missing_and_the_others_keep_querying
         codes[f"{k}-{DEAD}"] == -signal.SIGKILL for k in ("detector", "descriptor", "index-shard", "verifier")
     )
     # Failed requests to the dead robot are counted in the report.
-    assert q.failed_shard_requests > 0
+    assert (q.failed_shard_requests > 0) == (replicas == 1)
     assert q.failed_verifier_requests > 0
     assert sum(summary.peer_failures.values()) >= q.failed_shard_requests + q.failed_verifier_requests
 
@@ -119,12 +126,13 @@ def test_a_robot_killed_mid_run_is_reported_missing_and_the_others_keep_querying
         if rep.frame_index <= KILL_AFTER:
             assert not rep.failed_shard_robot_ids and not rep.failed_verifier_robot_ids, rep
             continue
-        assert list(rep.failed_shard_robot_ids) == ([DEAD] if asks_dead else []), rep
+        expected = [DEAD] if asks_dead and replicas == 1 else []
+        assert list(rep.failed_shard_robot_ids) == expected, rep
         assert set(rep.failed_verifier_robot_ids) <= {DEAD}, rep
         assert DEAD not in [m.match_robot_id for m in rep.matches], rep
         needed_dead_shard += asks_dead
     assert needed_dead_shard > 10
-    assert q.failed_shard_requests == needed_dead_shard
+    assert q.failed_shard_requests == (needed_dead_shard if replicas == 1 else 0)
     assert q.failed_verifier_requests == sum(len(r.failed_verifier_robot_ids) for r in reports)
     # The survivors still found matches after the kill.
     late = [r for r in reports if r.frame_index > KILL_AFTER and r.matches]

@@ -41,7 +41,7 @@ def test_a_frame_below_the_cut_gets_its_partial_score_rank_and_the_cut() -> None
     #   robot 1 frame 1 [0, 1]: common 1, total 3 -> 1/3
     # Robot 0 frame 0 shares no label of shard 1 with the query ([1, 0] against [0, 1]).
     (cut,) = shard_cuts(DESCRIPTORS, BLOCKS, BOUNDS, STORED, 1, QUERY, (0, 0), lockstep=True)
-    assert (cut.shard, cut.lo, cut.hi) == (0, 0, 2)
+    assert (cut.group, cut.lo, cut.hi) == (0, 0, 2)
     assert cut.score == pytest.approx(2 / 3)
     # Equal scores rank in (robot, frame) order: robot 0 frame 0 before frame 1.
     assert cut.rank == 2
@@ -54,7 +54,7 @@ def test_a_frame_the_shard_returned_is_returned_on_that_shard_only() -> None:
     # Robot 1 frame 1 [0, 1 | 0, 1]: shard 0 1/3 (rank 4 of 4); on shard 1, [0, 1] against
     # the query's [0, 1] is 1, and robot 0 frame 0's [1, 0] scores 0: robot 1 frame 1 is returned.
     cuts = shard_cuts(DESCRIPTORS, BLOCKS, BOUNDS, STORED, 1, QUERY, (1, 1), lockstep=True)
-    assert [(c.shard, c.rank, c.returned_it) for c in cuts] == [(0, 4, False), (1, 1, True)]
+    assert [(c.group, c.rank, c.returned_it) for c in cuts] == [(0, 4, False), (1, 1, True)]
     assert [c.score for c in cuts] == pytest.approx([1 / 3, 1.0])
     assert cuts[1].cut == pytest.approx(1.0)
 
@@ -63,7 +63,7 @@ def test_a_frame_of_the_same_step_is_not_stored_yet_in_lock_step() -> None:
     # Robot 1 frame 2 equals the query ([2, 1] on shard 0: score 1), but step 2's shards
     # search only steps 0 and 1.
     cuts = shard_cuts(DESCRIPTORS, BLOCKS, BOUNDS, STORED, 1, QUERY, (1, 2), lockstep=True)
-    assert [(c.shard, c.rank, c.returned_it) for c in cuts] == [(0, None, False), (1, None, False)]
+    assert [(c.group, c.rank, c.returned_it) for c in cuts] == [(0, None, False), (1, None, False)]
     assert [c.score for c in cuts] == pytest.approx([1.0, 1.0])
 
 
@@ -102,7 +102,7 @@ def _run(tmp: Path, pace: str = "lockstep") -> Path:
         "robot,frame,frame_id,queried,n_objects,n_candidates,shard_candidates,failed_shards,"
         "verified_robots,failed_verifiers,loop_closure\n"
         "0,0,t00,1,4,0,,,,,\n"
-        "0,3,t03,1,7,5,0:2 1:3,2,0 1,,1:1\n"
+        "0,3,t03,1,7,5,0/0:2 1/1:3,2,0 1,,1:1\n"
         "1,1,t11,1,5,0,,,,,\n"
         "2,2,t22,0,2,0,,,,,\n"
     )

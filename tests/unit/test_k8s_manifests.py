@@ -30,10 +30,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from swarmrec.services.config import ENV_PREFIX, ServiceSettings, load_settings
 
 import swarmrec
 from swarmrec.services import SERVICES
-from swarmrec.services.config import ENV_PREFIX, ServiceSettings, load_settings
 from tests.conftest import REPO
 
 OVERLAYS = ("local", "production")

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import csv
 import json
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -75,13 +75,15 @@ class QueryFunnel:
     queried: bool
     n_objects: int
     n_candidates: int
-    #: Candidates each shard that answered returned, by shard robot.
+    #: Candidates each shard that answered returned, by shard robot (summed over its groups).
     shards: dict[int, int]
     failed_shards: list[int]
     verified_robots: list[int]
     failed_verifiers: list[int]
     outcomes: list[CandidateOutcome]
     frame_id: str = ""
+    #: Per label group answered: (the shard that answered, candidates it returned).
+    groups: dict[int, tuple[int, int]] = field(default_factory=dict)
 
     @classmethod
     def from_report(cls, report: pb.QueryReport) -> QueryFunnel:
@@ -91,11 +93,12 @@ class QueryFunnel:
             queried=report.queried,
             n_objects=report.n_objects,
             n_candidates=report.n_candidates,
-            shards={s.robot_id: s.n_candidates for s in report.shard_candidates},
+            shards=_by_shard((s.robot_id, s.n_candidates) for s in report.shard_candidates),
             failed_shards=list(report.failed_shard_robot_ids),
             verified_robots=list(report.verified_robot_ids),
             failed_verifiers=list(report.failed_verifier_robot_ids),
             outcomes=outcomes_from_proto(report),
+            groups={s.group: (s.robot_id, s.n_candidates) for s in report.shard_candidates},
         )
 
     def outcome_of(self, robot: int, frame: int) -> CandidateOutcome | None:
@@ -318,6 +321,14 @@ def why(o: CandidateOutcome, q: QueryFunnel, rule: Rule) -> str:
 # --- a finished run's folder -----------------------------------------------------------
 
 
+def _by_shard(items: Iterable[tuple[int, int]]) -> dict[int, int]:
+    """Candidates by shard, summed over the groups each answered for."""
+    out: dict[int, int] = {}
+    for shard, n in items:
+        out[shard] = out.get(shard, 0) + n
+    return out
+
+
 def _ints(text: str) -> list[int]:
     return [int(v) for v in text.split()]
 
@@ -358,8 +369,13 @@ class RunFolder:
         self.queries: dict[Frame, QueryFunnel] = {}
         for row in csv.DictReader(queries):
             key = (int(row["robot"]), int(row["frame"]))
-            pairs = (item.partition(":") for item in row["shard_candidates"].split())
-            shards = {int(k): int(n) for k, _, n in pairs}
+            # "group/shard:candidates" for each group the query asked and a shard answered.
+            groups = {}
+            for item in row["shard_candidates"].split():
+                where, _, n = item.partition(":")
+                g, _, s = where.partition("/")
+                groups[int(g)] = (int(s), int(n))
+            shards = _by_shard(groups.values())
             self.queries[key] = QueryFunnel(
                 robot=key[0],
                 frame=key[1],
@@ -372,6 +388,7 @@ class RunFolder:
                 failed_verifiers=_ints(row["failed_verifiers"]),
                 outcomes=outcomes.get(key, []),
                 frame_id=row["frame_id"],
+                groups=groups,
             )
 
     @property
@@ -454,9 +471,11 @@ class RunFolder:
 
 
 def _cut_dict(c: ShardCut, q: QueryFunnel) -> dict[str, Any]:
-    where = f"shard {c.shard} (labels {c.lo}-{c.hi - 1})"
-    if c.shard in q.failed_shards:
-        text = f"{where}: did not answer this query; partial score {c.score:.4f}"
+    answered = q.groups.get(c.group)
+    by = f", answered by shard {answered[0]}" if answered is not None else ""
+    where = f"label group {c.group} (labels {c.lo}-{c.hi - 1}{by})"
+    if answered is None:
+        text = f"{where}: no shard answered this query; partial score {c.score:.4f}"
     elif c.returned is None:
         text = f"{where}: partial score {c.score:.4f}; its cut is not known"
     elif c.returned_it:
@@ -474,7 +493,8 @@ def _cut_dict(c: ShardCut, q: QueryFunnel) -> dict[str, Any]:
             f"down to {c.cut:.4f}"
         )
     return {
-        "shard": c.shard,
+        "group": c.group,
+        "shard": answered[0] if answered is not None else None,
         "labels": [c.lo, c.hi],
         "score": c.score,
         "rank": c.rank,

@@ -110,10 +110,18 @@ class ByteStats:
     messages_per_query: dict[str, float]
     within_robot_total: float
     to_clients_total: float
+    #: Bytes a query costs beyond the paper's two steps: copies of its slices on the other
+    #: replicas of their groups, and the elastic index's own traffic (placements, handoffs).
+    replication_per_query: float = 0.0
+    index_control_per_query: float = 0.0
+    #: Everything between robots, per query (per_query is the two-step query alone).
+    all_per_query: float = 0.0
     note: str = (
         "protobuf payload bytes sent between robots, summed from every service's "
-        "swarmrec_message_bytes_sent_total{scope='swarm'}; per_query divides by the frames "
-        "that queried, per_frame by every (robot, step) slot as the paper's byte model averages"
+        "swarmrec_message_bytes_sent_total{scope='swarm'}; per_query counts the two-step query's "
+        "messages (PartialQuery, CandidatesReply, VerifyRequest, VerifyReply: the paper's measure) "
+        "and divides by the frames that queried, per_frame by every (robot, step) slot as the "
+        "paper's byte model averages; replication and index control are counted apart"
     )
 
 
@@ -355,14 +363,36 @@ def _positions_effect(run: RunRecord, robots: int, truth: npt.NDArray[np.bool_])
     )
 
 
+#: The two-step query's messages (the paper's bytes per query).
+QUERY_MESSAGES = ("PartialQuery", "CandidatesReply", "VerifyRequest", "VerifyReply")
+#: A slice stored on the other replicas of its group, and their answers.
+REPLICATION_MESSAGES = ("ShardStore", "StoreReply")
+#: The elastic index's own traffic: placements, shard states, handoff pages.
+INDEX_CONTROL_MESSAGES = (
+    "PlacementRequest",
+    "ShardState",
+    "AdoptRequest",
+    "TransferRequest",
+    "TransferReply",
+)
+
+
 def _bytes(metrics: Scrape, n_queries: int, n_slots: int) -> ByteStats:
     by_type = metrics.by_label("swarmrec_message_bytes_sent_total", "message", scope="swarm")
     msgs = metrics.by_label("swarmrec_messages_sent_total", "message", scope="swarm")
     total = sum(by_type.values())
+    query = sum(by_type.get(m, 0.0) for m in QUERY_MESSAGES)
+
+    def per(names: tuple[str, ...]) -> float:
+        return sum(by_type.get(m, 0.0) for m in names) / n_queries if n_queries else 0.0
+
     return ByteStats(
         between_robots_total=total,
-        per_query=total / n_queries if n_queries else 0.0,
-        per_frame=total / n_slots if n_slots else 0.0,
+        per_query=query / n_queries if n_queries else 0.0,
+        per_frame=query / n_slots if n_slots else 0.0,
+        replication_per_query=per(REPLICATION_MESSAGES),
+        index_control_per_query=per(INDEX_CONTROL_MESSAGES),
+        all_per_query=total / n_queries if n_queries else 0.0,
         per_query_by_message={k: v / n_queries for k, v in sorted(by_type.items())} if n_queries else {},
         messages_per_query={k: v / n_queries for k, v in sorted(msgs.items())} if n_queries else {},
         within_robot_total=metrics.total("swarmrec_message_bytes_sent_total", scope="robot"),
@@ -756,7 +786,7 @@ def write_funnel(
                     int(rep.queried),
                     rep.n_objects,
                     rep.n_candidates,
-                    " ".join(f"{s.robot_id}:{s.n_candidates}" for s in rep.shard_candidates),
+                    " ".join(f"{s.group}/{s.robot_id}:{s.n_candidates}" for s in rep.shard_candidates),
                     " ".join(str(r) for r in rep.failed_shard_robot_ids),
                     " ".join(str(r) for r in rep.verified_robot_ids),
                     " ".join(str(r) for r in rep.failed_verifier_robot_ids),

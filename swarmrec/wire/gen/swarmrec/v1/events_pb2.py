@@ -24,15 +24,15 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18swarmrec/v1/events.proto\x12\x0bswarmrec.v1\"\xc3\x01\n\x0bLoopClosure\x12\x16\n\x0equery_robot_id\x18\x01 \x01(\r\x12\x19\n\x11query_frame_index\x18\x02 \x01(\r\x12\x16\n\x0ematch_robot_id\x18\x03 \x01(\r\x12\x19\n\x11match_frame_index\x18\x04 \x01(\r\x12\r\n\x05score\x18\x05 \x01(\x01\x12\x16\n\x0esemantic_score\x18\x06 \x01(\x01\x12\x11\n\tn_matched\x18\x07 \x01(\r\x12\x14\n\x0cunix_time_ns\x18\x08 \x01(\x04\"{\n\x0cVerifiedPair\x12\x16\n\x0ematch_robot_id\x18\x01 \x01(\r\x12\x19\n\x11match_frame_index\x18\x02 \x01(\r\x12\r\n\x05score\x18\x03 \x01(\x01\x12\x16\n\x0esemantic_score\x18\x04 \x01(\x01\x12\x11\n\tn_matched\x18\x05 \x01(\r\"\xf9\x02\n\x0bQueryReport\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x13\n\x0b\x66rame_index\x18\x02 \x01(\r\x12\x0f\n\x07queried\x18\x03 \x01(\x08\x12*\n\x07matches\x18\x04 \x03(\x0b\x32\x19.swarmrec.v1.VerifiedPair\x12\x1a\n\x12verified_robot_ids\x18\x05 \x03(\r\x12\x1e\n\x16\x66\x61iled_shard_robot_ids\x18\x06 \x03(\r\x12!\n\x19\x66\x61iled_verifier_robot_ids\x18\x07 \x03(\r\x12\x14\n\x0cn_candidates\x18\x08 \x01(\r\x12\x13\n\x0b\x64uration_us\x18\t \x01(\r\x12\x11\n\tn_objects\x18\n \x01(\r\x12\x36\n\x10shard_candidates\x18\x0b \x03(\x0b\x32\x1c.swarmrec.v1.ShardCandidates\x12\x31\n\ncandidates\x18\x0c \x03(\x0b\x32\x1d.swarmrec.v1.CandidateOutcome\"9\n\x0fShardCandidates\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x14\n\x0cn_candidates\x18\x02 \x01(\r\"d\n\x10\x43\x61ndidateOutcome\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x13\n\x0b\x66rame_index\x18\x02 \x01(\r\x12)\n\x06reason\x18\x03 \x01(\x0e\x32\x19.swarmrec.v1.FunnelReason*\xc8\x03\n\x0c\x46unnelReason\x12\x1d\n\x19\x46UNNEL_REASON_UNSPECIFIED\x10\x00\x12!\n\x1d\x46UNNEL_REASON_BELOW_SHARD_CUT\x10\x01\x12\"\n\x1e\x46UNNEL_REASON_ROBOT_NOT_CHOSEN\x10\x02\x12&\n\"FUNNEL_REASON_VERIFIER_UNREACHABLE\x10\x03\x12\"\n\x1e\x46UNNEL_REASON_VERIFIER_TIMEOUT\x10\x04\x12 \n\x1c\x46UNNEL_REASON_VERIFIER_ERROR\x10\x05\x12!\n\x1d\x46UNNEL_REASON_TOO_FEW_MATCHES\x10\x06\x12\x19\n\x15\x46UNNEL_REASON_MATCHED\x10\x07\x12\'\n#FUNNEL_REASON_BELOW_SCORE_THRESHOLD\x10\x08\x12\"\n\x1e\x46UNNEL_REASON_OWN_RECENT_FRAME\x10\t\x12\x1b\n\x17\x46UNNEL_REASON_OUTRANKED\x10\n\x12 \n\x1c\x46UNNEL_REASON_ALREADY_CLOSED\x10\x0b\x12\x1a\n\x16\x46UNNEL_REASON_ACCEPTED\x10\x0c\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18swarmrec/v1/events.proto\x12\x0bswarmrec.v1\"\xc3\x01\n\x0bLoopClosure\x12\x16\n\x0equery_robot_id\x18\x01 \x01(\r\x12\x19\n\x11query_frame_index\x18\x02 \x01(\r\x12\x16\n\x0ematch_robot_id\x18\x03 \x01(\r\x12\x19\n\x11match_frame_index\x18\x04 \x01(\r\x12\r\n\x05score\x18\x05 \x01(\x01\x12\x16\n\x0esemantic_score\x18\x06 \x01(\x01\x12\x11\n\tn_matched\x18\x07 \x01(\r\x12\x14\n\x0cunix_time_ns\x18\x08 \x01(\x04\"{\n\x0cVerifiedPair\x12\x16\n\x0ematch_robot_id\x18\x01 \x01(\r\x12\x19\n\x11match_frame_index\x18\x02 \x01(\r\x12\r\n\x05score\x18\x03 \x01(\x01\x12\x16\n\x0esemantic_score\x18\x04 \x01(\x01\x12\x11\n\tn_matched\x18\x05 \x01(\r\"\xf9\x02\n\x0bQueryReport\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x13\n\x0b\x66rame_index\x18\x02 \x01(\r\x12\x0f\n\x07queried\x18\x03 \x01(\x08\x12*\n\x07matches\x18\x04 \x03(\x0b\x32\x19.swarmrec.v1.VerifiedPair\x12\x1a\n\x12verified_robot_ids\x18\x05 \x03(\r\x12\x1e\n\x16\x66\x61iled_shard_robot_ids\x18\x06 \x03(\r\x12!\n\x19\x66\x61iled_verifier_robot_ids\x18\x07 \x03(\r\x12\x14\n\x0cn_candidates\x18\x08 \x01(\r\x12\x13\n\x0b\x64uration_us\x18\t \x01(\r\x12\x11\n\tn_objects\x18\n \x01(\r\x12\x36\n\x10shard_candidates\x18\x0b \x03(\x0b\x32\x1c.swarmrec.v1.ShardCandidates\x12\x31\n\ncandidates\x18\x0c \x03(\x0b\x32\x1d.swarmrec.v1.CandidateOutcome\"H\n\x0fShardCandidates\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x14\n\x0cn_candidates\x18\x02 \x01(\r\x12\r\n\x05group\x18\x03 \x01(\r\"d\n\x10\x43\x61ndidateOutcome\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x13\n\x0b\x66rame_index\x18\x02 \x01(\r\x12)\n\x06reason\x18\x03 \x01(\x0e\x32\x19.swarmrec.v1.FunnelReason*\xc8\x03\n\x0c\x46unnelReason\x12\x1d\n\x19\x46UNNEL_REASON_UNSPECIFIED\x10\x00\x12!\n\x1d\x46UNNEL_REASON_BELOW_SHARD_CUT\x10\x01\x12\"\n\x1e\x46UNNEL_REASON_ROBOT_NOT_CHOSEN\x10\x02\x12&\n\"FUNNEL_REASON_VERIFIER_UNREACHABLE\x10\x03\x12\"\n\x1e\x46UNNEL_REASON_VERIFIER_TIMEOUT\x10\x04\x12 \n\x1c\x46UNNEL_REASON_VERIFIER_ERROR\x10\x05\x12!\n\x1d\x46UNNEL_REASON_TOO_FEW_MATCHES\x10\x06\x12\x19\n\x15\x46UNNEL_REASON_MATCHED\x10\x07\x12\'\n#FUNNEL_REASON_BELOW_SCORE_THRESHOLD\x10\x08\x12\"\n\x1e\x46UNNEL_REASON_OWN_RECENT_FRAME\x10\t\x12\x1b\n\x17\x46UNNEL_REASON_OUTRANKED\x10\n\x12 \n\x1c\x46UNNEL_REASON_ALREADY_CLOSED\x10\x0b\x12\x1a\n\x16\x46UNNEL_REASON_ACCEPTED\x10\x0c\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, __name__, _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_FUNNELREASON']._serialized_start=906
-  _globals['_FUNNELREASON']._serialized_end=1362
+  _globals['_FUNNELREASON']._serialized_start=921
+  _globals['_FUNNELREASON']._serialized_end=1377
   _globals['_LOOPCLOSURE']._serialized_start=42
   _globals['_LOOPCLOSURE']._serialized_end=237
   _globals['_VERIFIEDPAIR']._serialized_start=239
@@ -40,7 +40,7 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_QUERYREPORT']._serialized_start=365
   _globals['_QUERYREPORT']._serialized_end=742
   _globals['_SHARDCANDIDATES']._serialized_start=744
-  _globals['_SHARDCANDIDATES']._serialized_end=801
-  _globals['_CANDIDATEOUTCOME']._serialized_start=803
-  _globals['_CANDIDATEOUTCOME']._serialized_end=903
+  _globals['_SHARDCANDIDATES']._serialized_end=816
+  _globals['_CANDIDATEOUTCOME']._serialized_start=818
+  _globals['_CANDIDATEOUTCOME']._serialized_end=918
 # @@protoc_insertion_point(module_scope)

@@ -99,12 +99,14 @@ class QueryReport(_message.Message):
     def __init__(self, robot_id: _Optional[int] = ..., frame_index: _Optional[int] = ..., queried: _Optional[bool] = ..., matches: _Optional[_Iterable[_Union[VerifiedPair, _Mapping]]] = ..., verified_robot_ids: _Optional[_Iterable[int]] = ..., failed_shard_robot_ids: _Optional[_Iterable[int]] = ..., failed_verifier_robot_ids: _Optional[_Iterable[int]] = ..., n_candidates: _Optional[int] = ..., duration_us: _Optional[int] = ..., n_objects: _Optional[int] = ..., shard_candidates: _Optional[_Iterable[_Union[ShardCandidates, _Mapping]]] = ..., candidates: _Optional[_Iterable[_Union[CandidateOutcome, _Mapping]]] = ...) -> None: ...
 
 class ShardCandidates(_message.Message):
-    __slots__ = ("robot_id", "n_candidates")
+    __slots__ = ("robot_id", "n_candidates", "group")
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     N_CANDIDATES_FIELD_NUMBER: _ClassVar[int]
+    GROUP_FIELD_NUMBER: _ClassVar[int]
     robot_id: int
     n_candidates: int
-    def __init__(self, robot_id: _Optional[int] = ..., n_candidates: _Optional[int] = ...) -> None: ...
+    group: int
+    def __init__(self, robot_id: _Optional[int] = ..., n_candidates: _Optional[int] = ..., group: _Optional[int] = ...) -> None: ...
 
 class CandidateOutcome(_message.Message):
     __slots__ = ("robot_id", "frame_index", "reason")

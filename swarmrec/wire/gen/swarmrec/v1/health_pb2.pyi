@@ -1,6 +1,8 @@
+from google.protobuf.internal import containers as _containers
 from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable
 from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 
 DESCRIPTOR: _descriptor.FileDescriptor
@@ -25,7 +27,7 @@ SERVICE_KIND_ROUTER: ServiceKind
 SERVICE_KIND_GATEWAY: ServiceKind
 
 class MemberInfo(_message.Message):
-    __slots__ = ("kind", "robot_id", "label_lo", "label_hi", "version", "n_labels", "metrics_url", "swarm", "stored_items", "pending_items")
+    __slots__ = ("kind", "robot_id", "label_lo", "label_hi", "version", "n_labels", "metrics_url", "swarm", "stored_items", "pending_items", "label_ranges")
     KIND_FIELD_NUMBER: _ClassVar[int]
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     LABEL_LO_FIELD_NUMBER: _ClassVar[int]
@@ -36,6 +38,7 @@ class MemberInfo(_message.Message):
     SWARM_FIELD_NUMBER: _ClassVar[int]
     STORED_ITEMS_FIELD_NUMBER: _ClassVar[int]
     PENDING_ITEMS_FIELD_NUMBER: _ClassVar[int]
+    LABEL_RANGES_FIELD_NUMBER: _ClassVar[int]
     kind: ServiceKind
     robot_id: int
     label_lo: int
@@ -46,4 +49,5 @@ class MemberInfo(_message.Message):
     swarm: str
     stored_items: int
     pending_items: int
-    def __init__(self, kind: _Optional[_Union[ServiceKind, str]] = ..., robot_id: _Optional[int] = ..., label_lo: _Optional[int] = ..., label_hi: _Optional[int] = ..., version: _Optional[str] = ..., n_labels: _Optional[int] = ..., metrics_url: _Optional[str] = ..., swarm: _Optional[str] = ..., stored_items: _Optional[int] = ..., pending_items: _Optional[int] = ...) -> None: ...
+    label_ranges: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, kind: _Optional[_Union[ServiceKind, str]] = ..., robot_id: _Optional[int] = ..., label_lo: _Optional[int] = ..., label_hi: _Optional[int] = ..., version: _Optional[str] = ..., n_labels: _Optional[int] = ..., metrics_url: _Optional[str] = ..., swarm: _Optional[str] = ..., stored_items: _Optional[int] = ..., pending_items: _Optional[int] = ..., label_ranges: _Optional[_Iterable[int]] = ...) -> None: ...
