@@ -18,7 +18,7 @@ from typing import Literal
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.settings import SecuritySettings
 from swarmrec.runtime.tls import TlsFiles
-from swarmrec.security.identity import Identity
+from swarmrec.security.identity import SERVICE_KINDS, Identity
 from swarmrec.security.pki import DEFAULT_ROUTER_NAMES, PkiSettings, init_pki
 
 __all__ = ["CLIENT", "OPERATOR", "Security", "client_tls", "security_for", "swarm_pki"]
@@ -38,6 +38,7 @@ def swarm_pki(
     router_names: Sequence[str] = (),
     gateway_names: Sequence[str] = (),
     hosts: Sequence[tuple[int, int]] = (),
+    kinds: Sequence[str] = SERVICE_KINDS,
 ) -> Path:
     """The PKI of a swarm of ``robots`` in ``folder`` (created, or completed: an existing one
     is kept); the router and the gateway are also dialled at ``router_names`` and
@@ -53,6 +54,7 @@ def swarm_pki(
             router_names=(*DEFAULT_ROUTER_NAMES, *router_names),
             gateway_names=(*DEFAULT_ROUTER_NAMES, "gateway", *gateway_names),
             hosts=tuple(hosts),
+            kinds=tuple(kinds),
         )
     )
     return folder

@@ -37,6 +37,7 @@ from swarmrec.errors import ConfigError, SecurityError
 from swarmrec.runtime import keys
 from swarmrec.runtime.tls import insert_access_control
 from swarmrec.security.identity import SERVICE_KINDS, Identity
+from swarmrec.services import registry
 
 __all__ = [
     "ACL_MESSAGES",
@@ -148,7 +149,8 @@ def grants(
             Grant("ingress", ("liveliness_token",), (keys.alive(s, kind, r),)),
             Grant("ingress", ("put",), (keys.event(s, "*", r),)),
         ]
-        queries = tuple(keys.endpoint(s, k, _robot(rob, r), ep) for k, rob, ep in _QUERIES[kind])
+        # A kind a plugin added serves its own endpoints and calls nothing (no rule for it).
+        queries = tuple(keys.endpoint(s, k, _robot(rob, r), ep) for k, rob, ep in _QUERIES.get(kind, ()))
         if queries:
             out.append(Grant("ingress", ("query",), queries))
         if kind in ("descriptor", "index-shard"):
@@ -168,7 +170,8 @@ def grants(
             if inboxes:
                 out.append(Grant("ingress", ("put",), inboxes))
     elif identity.role in ("client", "operator"):
-        ends = [*_CLIENT_QUERIES, ("index-shard", shard_read_endpoint)]
+        plugins = [(e.kind, ep) for e in registry.REGISTRY.values() for ep in e.client_endpoints]
+        ends = [*_CLIENT_QUERIES, *plugins, ("index-shard", shard_read_endpoint)]
         if identity.role == "operator":
             ends += _OPERATOR_QUERIES
         out += [

@@ -32,7 +32,8 @@ __all__ = ["SERVICE_KINDS", "Identity", "Role", "parse_common_name"]
 
 Role = Literal["service", "host", "client", "operator", "router"]
 
-#: The kinds a robot runs (the registry's per-robot kinds); the router is an identity of its own.
+#: The kinds a robot runs (the registry's built-in per-robot kinds); the router is an identity
+#: of its own. Kinds a plugin registers later are valid identities too.
 SERVICE_KINDS: tuple[str, ...] = registry.kinds("robot")
 
 _NAME = re.compile(r"^[a-z0-9](?:[a-z0-9-]{0,30}[a-z0-9])?$")
@@ -67,8 +68,10 @@ class Identity:
 
     def _check_role(self) -> None:
         if self.role == "service":
-            if self.kind not in SERVICE_KINDS:
-                raise ConfigError(f"service kind must be one of {SERVICE_KINDS}, got {self.kind!r}")
+            # Read now, not at import: kinds installed by plugins (entry points) count too.
+            known = registry.kinds("robot")
+            if self.kind not in known:
+                raise ConfigError(f"service kind must be one of {known}, got {self.kind!r}")
             if not 0 <= self.robot <= MAX_ROBOT:
                 raise ConfigError(f"robot id must be 0..{MAX_ROBOT}, got {self.robot}")
             if self.name or self.last != -1:

@@ -95,6 +95,9 @@ class ServiceSpec:
     #: Common name of its certificate (``swarmrec.security.identity``'s scheme), with
     #: ``{robot}``, ``{kind}`` and ``{swarm}`` filled in; the ``identity`` setting overrides it.
     identity: str = "r{robot}.{kind}.{swarm}"
+    #: Endpoints any client of the swarm may call (the router's access control grants them;
+    #: the built-in kinds' are listed in swarmrec.security.acl). A plugin names its own here.
+    client_endpoints: tuple[str, ...] = ()
 
     @property
     def all_components(self) -> tuple[type[Component], ...]:

@@ -36,7 +36,10 @@ class Echo(ServiceBase):
     ENDPOINTS = (Endpoint("echo", pb.StepRequest, pb.StepReply, echo, "the step, back"),)
 
 
-SPEC = ServiceSpec("echo", 100, "echo_service:Echo", "answers a step with its robot's id")
+# Clients may call its endpoint: the router's access control grants what the spec names.
+SPEC = ServiceSpec(
+    "echo", 100, "echo_service:Echo", "answers a step with its robot's id", client_endpoints=("echo",)
+)
 '''
 
 
@@ -69,7 +72,7 @@ def test_a_service_added_by_another_package_runs_in_a_local_swarm_and_the_client
     with running_swarm(tmp_path, swarm_name(request), kinds=["echo"]) as swarm:
         with swarm.client(5.0) as client:
             members = {(m.kind, m.robot) for m in client.members()}
-            assert {("echo", 0), ("echo", 1), ("router", 0)} == members
+            assert {("echo", 0), ("echo", 1), ("router", 0), ("gateway", 0)} == members
             reply = reply_of(
                 send(client.session, endpoint_key(swarm, "echo", 1, "echo"), pb.StepRequest(step=7)),
                 pb.StepReply,

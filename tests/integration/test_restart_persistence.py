@@ -7,11 +7,17 @@ verifications is recorded; the processes are stopped (SIGTERM, or SIGKILL
 while idle or while frames are arriving) and started again from the same
 data dir. The same requests must get identical answers, the stored counts
 must be the same, and no acknowledged frame may be missing.
+
+The test speaks as robot 0's descriptor (its certificate: it may store into
+robot 0's verifier and query the shards), and the index keeps one replica a
+group, the paper's layout: robot 1 never starts, and shard 0 holds labels
+[0, 40) alone at placement version 0.
 """
 
 from __future__ import annotations
 
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,8 +29,11 @@ from swarmrec.core.descriptor import semantic_descriptor
 from swarmrec.datasets.constellations import read_constellations
 from swarmrec.deployments.local import LocalDeployment, ServiceProcess
 from swarmrec.errors import NoReply
+from swarmrec.runtime.tls import TlsFiles
+from swarmrec.services.settings import IndexSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import constellation_from_proto, constellation_to_proto, partial_descriptor_to_proto
+from tests.integration.conftest import running_swarm, swarm_name
 from tests.integration.support import (
     answering,
     endpoint_key,
@@ -127,6 +136,23 @@ class Robot0:
             ).SerializeToString()
         out.update(self.stored())
         return out
+
+
+@pytest.fixture
+def local_swarm(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[LocalDeployment]:
+    """A router of a 2-robot swarm, one replica a label group; robot 0 is started by the test."""
+    with running_swarm(tmp_path, swarm_name(request), IndexSettings(replicas=1), start=False) as swarm:
+        yield swarm
+
+
+@pytest.fixture
+def client(local_swarm: LocalDeployment) -> Iterator[ZenohClient]:
+    """A session with robot 0's descriptor certificate."""
+    assert local_swarm.pki_dir is not None
+    cn = f"r0.descriptor.{local_swarm.spec_swarm}"
+    tls = TlsFiles.in_dir(local_swarm.pki_dir, cn)
+    with ZenohClient([local_swarm.endpoint], local_swarm.spec_swarm, timeout_s=2.0, tls=tls) as c:
+        yield c
 
 
 @pytest.fixture
