@@ -33,7 +33,9 @@ __all__ = ["Replay", "collect_loop_closures", "replay", "replay_free", "replay_l
 STEP_RETRY_S = 10.0
 STEP_RETRY_POLL_S = 0.25
 #: How long the job waits after the last step for the detectors' outboxes to empty.
-FLUSH_TIMEOUT_S = 60.0
+FLUSH_TIMEOUT_S = 120.0
+#: ... giving up sooner when no frame was delivered for this long.
+FLUSH_STALL_S = 10.0
 FLUSH_POLL_S = 0.2
 
 
@@ -142,11 +144,13 @@ def _retry_step(
 def _flush_outboxes(
     client: ZenohClient, past_end: int, step_timeout: float, reports: list[pb.QueryReport], errors: list[str]
 ) -> int:
-    """Ask for steps past the end until no detector has frames pending (or it stops
-    making progress for a while); the frames still pending."""
+    """Ask for steps past the end until no detector has frames pending, or none was
+    delivered for FLUSH_STALL_S (a robot whose verifier is gone), or FLUSH_TIMEOUT_S;
+    the frames still pending."""
     pending = 0
-    deadline = time.monotonic() + FLUSH_TIMEOUT_S
-    while time.monotonic() < deadline:
+    start = last_progress = time.monotonic()
+    fewest: int | None = None
+    while True:
         pending = 0
         answered = False
         for item in client.step(past_end, step_timeout):
@@ -155,11 +159,18 @@ def _flush_outboxes(
             answered = True
             reports += item.late_reports
             pending += item.pending
+        now = time.monotonic()
         if not pending or not answered:
             return pending
+        if fewest is None or pending < fewest:
+            fewest, last_progress = pending, now
+        if now - last_progress > FLUSH_STALL_S or now - start > FLUSH_TIMEOUT_S:
+            errors.append(
+                f"{pending} frames still wait in the detectors' outboxes "
+                f"(none delivered for {now - last_progress:.0f} s)"
+            )
+            return pending
         time.sleep(FLUSH_POLL_S)
-    errors.append(f"{pending} frames still waited in the detectors' outboxes after {FLUSH_TIMEOUT_S:g} s")
-    return pending
 
 
 def replay_free(client: ZenohClient, blocks: list[range], settings: PlacesSettings) -> Replay:
