@@ -35,6 +35,7 @@ COMMANDS: dict[str, str] = {
     "members": "swarmrec.cli.clients",
     "loop-closures": "swarmrec.cli.clients",
     "pki": "swarmrec.cli.pki",
+    "k8s": "swarmrec.cli.k8s",
 }
 
 
