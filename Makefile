@@ -125,7 +125,7 @@ k8s-up: images
 
 k8s-apply: $(STAMP)
 	$(BIN)/swarmrec k8s secrets --overlay $(K8S_OVERLAY) --kubectl $(KUBECTL)
-	$(KUBECTL) apply -k $(K8S_OVERLAY)
+	$(KUBECTL) apply --server-side --force-conflicts -k $(K8S_OVERLAY)
 
 k8s-run: $(STAMP)
 	$(BIN)/swarmrec run --deployment k8s --robots 3 --frames 600 --kubectl $(KUBECTL) --out runs/k8s-run
