@@ -11,6 +11,10 @@
 #   make swarm-up ROBOTS=4   a compose swarm of ROBOTS robots (3 to 10) + Prometheus, on this host
 #   make swarm-run           replay the synthetic world through it (report in runs/compose/report)
 #   make swarm-down          remove its containers, network and volumes
+#   make k8s-up              a real single-node Kubernetes cluster here (as root; built the first time, 8-17 min), the images loaded into it
+#   make k8s-apply           the local overlay (3 robots, mutual TLS): its Secrets (swarmrec k8s secrets), then kubectl apply -k
+#   make k8s-run             replay the synthetic world through a fresh namespace of the cluster (swarmrec run --deployment k8s)
+#   make k8s-down            the cluster off and undone (the built binaries stay cached)
 #   make train-env           the model-training environment (.venv-train: PyPI torch, several GB)
 #   make train-landmarks     retrain models/landmarks/landmark_cnn.onnx (CPU, about 6 minutes)
 #   make train-detector      retrain models/detector/office_detector.onnx
@@ -28,12 +32,14 @@ STAMP  := $(VENV)/.installed-stamp
 RUN_OUT ?= runs/swarm
 ROBOTS  ?= 4
 COMPOSE_OUT ?= runs/compose
+K8S_OVERLAY ?= k8s/overlays/local
+KUBECTL     := deploy/k8s/kubectl.sh
 LANDMARKS_OUT ?= runs/landmarks
 TRAIN_VENV  := .venv-train
 TRAIN_STAMP := $(TRAIN_VENV)/.installed-stamp
 TRAIN_REQS  := models/requirements-train.txt
 
-.PHONY: help venv contracts train-env train-landmarks train-detector train-descriptor landmarks run evaluate test unit lint typecheck proto check-proto bench images swarm-up swarm-run swarm-down clean
+.PHONY: help venv contracts train-env train-landmarks train-detector train-descriptor landmarks run evaluate test unit lint typecheck proto check-proto bench images swarm-up swarm-run swarm-down k8s-up k8s-apply k8s-run k8s-down clean
 
 help:
 	@sed -n 's/^#   //p' Makefile
@@ -119,6 +125,21 @@ swarm-run: $(STAMP)
 
 swarm-down: $(STAMP)
 	$(BIN)/swarmrec compose down --out $(COMPOSE_OUT)
+
+# The cluster runs a kubelet and containerd: these targets run as root (CI does).
+k8s-up: images
+	deploy/k8s/cluster-up.sh
+	deploy/k8s/load-images.sh
+
+k8s-apply: $(STAMP)
+	$(BIN)/swarmrec k8s secrets --overlay $(K8S_OVERLAY) --kubectl $(KUBECTL)
+	$(KUBECTL) apply --server-side --force-conflicts -k $(K8S_OVERLAY)
+
+k8s-run: $(STAMP)
+	$(BIN)/swarmrec run --deployment k8s --robots 3 --frames 600 --kubectl $(KUBECTL) --out runs/k8s-run
+
+k8s-down:
+	deploy/k8s/cluster-down.sh
 
 clean:
 	rm -rf $(VENV) .venv-train runs .pytest_cache .mypy_cache .ruff_cache

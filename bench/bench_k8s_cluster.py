@@ -11,10 +11,11 @@ Figures (2-core machine, single node, deploy/k8s/):
   first and measures it again.
 * warm up: ``cluster-up.sh`` with the binaries cached and no cluster running,
   by phase; down: ``cluster-down.sh``, with the swarm's namespace removed first.
-* the swarm: the images loaded (``load-images.sh``), the local overlay (3 robots,
-  14 pods) applied until every pod is Ready, a shard pod deleted until its
-  successor is Ready, and ``kubectl scale`` of the shard StatefulSet 3 -> 6 -> 2 -> 3
-  until the pods are Ready (or gone).
+* the swarm: the images loaded (``load-images.sh``), the local overlay's identities
+  (``swarmrec k8s secrets``: its Namespace and Services, the PKI for 6 robots, the
+  Secrets), the overlay (3 robots, 15 pods) applied until every pod is Ready, a shard
+  pod deleted until its successor is Ready, and ``kubectl scale`` of the shard
+  StatefulSet 3 -> 6 -> 2 -> 3 until the pods are Ready (or gone).
 * baseline: the compose swarm's up-to-healthy on the same machine kind
   (bench/results/compose.json, 4 robots = 18 containers).
 
@@ -33,6 +34,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+from swarmrec.deployments.kubernetes import Kubectl, install_identities
 
 REPO = Path(__file__).resolve().parents[1]
 K8S = REPO / "deploy" / "k8s"
@@ -86,9 +89,12 @@ def pods(component: str) -> dict[str, tuple[str, bool]]:
     return out
 
 
+PODS = 3 * len(KINDS) + 3  # the robots' services, router, gateway, Prometheus
+
+
 def all_ready() -> bool:
     items = json.loads(kubectl("-n", NAMESPACE, "get", "pods", "-o", "json"))["items"]
-    return len(items) == 14 and all(
+    return len(items) == PODS and all(
         any(c["type"] == "Ready" and c["status"] == "True" for c in p["status"].get("conditions", []))
         for p in items
     )
@@ -108,10 +114,14 @@ def bench_swarm() -> dict[str, Any]:
         local = os.path.relpath(REPO / "k8s/overlays/local", tmp)
         Path(tmp, "kustomization.yaml").write_text(f"namespace: {NAMESPACE}\nresources: [{local}]\n")
         manifest = kubectl("kustomize", tmp)
+        t0 = time.perf_counter()
+        cluster = Kubectl((f"{ENV['K8S_BIN']}/kubectl",), Path(ENV["KUBECONFIG_ADMIN"]))
+        install_identities(cluster, cluster.objects(manifest), Path(tmp) / "pki", max_robots=6)
+        out["identities_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     kubectl("apply", "-f", "-", stdin=manifest)
     until(all_ready)
-    out["apply_to_14_pods_ready_s"] = time.perf_counter() - t0
+    out[f"apply_to_{PODS}_pods_ready_s"] = time.perf_counter() - t0
 
     old = pods("index-shard")["index-shard-1"][0]
     t0 = time.perf_counter()

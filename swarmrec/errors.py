@@ -51,7 +51,8 @@ so a caller can catch the whole family in one place::
     │   └── StateFileError         a saved index, assignment or centres file cannot be read back
     └── deployments.DeploymentError        a deployment could not start, reach or stop its swarm
         ├── SwarmStartError                a service process exited or never became ready
-        └── ComposeError                   the compose tool failed or containers did not become healthy
+        ├── ComposeError                   the compose tool failed or containers did not become healthy
+        └── KubernetesError                kubectl failed, or the swarm did not come up on the cluster
 
 The families below the bus errors live beside the code that raises them
 (``swarmrec.detection.errors``, ``swarmrec.fusion``, ``swarmrec.models``,

@@ -36,6 +36,7 @@ COMMANDS: dict[str, str] = {
     "loop-closures": "swarmrec.cli.clients",
     "explain": "swarmrec.cli.explain",
     "pki": "swarmrec.cli.pki",
+    "k8s": "swarmrec.cli.k8s",
 }
 
 

@@ -1,5 +1,6 @@
-"""``swarmrec run``: the main job, place recognition through a swarm (local processes,
-or a running compose swarm with ``--attach``)."""
+"""``swarmrec run``: the main job, place recognition through a swarm: local processes,
+a namespace of a Kubernetes cluster (``--deployment k8s``), or a swarm left running by
+``swarmrec compose up`` or ``swarmrec k8s up`` (``--attach``)."""
 
 from __future__ import annotations
 
@@ -7,8 +8,12 @@ import argparse
 from pathlib import Path
 
 from swarmrec.cli.common import Subparsers, add_dataset_flags, dataset_source
-from swarmrec.deployments.compose import ComposeDeployment
+from swarmrec.cli.k8s import add_cluster_flags, kubectl_of
+from swarmrec.deployments.attach import attach
+from swarmrec.deployments.base import Deployment
+from swarmrec.deployments.kubernetes import DEFAULT_OVERLAY, KubernetesDeployment, KubernetesSettings
 from swarmrec.deployments.links import LinkSpec
+from swarmrec.errors import ConfigError
 from swarmrec.experiments.places import PixelSettings, PlacesSettings, PlacesSummary, main
 from swarmrec.experiments.places.report import DetectorFigures, FunnelStats
 from swarmrec.services.settings import IndexSettings
@@ -140,9 +145,24 @@ def add(sub: Subparsers) -> None:
         "--attach",
         type=Path,
         metavar="DIR",
-        help="start nothing: replay through the running swarm that `swarmrec compose up --out DIR` "
-        "started (its dataset, robots and preset; --pace, --out, --no-plots still apply)",
+        help="start nothing: replay through the running swarm that `swarmrec compose up --out DIR` or "
+        "`swarmrec k8s up --out DIR` started (its dataset, robots and preset; --pace, --out, --no-plots "
+        "still apply)",
     )
+    p.add_argument(
+        "--deployment",
+        choices=("local", "k8s"),
+        default="local",
+        help="where the swarm runs: local processes (default), or k8s: the k8s/ manifests in a new "
+        "namespace of a Kubernetes cluster, with mutual TLS from Secrets made for the run "
+        "(docs/kubernetes.md); removed after the run unless --keep",
+    )
+    k8s = p.add_argument_group("kubernetes", "with --deployment k8s")
+    k8s.add_argument("--namespace", default="swarmrec-run", help="the run's namespace (default swarmrec-run)")
+    k8s.add_argument(
+        "--keep", action="store_true", help="leave the swarm running; OUT/k8s/swarm.json attaches to it"
+    )
+    add_cluster_flags(k8s)
     p.set_defaults(handler=run)
 
 
@@ -164,38 +184,60 @@ def run(args: argparse.Namespace) -> int:
         "check_offline": not args.no_offline_check,
     }
     if args.attach is not None:
-        deployment = ComposeDeployment(args.attach)
+        attached, info = attach(args.attach)
         out = args.out if args.out != DEFAULT_OUT else args.attach / "report"
-        settings = PlacesSettings.from_record(deployment.info.experiment, out=out, **common)
-        summary = main(settings, deployment)
-    else:
-        settings = PlacesSettings(
-            source=dataset_source(args),
-            robots=args.robots,
-            preset=args.preset,
-            swarm=args.swarm,
-            request_timeout_s=args.timeout,
-            out=args.out,
-            wire_positions=args.wire_positions,
-            hosting=args.hosting,
-            link=LinkSpec(args.link_rate, args.link_latency),
-            schedule=args.link_schedule,
-            schedule_unit=args.schedule_unit,
-            security="insecure" if args.insecure else "mtls",
-            index=IndexSettings(replicas=args.replicas, rebalance_target=args.rebalance_target),
-            pixels=PixelSettings(
-                from_pixels=args.from_pixels,
-                rgbd=args.rgbd,
-                model=args.model,
-                conf_threshold=args.conf_threshold,
-                detector_threads=args.detector_threads,
-                camera=args.camera,
-                depth_scale=args.depth_scale,
-            ),
-            **common,
+        settings = PlacesSettings.from_record(info.experiment, out=out, **common)
+        summary = main(settings, attached)
+        print_summary(summary, settings.out)
+        return 0
+    settings = PlacesSettings(
+        source=dataset_source(args),
+        robots=args.robots,
+        preset=args.preset,
+        swarm=args.swarm,
+        request_timeout_s=args.timeout,
+        out=args.out,
+        wire_positions=args.wire_positions,
+        hosting=args.hosting,
+        link=LinkSpec(args.link_rate, args.link_latency),
+        schedule=args.link_schedule,
+        schedule_unit=args.schedule_unit,
+        security="insecure" if args.insecure else "mtls",
+        index=IndexSettings(replicas=args.replicas, rebalance_target=args.rebalance_target),
+        pixels=PixelSettings(
+            from_pixels=args.from_pixels,
+            rgbd=args.rgbd,
+            model=args.model,
+            conf_threshold=args.conf_threshold,
+            detector_threads=args.detector_threads,
+            camera=args.camera,
+            depth_scale=args.depth_scale,
+        ),
+        **common,
+    )
+    deployment: Deployment | None = None
+    k8s: KubernetesDeployment | None = None
+    if args.deployment == "k8s":
+        if args.insecure or args.hosting != "service":
+            raise ConfigError(
+                "a Kubernetes swarm runs one service per pod under mutual TLS: drop --insecure and --hosting"
+            )
+        k8s = KubernetesDeployment(
+            KubernetesSettings(
+                namespace=args.namespace,
+                out=args.out / "k8s",
+                overlay=args.overlay or DEFAULT_OVERLAY,
+                kubectl=kubectl_of(args),
+                max_robots=args.max_robots,
+                keep=args.keep,
+            )
         )
-        summary = main(settings)
+        deployment = k8s
+    summary = main(settings, deployment)
     print_summary(summary, settings.out)
+    if k8s is not None and args.keep:
+        path = k8s.write_attach_file(settings.record())
+        print(f"  the swarm runs on in namespace {args.namespace}: swarmrec run --attach {path.parent}")
     return 0
 
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 from swarmrec.client import GatewayClient, ZenohClient
 from swarmrec.deployments.metrics import Scrape
@@ -30,7 +30,15 @@ from swarmrec.errors import ConfigError, SwarmrecError
 from swarmrec.runtime.settings import BusSettings, Component, Config, StorageSettings, to_env, to_flags
 from swarmrec.services import registry
 
-__all__ = ["Deployment", "DeploymentError", "SwarmSpec", "SwarmStartError", "config_env", "config_flags"]
+__all__ = [
+    "AttachFile",
+    "Deployment",
+    "DeploymentError",
+    "SwarmSpec",
+    "SwarmStartError",
+    "config_env",
+    "config_flags",
+]
 
 
 class DeploymentError(SwarmrecError):
@@ -130,6 +138,35 @@ def config_env(config: Config) -> dict[str, str]:
     for part in config.parts:
         out.update(to_env(part, only_changed=True))
     return out
+
+
+@dataclass(frozen=True, kw_only=True)
+class AttachFile:
+    """``swarm.json``: what a client on this machine needs to attach to a swarm that runs
+    (``swarmrec run --attach DIR``), whatever runs it. Each deployment that leaves a swarm
+    running writes one, adding where the swarm runs (a compose project, a Kubernetes
+    namespace); ``deployment`` says which, so one reader opens any of them
+    (:func:`swarmrec.deployments.attach.attach`)."""
+
+    #: Which deployment wrote it: ``compose`` or ``kubernetes``.
+    deployment: str
+    swarm: str
+    robots: int
+    workload: str
+    kinds: list[str]
+    #: The router, from this machine (``tls/host:port``).
+    router_endpoint: str
+    #: The Prometheus server that scrapes every service, from this machine.
+    prometheus_url: str
+    #: ``grpc://host:port`` of the swarm's gRPC gateway, from this machine.
+    gateway_address: str = ""
+    #: mtls or insecure; with mtls, the PKI on this machine (the client's and operator's identities).
+    security: str = "mtls"
+    pki_dir: str = ""
+    #: The experiment's own record (its dataset on this machine, preset, ...), to re-run it.
+    experiment: dict[str, Any] = field(default_factory=dict)
+    #: The settings every robot's services share (what the spec said), to check a run against.
+    shared_env: dict[str, str] = field(default_factory=dict)
 
 
 class Deployment(Protocol):

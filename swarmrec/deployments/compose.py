@@ -33,13 +33,13 @@ import os
 import shutil
 import subprocess
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import swarmrec
 from swarmrec.client import GatewayClient, ZenohClient
-from swarmrec.deployments.base import DeploymentError, SwarmSpec, config_env
+from swarmrec.deployments.base import AttachFile, DeploymentError, SwarmSpec, config_env
 from swarmrec.deployments.identities import Security, client_tls, security_for, swarm_pki
 from swarmrec.deployments.metrics import Scrape, scrape_prometheus
 from swarmrec.errors import ConfigError
@@ -121,27 +121,13 @@ class ComposeSettings:
             raise ConfigError("invalid compose settings: " + "; ".join(problems))
 
 
-@dataclass(frozen=True)
-class SwarmFile:
-    """``swarm.json``: how the host reaches a containerised swarm and what it runs."""
+@dataclass(frozen=True, kw_only=True)
+class SwarmFile(AttachFile):
+    """``swarm.json`` of a compose swarm: the attach file, and the compose project."""
 
+    deployment: str = "compose"
     project: str
-    swarm: str
-    robots: int
-    workload: str
-    kinds: list[str]
-    router_endpoint: str
-    prometheus_url: str
     compose_file: str
-    #: The experiment's own record (its dataset on the host, preset, ...), to re-run it.
-    experiment: dict[str, Any] = field(default_factory=dict)
-    #: The environment every robot's services share (what the spec says), to check a run against.
-    shared_env: dict[str, str] = field(default_factory=dict)
-    #: ``grpc://127.0.0.1:<port>`` of the swarm's gRPC gateway.
-    gateway_address: str = ""
-    #: mtls or insecure; with mtls, the PKI on the host (the client's and operator's identities).
-    security: str = "mtls"
-    pki_dir: str = ""
 
 
 def service_name(kind: str, robot: int) -> str:
@@ -435,6 +421,8 @@ def read_swarm_file(folder: Path) -> SwarmFile:
     path = folder / "swarm.json"
     try:
         data = json.loads(path.read_text())
+        if isinstance(data, dict) and data.get("deployment", "compose") != "compose":
+            raise ConfigError(f"{path} describes a {data['deployment']} swarm, not a compose project")
         info = SwarmFile(**data)
     except FileNotFoundError:
         hint = f"swarmrec compose up --out {folder}"

@@ -37,7 +37,9 @@ from prometheus_client import (
 )
 
 __all__ = [
+    "HEALTH_PATH",
     "LATENCY_BUCKETS",
+    "READY_PATH",
     "SCOPES",
     "MetricInfo",
     "MetricSet",
@@ -189,34 +191,73 @@ class ServiceMetrics:
         self.messages_received.labels(message, scope).inc()
 
 
+#: The probe pages every process serves beside its metrics (Kubernetes ``httpGet`` probes).
+READY_PATH, HEALTH_PATH = "/ready", "/healthz"
+
+
 class MetricsServer:
-    """One process's Prometheus endpoint: each hosted service's registry at its own path.
+    """One process's Prometheus endpoint: each hosted service's registry at its own path,
+    and two probe pages.
 
     A process hosting one service serves it at ``/metrics`` (what the containers' health
     check and Prometheus read). A process hosting several serves each at
     ``/metrics/<kind>/<robot>`` and, at ``/metrics``, the host's own registry
     (``swarmrec_service_ready``: 1 while every hosted service serves).
+
+    ``/ready`` answers 200 while every hosted service serves (the runner calls
+    :meth:`set_ready` when their liveliness tokens are up, and clears it first thing
+    when stopping) and 503 otherwise; ``/healthz`` answers 200 as long as the process
+    serves HTTP at all. Both are a few bytes and no metrics rendering, so a probe costs
+    the process next to nothing (an exec probe starts a Python interpreter).
     """
 
     def __init__(self, host: str, port: int) -> None:
         self.host, self.port = host, port
         self.paths: dict[str, CollectorRegistry] = {}
         self._server: ThreadingHTTPServer | None = None
+        self._ready = threading.Event()
         self.base_url = ""
+
+    @property
+    def ready(self) -> bool:
+        """What ``/ready`` says now."""
+        return self._ready.is_set()
+
+    def set_ready(self, ready: bool) -> None:
+        """Make ``/ready`` answer 200 (``True``) or 503 (``False``)."""
+        if ready:
+            self._ready.set()
+        else:
+            self._ready.clear()
 
     def start(self) -> str:
         """Listen (port 0: a free one) on a daemon thread; returns the base URL."""
-        paths = self.paths
+        paths, ready = self.paths, self._ready
 
         class Handler(BaseHTTPRequestHandler):
             def do_GET(self) -> None:
-                registry = paths.get(self.path.split("?", 1)[0].rstrip("/") or "/")
+                path = self.path.split("?", 1)[0].rstrip("/") or "/"
+                if path == READY_PATH:
+                    up = ready.is_set()
+                    self._plain(200 if up else 503, b"ready\n" if up else b"not ready\n")
+                    return
+                if path == HEALTH_PATH:
+                    self._plain(200, b"ok\n")
+                    return
+                registry = paths.get(path)
                 if registry is None:
                     self.send_error(404, "no such metrics path")
                     return
                 body = generate_latest(registry)
                 self.send_response(200)
                 self.send_header("Content-Type", CONTENT_TYPE_LATEST)
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
+            def _plain(self, status: int, body: bytes) -> None:
+                self.send_response(status)
+                self.send_header("Content-Type", "text/plain; charset=utf-8")
                 self.send_header("Content-Length", str(len(body)))
                 self.end_headers()
                 self.wfile.write(body)

@@ -9,7 +9,9 @@ runner owns everything else, in this order:
 1. open the zenoh session (``with zenoh.open``: nothing is left to interpreter exit),
 2. serve Prometheus metrics: the families every service has
    (:class:`~swarmrec.runtime.metrics.ServiceMetrics`) and the set its kind
-   declares (:class:`~swarmrec.runtime.metrics.MetricSet`),
+   declares (:class:`~swarmrec.runtime.metrics.MetricSet`), beside the probe pages
+   ``/ready`` (200 once every hosted service serves, 503 before and while stopping)
+   and ``/healthz`` (200 while the process answers),
 3. build the service; a stateful one asks for its record logs
    (:meth:`ServiceContext.open_log`) and replays them in its constructor,
 4. declare one queryable per endpoint, one subscriber per subscription, plus
@@ -598,6 +600,8 @@ def run_services(
                 _start(r)
             if host_ready is not None:
                 host_ready.set(1)
+            if server is not None:
+                server.set_ready(True)
             services = [
                 {"service": r.hosted.kind, "robot": r.ctx.bus.robot, "metrics_url": r.ctx.metrics.url}
                 | (r.service.announce() if r.service is not None else {})
@@ -617,6 +621,8 @@ def run_services(
             stop.wait()
             host_log.info("stopping")
         finally:
+            if server is not None:
+                server.set_ready(False)  # first: a probe must not route to a stopping process
             if host_ready is not None:
                 host_ready.set(0)
             for r in reversed(running):

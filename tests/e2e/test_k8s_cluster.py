@@ -1,19 +1,21 @@
-"""The swarm on a real Kubernetes cluster: deploy/k8s/cluster-up.sh's single node, the swarm's
-images loaded into its containerd, the local overlay (k8s/overlays/local) applied with 3 robots
-in a namespace of this run's own.
+"""The swarm on a real Kubernetes cluster, under mutual TLS: deploy/k8s/cluster-up.sh's single node,
+the swarm's images loaded into its containerd, and a :class:`KubernetesDeployment` of 3 robots in a
+namespace of this run's own (the local overlay, a PKI made for the run, its Secrets).
 
-Real pods, real kubelet, kube-proxy and CoreDNS: nothing is simulated. A cluster that is already
-up is reused (and left up); one this module started is brought down at the end unless
+Real pods, real kubelet, kube-proxy and CoreDNS: nothing is simulated. A cluster that is already up
+is reused (and left up); one this module started is brought down at the end unless
 ``SWARMREC_K8S_KEEP=1``. The namespace, and its pods' folders on the node, are removed either way.
-The tests run in file order: the replay fills the shards, the pod deletion and the scaling then
-check that their records stay.
+
+The module's fixture runs the main job through the cluster first (``swarmrec run --deployment k8s
+--keep`` does the same): a lock-step replay whose pair scores must equal the offline evaluation's.
+The tests then check the running swarm: identities, refused clients, the gateway from the host, a
+deleted pod keeping its records, and the shard StatefulSet scaled.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import time
 from collections.abc import Iterator
@@ -21,20 +23,32 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import grpc
 import pytest
-from swarmrec.services.common import label_bounds_of
-from swarmrec.services.config import ServiceSettings
-from swarmrec.swarm.attached import main_attached
+import zenoh
 
-from swarmrec.client import SwarmClient
+from swarmrec.client import ZenohClient
+from swarmrec.core.split import split_frames
+from swarmrec.datasets.source import DatasetSource, load_dataset
+from swarmrec.deployments.attach import attach
+from swarmrec.deployments.kubernetes import (
+    DEFAULT_OVERLAY,
+    Kubectl,
+    KubernetesDeployment,
+    KubernetesSettings,
+    write_overlay,
+)
+from swarmrec.errors import ConfigError
+from swarmrec.experiments.places import PlacesSettings, PlacesSummary, main
+from swarmrec.experiments.places.pipeline import prepare
+from swarmrec.wire.gen.swarmrec.v1 import gateway_pb2, gateway_pb2_grpc
 from tests.conftest import REPO
 from tests.unit.test_k8s_manifests import ROBOT_KINDS, cluster_env
 
 ROBOTS, FRAMES = 3, 300
+#: Certificates for 6 robots: the scaling test takes the shards to 6.
+MAX_ROBOTS = 6
 KEEP = os.environ.get("SWARMREC_K8S_KEEP") == "1"
-WORKLOADS = [("deployment", "router"), ("deployment", "prometheus")] + [
-    ("statefulset", k) for k in ROBOT_KINDS
-]
 
 
 def _run(cmd: list[str], timeout_s: float, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
@@ -49,20 +63,15 @@ def _run(cmd: list[str], timeout_s: float, stdin: str | None = None) -> subproce
     return done
 
 
+def _kubectl() -> Kubectl:
+    env = cluster_env()
+    return Kubectl((str(Path(env["K8S_BIN"]) / "kubectl"),), Path(env["KUBECONFIG_ADMIN"]))
+
+
 @dataclass
 class Cluster:
-    """The running cluster, driven with its own kubectl."""
-
     started_here: bool
     timings: dict[str, float] = field(default_factory=dict)
-
-    def kubectl(self, *args: str, stdin: str | None = None, timeout_s: float = 120.0) -> str:
-        env = cluster_env()
-        cmd = [str(Path(env["K8S_BIN"]) / "kubectl"), "--kubeconfig", env["KUBECONFIG_ADMIN"], *args]
-        return _run(cmd, timeout_s, stdin).stdout
-
-    def json(self, *args: str) -> Any:
-        return json.loads(self.kubectl(*args, "-o", "json"))
 
 
 def _api_answers() -> bool:
@@ -78,8 +87,7 @@ def _api_answers() -> bool:
 def cluster() -> Iterator[Cluster]:
     if os.geteuid() != 0:
         pytest.fail("the Kubernetes tests run a kubelet and containerd: run them as root")
-    was_up = _api_answers()
-    c = Cluster(started_here=not was_up)
+    c = Cluster(started_here=not _api_answers())
     t0 = time.monotonic()
     _run([str(REPO / "deploy/k8s/cluster-up.sh")], timeout_s=1800)
     c.timings["cluster_up_s"] = time.monotonic() - t0
@@ -101,20 +109,30 @@ def loaded(cluster: Cluster, images: None) -> Cluster:
 
 @dataclass
 class Swarm:
-    cluster: Cluster
-    namespace: str
-    swarm: str
-    manifest: str
-    dry_run: str
+    deployment: KubernetesDeployment
+    run: PlacesSettings
+    summary: PlacesSummary
     timings: dict[str, float]
 
+    @property
+    def namespace(self) -> str:
+        return self.deployment.namespace
+
+    @property
+    def swarm(self) -> str:
+        return self.run.swarm
+
     def k(self, *args: str, timeout_s: float = 120.0) -> str:
-        return self.cluster.kubectl("-n", self.namespace, *args, timeout_s=timeout_s)
+        return self.deployment.k(*args, timeout_s=timeout_s)
+
+    def client(self) -> ZenohClient:
+        """A read-only client from the host, through the router's Service."""
+        return self.deployment.client(5.0, role="client")
 
     def pods(self, component: str) -> dict[str, dict[str, Any]]:
-        """Pod name -> {uid, ready, ip} of one component."""
-        items = self.cluster.json(
-            "-n", self.namespace, "get", "pods", "-l", f"app.kubernetes.io/component={component}"
+        """Pod name -> {uid, ready} of one component."""
+        items = json.loads(
+            self.k("get", "pods", "-l", f"app.kubernetes.io/component={component}", "-o", "json")
         )
         out = {}
         for p in items["items"]:
@@ -125,96 +143,78 @@ class Swarm:
             }
         return out
 
-    def cluster_ip(self, service: str) -> str:
-        ip: str = self.cluster.json("-n", self.namespace, "get", "service", service)["spec"]["clusterIP"]
-        return ip
-
-    def router(self) -> str:
-        return f"tcp/{self.cluster_ip('router')}:7447"
-
-    def client(self) -> SwarmClient:
-        return SwarmClient([self.router()], self.swarm, timeout_s=5.0)
-
-    def swarm_configmap(self) -> str:
-        sts = self.cluster.json("-n", self.namespace, "get", "statefulset", "index-shard")
-        name: str = sts["spec"]["template"]["spec"]["containers"][0]["envFrom"][0]["configMapRef"]["name"]
-        return name
-
-    def rollout(self, kind: str, name: str, timeout_s: int = 300) -> None:
-        self.k("rollout", "status", f"{kind}/{name}", f"--timeout={timeout_s}s", timeout_s=timeout_s + 30)
-
-
-def _wait_tcp(host: str, port: int, timeout_s: float) -> None:
-    """Until a TCP connection to the Service opens (kube-proxy lags the pod's readiness a little)."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            with socket.create_connection((host, port), timeout=2.0):
-                return
-        except OSError:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.2)
-
-
-def _overlay(tmp: Path, namespace: str, swarm: str) -> Path:
-    """This run's overlay: the local overlay in a namespace of its own, a swarm name of its own,
-    a shorter synthetic world."""
-    folder = tmp / "overlay"
-    folder.mkdir()
-    local = os.path.relpath(REPO / "k8s" / "overlays" / "local", folder)
-    (folder / "kustomization.yaml").write_text(
-        "apiVersion: kustomize.config.k8s.io/v1beta1\nkind: Kustomization\n"
-        f"namespace: {namespace}\nresources: [{local}]\n"
-        "configMapGenerator:\n"
-        f"  - {{ name: swarm, behavior: merge, literals: [SWARMREC_SWARM={swarm}] }}\n"
-        f"  - {{ name: synthetic-world, behavior: merge, literals: [FRAMES={FRAMES}] }}\n"
-    )
-    return folder
-
 
 @pytest.fixture(scope="module")
 def swarm(loaded: Cluster, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Swarm]:
     tmp = tmp_path_factory.mktemp("k8s-swarm")
     namespace, name = f"swarmrec-e2e-{os.getpid()}", f"e2e_k8s_{os.getpid()}"
-    manifest = loaded.kubectl("kustomize", str(_overlay(tmp, namespace, name)))
-    loaded.kubectl("create", "namespace", namespace)
+    settings = KubernetesSettings(
+        namespace=namespace, out=tmp / "k8s", kubectl=_kubectl(), max_robots=MAX_ROBOTS, keep=True
+    )
+    deployment = KubernetesDeployment(settings)
+    run = PlacesSettings(
+        source=DatasetSource(frames=FRAMES),
+        robots=ROBOTS,
+        swarm=name,
+        request_timeout_s=5.0,
+        out=tmp / "report",
+        plots=False,
+        progress=False,
+    )
     try:
-        # The apiserver's own validation (strict field validation, enums, admission) of every object
-        # before any is created (a dry run cannot create the namespace the others go in: made above).
-        dry_run = loaded.kubectl("apply", "--dry-run=server", "-f", "-", stdin=manifest)
-        s = Swarm(loaded, namespace, name, manifest, dry_run, loaded.timings)
+        # What `swarmrec run --deployment k8s --keep` does: deploy, replay in lock-step, report.
         t0 = time.monotonic()
-        loaded.kubectl("apply", "-f", "-", stdin=manifest)
-        for kind, workload in WORKLOADS:
-            s.rollout(kind, workload)
-        s.timings["apply_to_all_ready_s"] = time.monotonic() - t0
-        _wait_tcp(s.cluster_ip("router"), 7447, 60)
-        yield s
+        summary = main(run, deployment)
+        loaded.timings["run_deploy_and_replay_s"] = time.monotonic() - t0
+        loaded.timings.update({f"deploy_{k}": v for k, v in deployment.timings.items()})
+        yield Swarm(deployment, run, summary, loaded.timings)
     finally:
-        loaded.kubectl("delete", "namespace", namespace, "--wait=true", "--timeout=180s", timeout_s=240)
-        # The pods' folders on the node (hostPath): the namespace is gone, so are they.
-        subprocess.run(["rm", "-rf", str(Path(cluster_env()["K8S_VOLUMES"]) / namespace)], check=True)
+        deployment.remove()
         print(json.dumps({"k8s_e2e_timings_s": loaded.timings}))
 
 
-def test_the_apiserver_accepts_every_object_of_the_local_overlay(swarm: Swarm) -> None:
-    created = [line for line in swarm.dry_run.splitlines() if line.strip()]
-    assert len(created) == swarm.manifest.count("\nkind: ") + swarm.manifest.startswith("kind: ")
-    assert all(line.endswith("(server dry run)") for line in created), created
+def test_a_lockstep_replay_through_the_cluster_matches_the_offline_evaluation(swarm: Swarm) -> None:
+    s = swarm.summary
+    assert s.swarm.deployment == f"kubernetes namespace {swarm.namespace}"
+    assert (s.queries.frames_replayed, s.queries.missing_slots, s.queries.errors) == (FRAMES, 0, [])
+    assert s.offline_check is not None and s.offline_check.identical, s.offline_check
+    assert s.offline_check.positive_pairs_swarm > 0 and s.loop_closures.count > 0
+    # Every service's counters came from the cluster's Prometheus (router and gateway included).
+    assert s.scrape_failed == []
+    assert s.bytes.per_query > 0 and len(s.shard_load.partial_queries) == ROBOTS
 
 
-def test_every_pod_is_ready_with_its_robot_id_and_the_router_service_reaches_them_all(swarm: Swarm) -> None:
+def test_the_apiserver_accepts_every_object_of_the_runs_overlay(swarm: Swarm, tmp_path: Path) -> None:
+    # The apiserver's own validation (strict fields, enums, admission) of what the deployment applied.
+    spec = prepare(swarm.run, dataset_dir=tmp_path / "dataset").spec
+    folder = write_overlay(spec, swarm.namespace, DEFAULT_OVERLAY, tmp_path / "overlay")
+    kubectl = swarm.deployment.kubectl
+    manifest = kubectl.run("kustomize", str(folder))
+    out = kubectl.run("apply", "--dry-run=server", "--validate=strict", "-f", "-", stdin=manifest)
+    lines = [line for line in out.splitlines() if line.strip()]
+    assert len(lines) == manifest.count("\nkind: ") + manifest.startswith("kind: ")
+    assert all(line.endswith("(server dry run)") for line in lines), lines
+
+
+def test_every_pod_is_ready_and_presents_its_own_certificate_only(swarm: Swarm) -> None:
     for kind in ROBOT_KINDS:
         pods = swarm.pods(kind)
         assert sorted(pods) == [f"{kind}-{r}" for r in range(ROBOTS)]
         assert all(p["ready"] for p in pods.values()), pods
-    # Through the router's ClusterIP (kube-proxy): every robot's services, each under the robot id
-    # its pod's ordinal gave it.
     with swarm.client() as client:
-        client.wait_for({(k, r) for k in ROBOT_KINDS for r in range(ROBOTS)}, timeout_s=60)
         members = {(m.kind, m.robot) for m in client.members()}
-    assert members == {(k, r) for k in ROBOT_KINDS for r in range(ROBOTS)}
+    assert members == {(k, r) for k in ROBOT_KINDS for r in range(ROBOTS)} | {("router", 0), ("gateway", 0)}
+    # Inside robot 1's shard: its own pair and the CA certificate, nothing of the Secret it came from.
+    files = swarm.k("exec", "index-shard-1", "-c", "service", "--", "ls", "-l", "/run/swarmrec/pki")
+    names = sorted(line.split()[-1] for line in files.splitlines()[1:])
+    cn = f"r1.index-shard.{swarm.swarm}"
+    assert names == ["ca.pem", f"{cn}.key", f"{cn}.pem"]
+    assert next(line for line in files.splitlines() if line.endswith(".key")).startswith("-rw-------")
+    mounts = swarm.k("exec", "index-shard-1", "-c", "service", "--", "cat", "/proc/self/mounts")
+    assert "/run/swarmrec/secrets" not in mounts
+    router = swarm.k("exec", "deploy/router", "-c", "router", "--", "ls", "/run/swarmrec/pki").split()
+    assert sorted(router) == ["acl.json", "ca.pem", f"router.{swarm.swarm}.key", f"router.{swarm.swarm}.pem"]
+    assert "ca.key" not in swarm.k("get", "secrets", "-o", "json")
 
 
 def test_nothing_of_the_cluster_can_reach_beyond_this_machine(swarm: Swarm) -> None:
@@ -230,46 +230,70 @@ def test_nothing_of_the_cluster_can_reach_beyond_this_machine(swarm: Swarm) -> N
         assert any(r.startswith(f"-A {chain} -d {cidr} -m comment") and f"-j {target}" in r for r in rules)
 
 
-def test_a_lockstep_replay_through_the_cluster_matches_the_offline_evaluation(
+def test_a_client_without_a_certificate_is_refused_by_the_router_and_the_gateway(swarm: Swarm) -> None:
+    pki, endpoint = swarm.deployment.pki_dir, swarm.deployment.endpoint
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(pki / "ca.pem")))
+    with pytest.raises(zenoh.ZError):
+        zenoh.open(conf)
+    plain = zenoh.Config()
+    plain.insert_json5("mode", '"client"')
+    plain.insert_json5("scouting/multicast/enabled", "false")
+    plain.insert_json5("connect/endpoints", json.dumps([endpoint.replace("tls/", "tcp/")]))
+    with pytest.raises(zenoh.ZError):
+        zenoh.open(plain)
+    # The gateway's gRPC port: the swarm's CA trusted, but no client certificate to show.
+    target = swarm.deployment.gateway_address.removeprefix("grpc://")
+    credentials = grpc.ssl_channel_credentials(root_certificates=(pki / "ca.pem").read_bytes())
+    with grpc.secure_channel(target, credentials) as channel:
+        stub = gateway_pb2_grpc.SwarmGatewayStub(channel)  # type: ignore[no-untyped-call]  # generated, untyped
+        with pytest.raises(grpc.RpcError) as refused:
+            stub.Members(gateway_pb2.MembersRequest(), timeout=10.0)
+    assert refused.value.code() == grpc.StatusCode.UNAVAILABLE
+    # And with the client's certificate, the same port answers (next test: what it answers).
+    with swarm.deployment.gateway_client() as gateway:
+        assert gateway.members()
+
+
+def test_the_gateway_answers_a_grpc_query_from_the_host_as_the_router_does(swarm: Swarm) -> None:
+    frames = load_dataset(DatasetSource(frames=FRAMES)).sequence
+    g = FRAMES // 2  # a frame the swarm holds: robot r's block of the split, at its local index
+    robot = next(r for r, block in enumerate(split_frames(FRAMES, ROBOTS)) if g in block)
+    local = g - split_frames(FRAMES, ROBOTS)[robot].start
+    with swarm.deployment.gateway_client(10.0) as gateway, swarm.client() as zenoh_client:
+        assert {(m.kind, m.robot) for m in gateway.members()} == {
+            (m.kind, m.robot) for m in zenoh_client.members()
+        }
+        through_grpc, through_zenoh = (
+            gateway.query(frames.constellations[g]),
+            zenoh_client.query(frames.constellations[g]),
+        )
+        assert through_grpc.complete and list(through_grpc.matches) == list(through_zenoh.matches)
+        best = max(through_grpc.matches, key=lambda m: m.score)
+        assert (best.match_robot_id, best.match_frame_index) == (robot, local)  # it finds itself first
+        for r in range(ROBOTS):
+            assert list(gateway.loop_closures(r)) == list(zenoh_client.loop_closures(r))
+        assert any(gateway.loop_closures(r) for r in range(ROBOTS))
+
+
+def test_swarm_json_attaches_to_the_running_swarm_and_refuses_another_spec(
     swarm: Swarm, tmp_path: Path
 ) -> None:
-    # The host replays the same world the detectors made (`swarmrec synth`, same seed and frames)
-    # through the router Service, and reads the counters from the cluster's Prometheus.
-    dataset = tmp_path / "dataset"
-    _run(
-        [str(REPO / ".venv/bin/swarmrec"), "synth", "--out", str(dataset), "--frames", str(FRAMES)],
-        timeout_s=120,
-    )
-    # The shards' ranges as the services compute them (even for the paper preset).
-    bounds = label_bounds_of(ServiceSettings(n_robots=ROBOTS, n_labels=80, preset="paper"))
-    swarm_file = {
-        "project": swarm.namespace,
-        "swarm": swarm.swarm,
-        "robots": ROBOTS,
-        "preset": "paper",
-        "n_labels": 80,
-        "label_bounds": [int(b) for b in bounds],
-        "lockstep": True,
-        "request_timeout_s": 5.0,
-        "router_endpoint": swarm.router(),
-        "prometheus_url": f"http://{swarm.cluster_ip('prometheus')}:9090",
-        "dataset": str(dataset),
-        "labels": None,
-        "groundtruth": str(dataset / "groundtruth.txt"),
-        "compose_file": "",
-    }
-    folder = tmp_path / "k8s"
-    folder.mkdir()
-    (folder / "swarm.json").write_text(json.dumps(swarm_file))
-    t0 = time.monotonic()
-    summary = main_attached(folder, out=tmp_path / "report", progress=False, plots=False)
-    swarm.timings["replay_300_frames_s"] = time.monotonic() - t0
-    assert summary["queries"]["missing_slots"] == 0
-    assert summary["queries"]["errors"] == []
-    assert summary["offline_check"]["identical"] is True
-    with swarm.client() as client:
-        stored = {m.robot: m.stored_items for m in client.members() if m.kind == "index-shard"}
-    assert sum(stored.values()) > 0
+    path = swarm.deployment.write_attach_file(swarm.run.record())
+    attached, info = attach(path.parent)
+    assert isinstance(attached, KubernetesDeployment) and info.deployment == "kubernetes"
+    run = PlacesSettings.from_record(info.experiment, out=tmp_path)
+    spec = prepare(run, dataset_dir=tmp_path / "dataset").spec
+    attached.start(spec)  # the running swarm is this spec: checked, not started
+    with attached.client(role="client") as client:
+        assert len(client.members()) == 2 + ROBOTS * len(ROBOT_KINDS)
+    assert attached.stop() == {} and swarm.pods("router")  # attached: stop leaves it running
+    other = prepare(run.with_(robots=ROBOTS + 1), dataset_dir=tmp_path / "other").spec
+    with pytest.raises(ConfigError, match="not this run's"):
+        KubernetesDeployment.attached(path.parent).start(other)
 
 
 def _shard_records(swarm: Swarm) -> dict[int, int]:
@@ -301,20 +325,34 @@ def test_a_deleted_shard_pod_comes_back_with_its_records(swarm: Swarm) -> None:
     swarm.timings["pod_delete_to_ready_s"] = time.monotonic() - t0
     with swarm.client() as client:
         client.wait_for({("index-shard", 1)}, timeout_s=60)
-    # Same name, same folder on the node: the record log replayed on start.
+    # Same name, same folder on the node: the record log replayed on start; its identity installed
+    # again by its init container from the Secret.
     assert _shard_records(swarm) == before
+
+
+# --- Scaling the index shards -------------------------------------------------------------------------
+#
+# ELASTIC INDEX: CONNECT HERE. Today a shard's label range is fixed at start by (robot, SWARMREC_N_ROBOTS),
+# so this test tells new pods the new size (ConfigMap patch) and checks only what Kubernetes itself
+# guarantees: pods started and stopped, each with its own identity (certificates for MAX_ROBOTS robots),
+# records kept across scale-down and back. When the elastic index lands (label groups placed on shards,
+# versioned placement), replace `resize`'s ConfigMap patch by `kubectl scale` alone and add, after each
+# resize: the placement version the shards report has moved on, every label group is held by the shards
+# alive, and a lock-step replay of fresh frames through the resized swarm is identical to the offline
+# evaluation with the new placement (docs/kubernetes.md, "Scaling").
 
 
 def test_the_shard_statefulset_scales_from_3_to_6_to_2_and_back(swarm: Swarm) -> None:
     records = _shard_records(swarm)
     uids = {n: p["uid"] for n, p in swarm.pods("index-shard").items()}
-    configmap = swarm.swarm_configmap()
+    sts = json.loads(swarm.k("get", "statefulset", "index-shard", "-o", "json"))
+    configmap = sts["spec"]["template"]["spec"]["containers"][0]["envFrom"][0]["configMapRef"]["name"]
 
     def resize(n: int) -> float:
-        # Today a shard's label range is fixed at start by (robot, SWARMREC_N_ROBOTS), and a robot id
-        # outside the swarm is refused: pods created from now on are told the new size. (The elastic
-        # index will make the membership decide, and `kubectl scale` alone enough.)
-        patch = json.dumps({"data": {"SWARMREC_N_ROBOTS": str(n)}})
+        # Today a shard's label range is fixed at start by (robot, SWARMREC_N_ROBOTS, the run's label
+        # bounds), and a robot id outside the swarm is refused: pods created from now on are told the
+        # new size, and even ranges for it (empty bounds; the run wrote its own for 3 robots).
+        patch = json.dumps({"data": {"SWARMREC_N_ROBOTS": str(n), "SWARMREC_LABEL_BOUNDS": ""}})
         swarm.k("patch", "configmap", configmap, "--type", "merge", "-p", patch)
         t0 = time.monotonic()
         swarm.k("scale", "statefulset/index-shard", f"--replicas={n}")

@@ -13,8 +13,11 @@ kubectl alone (a few minutes, the first time only).
 What the schemas cannot say is checked against the code: every SWARMREC_* variable is a setting
 the services read, each robot's environment loads with the services' own settings loader, the
 robot StatefulSets agree with SWARMREC_N_ROBOTS, the images are the package's version, and the
-selectors, references and volumes fit together. ``tests/e2e/test_k8s_cluster.py`` applies the
-local overlay to a real cluster (server-side dry run first, then for real).
+selectors, references and volumes fit together. Identities: every swarm pod presents its own
+certificate, copied by its init container (the only one to mount a Secret, read-only) from the
+Secrets ``swarmrec k8s secrets`` makes, none of which holds ``ca.key``; probes are ``httpGet`` on the
+services' own pages. ``tests/e2e/test_k8s_cluster.py`` deploys the local overlay on a real cluster
+(server-side dry run first, then for real).
 """
 
 from __future__ import annotations
@@ -24,22 +27,24 @@ import os
 import re
 import subprocess
 from collections.abc import Iterator
-from dataclasses import fields
 from functools import cache
 from pathlib import Path
 from typing import Any
 
 import pytest
-from swarmrec.services.config import ENV_PREFIX, ServiceSettings, load_settings
 
 import swarmrec
-from swarmrec.services import SERVICES
+from swarmrec.deployments.kubernetes import secret_name, secret_names
+from swarmrec.runtime.settings import ENV_PREFIX, BusSettings, Config, StorageSettings, describe, load_config
+from swarmrec.services import registry
+from swarmrec.services.settings import DetectorSettings, GatewaySettings, PlaceSettings
 from tests.conftest import REPO
 
 OVERLAYS = ("local", "production")
 ROBOT_KINDS = ("index-shard", "verifier", "descriptor", "detector")
 STATEFUL_KINDS = ("index-shard", "verifier", "descriptor")
-HEALTHCHECK = ["python", "-m", "swarmrec.healthcheck"]
+SWARM_KINDS = ("router", "gateway")
+PKI_DIR = "/run/swarmrec/pki"
 EXAMPLES = sorted((REPO / "k8s" / "examples").glob("*.yaml"))
 
 Obj = dict[str, Any]
@@ -237,23 +242,49 @@ def swarm_config(objs: tuple[Obj, ...]) -> dict[str, str]:
     return dict(cm["data"])
 
 
-def robot_environment(objs: tuple[Obj, ...], kind: str, robot: int) -> dict[str, str]:
-    """The SWARMREC_* environment of robot ``robot``'s ``kind`` pod, as the kubelet would make it."""
-    container = service_container(find(objs, "StatefulSet", kind))
-    env = swarm_config(objs) if container.get("envFrom") else {}
+def environment(objs: tuple[Obj, ...], workload: Obj, container: Obj, robot: int) -> dict[str, str]:
+    """A container's environment as the kubelet would make it for pod ``robot`` of ``workload``:
+    ConfigMaps, values, the downward API (ordinal label, namespace, name) and ``$(VAR)`` expansion."""
+    env: dict[str, str] = {}
+    for source in container.get("envFrom", []):
+        env.update(find(objs, "ConfigMap", source["configMapRef"]["name"])["data"])
+    labels = {
+        **workload["spec"]["template"]["metadata"]["labels"],
+        "apps.kubernetes.io/pod-index": str(robot),
+    }
+    fields_ = {
+        "metadata.namespace": workload["metadata"]["namespace"],
+        "metadata.name": f"{workload['metadata']['name']}-{robot}",
+        **{f"metadata.labels['{k}']": v for k, v in labels.items()},
+    }
     for var in container.get("env", []):
         if "value" in var:
-            env[var["name"]] = var["value"]
-        elif (
-            var["valueFrom"].get("fieldRef", {}).get("fieldPath")
-            == "metadata.labels['apps.kubernetes.io/pod-index']"
-        ):
-            env[var["name"]] = str(robot)  # the StatefulSet controller's pod-index label
+            env[var["name"]] = re.sub(
+                r"\$\(([A-Za-z_][A-Za-z0-9_]*)\)", lambda m: env[m.group(1)], var["value"]
+            )
+        elif "fieldRef" in var["valueFrom"]:
+            env[var["name"]] = fields_[var["valueFrom"]["fieldRef"]["fieldPath"]]
+        else:
+            ref = var["valueFrom"]["configMapKeyRef"]
+            env[var["name"]] = find(objs, "ConfigMap", ref["name"])["data"][ref["key"]]
     return env
 
 
+def robot_environment(objs: tuple[Obj, ...], kind: str, robot: int) -> dict[str, str]:
+    """The environment of robot ``robot``'s ``kind`` service container."""
+    sts = find(objs, "StatefulSet", kind)
+    return environment(objs, sts, service_container(sts), robot)
+
+
+def service_config(kind: str, env: dict[str, str], **flags: Any) -> Config:
+    """``kind``'s whole configuration from ``env`` (and ``flags``), by the services' own loader."""
+    entry = registry.spec(kind)
+    overrides = {"mode": entry.zenoh_mode} if entry.zenoh_mode else {}
+    return load_config(entry.all_components, env=env, overrides={**overrides, **flags})
+
+
 VERSIONED_IMAGES = {f"swarmrec:{swarmrec.__version__}", f"swarmrec-prometheus:{swarmrec.__version__}"}
-SETTING_VARIABLES = {ENV_PREFIX + f.name.upper() for f in fields(ServiceSettings)}
+SETTING_VARIABLES = {info.env for comp in registry.all_components() for info in describe(comp)}
 
 
 # --- the tests -----------------------------------------------------------------------------------------
@@ -282,7 +313,7 @@ def test_the_validator_rejects_what_the_apiserver_rejects() -> None:
     bad["spec"]["replicas"] = "1"
     container = bad["spec"]["template"]["spec"]["containers"][0]
     container["ports"][0]["containerPort"] = "7447"
-    container["livenessProbe"]["exec"]["comand"] = ["true"]
+    container["livenessProbe"]["httpGet"]["pathh"] = "/healthz"
     del container["name"]
     errors = validate(bad)
     assert validate(good) == []
@@ -290,7 +321,7 @@ def test_the_validator_rejects_what_the_apiserver_rejects() -> None:
         [
             "Deployment/router.spec.replicas: expected an integer, got '1'",
             "Deployment/router.spec.template.spec.containers[0]: missing required field 'name'",
-            "Deployment/router.spec.template.spec.containers[0].livenessProbe.exec: unknown field 'comand'",
+            "Deployment/router.spec.template.spec.containers[0].livenessProbe.httpGet: unknown field 'pathh'",
             "Deployment/router.spec.template.spec.containers[0].ports[0].containerPort: "
             "expected an integer, got '7447'",
         ]
@@ -306,6 +337,11 @@ def test_each_robot_statefulset_has_as_many_replicas_as_the_swarm_has_robots(ove
     )
     # One object per service kind, never one per robot (the index will scale by replicas).
     assert sorted(o["metadata"]["name"] for o in objs if o["kind"] == "StatefulSet") == sorted(ROBOT_KINDS)
+    assert sorted(o["metadata"]["name"] for o in objs if o["kind"] == "Deployment") == [
+        "gateway",
+        "prometheus",
+        "router",
+    ]
 
 
 @pytest.mark.parametrize("overlay", OVERLAYS)
@@ -322,15 +358,46 @@ def test_every_swarmrec_variable_is_a_setting_the_services_read(overlay: str) ->
 def test_each_robots_environment_loads_with_the_services_own_settings_loader(overlay: str) -> None:
     objs = rendered(overlay)
     robots = int(swarm_config(objs)["SWARMREC_N_ROBOTS"])
+    namespace = find(objs, "Service", "router")["metadata"]["namespace"]
     for kind in ROBOT_KINDS:
         for robot in (0, robots - 1):
-            settings = load_settings(env=robot_environment(objs, kind, robot))
-            assert (settings.robot, settings.n_robots, settings.metrics_port) == (robot, robots, 9464)
-            assert settings.connect == ("tcp/router:7447",)
-            assert settings.metrics_host == "0.0.0.0"
+            config = service_config(kind, robot_environment(objs, kind, robot))
+            bus = config.bus
+            assert (bus.robot, bus.n_robots, bus.metrics_port, bus.metrics_host) == (
+                robot,
+                robots,
+                9464,
+                "0.0.0.0",
+            )
+            # Mutual TLS to the router's Service by the DNS name its certificate carries.
+            assert bus.connect == (f"tls/router.{namespace}.svc:7447",)
             if kind in STATEFUL_KINDS:
-                assert settings.data_dir == Path("/var/lib/swarmrec")
-    assert load_settings(env=robot_environment(objs, "detector", 0)).dataset == "/data/dataset"
+                assert config.get(StorageSettings).data_dir == Path("/var/lib/swarmrec")
+    detector = service_config("detector", robot_environment(objs, "detector", 0))
+    assert detector.get(DetectorSettings).dataset == "/data/dataset"
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_the_router_and_the_gateway_load_their_settings_too(overlay: str) -> None:
+    objs = rendered(overlay)
+    namespace = find(objs, "Service", "router")["metadata"]["namespace"]
+    router = find(objs, "Deployment", "router")
+    container = router["spec"]["template"]["spec"]["containers"][0]
+    assert container["args"] == ["router", "--listen", "tls/0.0.0.0:7447"]  # mutual TLS only
+    config = service_config("router", environment(objs, router, container, 0), listen=("tls/0.0.0.0:7447",))
+    assert config.bus.swarm == swarm_config(objs)["SWARMREC_SWARM"]
+    gateway = find(objs, "Deployment", "gateway")
+    container = gateway["spec"]["template"]["spec"]["containers"][0]
+    config = service_config("gateway", environment(objs, gateway, container, 0))
+    assert config.bus.connect == (f"tls/router.{namespace}.svc:7447",)
+    assert config.bus.swarm == swarm_config(objs)["SWARMREC_SWARM"]
+    assert (config.get(GatewaySettings).grpc_host, config.get(GatewaySettings).grpc_port) == (
+        "0.0.0.0",
+        50051,
+    )
+    assert {p["name"]: p["containerPort"] for p in container["ports"]} == {"grpc": 50051, "metrics": 9464}
+    service = find(objs, "Service", "gateway")
+    assert {p["name"]: p["port"] for p in service["spec"]["ports"]} == {"grpc": 50051, "metrics": 9464}
 
 
 def test_the_robot_id_is_the_pods_statefulset_ordinal() -> None:
@@ -351,16 +418,19 @@ def test_every_container_runs_the_images_compose_runs_at_the_package_version(ove
 
 
 @pytest.mark.parametrize("overlay", OVERLAYS)
-def test_every_service_runs_a_known_kind_and_is_probed_by_the_images_health_check(overlay: str) -> None:
+def test_every_service_runs_a_known_kind_and_is_probed_over_http_on_its_own_pages(overlay: str) -> None:
     for w in workloads(rendered(overlay)):
         name = w["metadata"]["name"]
         if name == "prometheus":
             continue
         container = w["spec"]["template"]["spec"]["containers"][0]
-        assert container["args"][0] in SERVICES
+        assert container["args"][0] in registry.REGISTRY
         assert container["args"][0] == name  # the object is named after the kind it runs
-        for probe in ("startupProbe", "readinessProbe", "livenessProbe"):
-            assert container[probe]["exec"]["command"] == HEALTHCHECK, (name, probe)
+        # The runner's own pages (swarmrec/runtime/metrics.py), no Python process per probe.
+        paths = {"startupProbe": "/ready", "readinessProbe": "/ready", "livenessProbe": "/healthz"}
+        for probe, path in paths.items():
+            assert container[probe]["httpGet"] == {"path": path, "port": "metrics"}, (name, probe)
+            assert "exec" not in container[probe]
         assert {"name": "metrics", "containerPort": 9464} in container["ports"]
         annotations = w["spec"]["template"]["metadata"]["annotations"]
         assert annotations == {
@@ -428,6 +498,9 @@ def test_selectors_and_references_fit_together(overlay: str) -> None:
                 assert v["configMap"]["name"] in config_maps
             if "persistentVolumeClaim" in v:
                 assert v["persistentVolumeClaim"]["claimName"] in claims
+            # The Secrets are made by `swarmrec k8s secrets` (never committed, never rendered).
+            for secret in _secrets_of(v):
+                assert secret in secret_names(), (w["metadata"]["name"], secret)
     assert len({o["metadata"].get("namespace") for o in objs if o["kind"] != "Namespace"}) == 1
 
 
@@ -487,7 +560,7 @@ def test_prometheus_discovers_every_service_kind_and_labels_it_as_the_compose_ta
     objs = rendered("local")
     (cm,) = [o for o in objs if o["kind"] == "ConfigMap" and o["metadata"]["name"].startswith("prometheus-")]
     config = cm["data"]["prometheus.yml"]
-    # The labels the report reads (swarmrec/swarm/scrape.py): job swarmrec, service and robot.
+    # The labels the report reads (swarmrec/deployments/metrics.py): job swarmrec, service and robot.
     assert re.search(r"job_name: swarmrec\n", config)
     for label in ("service", "robot", "namespace", "pod"):
         assert f"target_label: {label}\n" in config
@@ -498,7 +571,7 @@ def test_prometheus_discovers_every_service_kind_and_labels_it_as_the_compose_ta
         for o in objs
         if o["kind"] == "Service" and any(p["name"] == "metrics" for p in o["spec"]["ports"])
     }
-    assert names == with_metrics == {"router", *ROBOT_KINDS}
+    assert names == with_metrics == {"router", "gateway", *ROBOT_KINDS}
     for kind in ROBOT_KINDS:
         assert find(objs, "Service", kind)["spec"]["publishNotReadyAddresses"] is True
 
@@ -513,3 +586,267 @@ def test_the_hpa_example_scales_the_shard_statefulset_on_its_partial_query_rate(
     find(rendered("local"), "StatefulSet", "index-shard")
     (metric,) = hpa["spec"]["metrics"]
     assert metric["pods"]["metric"]["name"] == "swarmrec_shard_partial_queries_per_second"
+
+
+# --- identities: every pod its own, from Secrets no pod reads whole, none holding ca.key ---------------
+
+
+def _secrets_of(volume: Obj) -> list[str]:
+    """The Secrets a pod volume is made of (a secret volume, or a projected one)."""
+    if "secret" in volume:
+        return [volume["secret"]["secretName"]]
+    return [
+        src["secret"]["name"] for src in volume.get("projected", {}).get("sources", []) if "secret" in src
+    ]
+
+
+def swarm_workloads(objs: tuple[Obj, ...]) -> list[tuple[str, Obj]]:
+    """(kind, workload) of every pod template that runs a swarm service."""
+    out = [(k, find(objs, "Deployment", k)) for k in SWARM_KINDS]
+    return out + [(k, find(objs, "StatefulSet", k)) for k in ROBOT_KINDS]
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_only_the_identity_init_container_mounts_a_secret_and_read_only(overlay: str) -> None:
+    for w in workloads(rendered(overlay)):
+        pod = w["spec"]["template"]["spec"]
+        secret_volumes = {v["name"] for v in pod.get("volumes", []) if _secrets_of(v)}
+        if w["metadata"]["name"] == "prometheus":
+            assert secret_volumes == set()
+            continue
+        assert len(secret_volumes) == 1, w["metadata"]["name"]
+        for c in pod["containers"]:
+            assert not secret_volumes & {m["name"] for m in c.get("volumeMounts", [])}, (w, c["name"])
+        mounting = [
+            (c["name"], m)
+            for c in pod["initContainers"]
+            for m in c["volumeMounts"]
+            if m["name"] in secret_volumes
+        ]
+        assert [name for name, _ in mounting] == ["identity"]
+        assert all(m["readOnly"] is True for _, m in mounting)
+        # 0440: the pod's group (fsGroup, the services' uid) reads it, nobody else in the pod.
+        (volume,) = [v for v in pod["volumes"] if v["name"] in secret_volumes]
+        mode = volume.get("secret", volume.get("projected", {})).get("defaultMode")
+        assert mode == 0o440 and pod["securityContext"]["fsGroup"] == 10001
+        assert pod["automountServiceAccountToken"] is False
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_every_swarm_pod_presents_its_own_identity_from_its_kinds_secret(overlay: str) -> None:
+    objs = rendered(overlay)
+    for kind, w in swarm_workloads(objs):
+        pod = w["spec"]["template"]["spec"]
+        (init,) = [c for c in pod["initContainers"] if c["name"] == "identity"]
+        service = pod["containers"][0]
+        robot = 1 if w["kind"] == "StatefulSet" else 0
+        init_env = environment(objs, w, init, robot)
+        command = [re.sub(r"\$\((\w+)\)", lambda m, e=init_env: e[m.group(1)], a) for a in init["command"]]
+        assert command == [
+            "swarmrec",
+            "k8s",
+            "identity",
+            "--kind",
+            kind,
+            "--from",
+            "/run/swarmrec/secrets",
+            "--to",
+            PKI_DIR,
+        ]
+        # The same robot and swarm as the service: the copied pair is the one the service presents.
+        service_env = environment(objs, w, service, robot)
+        init_bus = load_config([BusSettings], env=init_env).bus
+        service_bus = load_config([BusSettings], env=service_env).bus
+        assert (
+            (init_bus.swarm, init_bus.robot)
+            == (service_bus.swarm, service_bus.robot)
+            == (
+                swarm_config(objs)["SWARMREC_SWARM"],
+                robot,
+            )
+        )
+        assert service_env["SWARMREC_PKI_DIR"] == PKI_DIR
+        assert {"SWARMREC_SECURITY", "SWARMREC_IDENTITY"} & service_env.keys() == set()  # mtls, its kind's CN
+        volumes = {v["name"]: v for v in pod["volumes"]}
+        mounts = {m["mountPath"]: m for m in init["volumeMounts"]}
+        expected = {secret_name(kind)} | ({"swarmrec-acl"} if kind == "router" else set())
+        assert set(_secrets_of(volumes[mounts["/run/swarmrec/secrets"]["name"]])) == expected
+        pki = volumes[mounts[PKI_DIR]["name"]]
+        assert pki["emptyDir"]["medium"] == "Memory"  # never on the node's disk
+        (service_mount,) = [m for m in service["volumeMounts"] if m["mountPath"] == PKI_DIR]
+        assert service_mount == {"name": pki["name"], "mountPath": PKI_DIR, "readOnly": True}
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_no_rendered_object_is_a_secret_or_names_the_ca_key(overlay: str) -> None:
+    objs = rendered(overlay)
+    assert [o["metadata"]["name"] for o in objs if o["kind"] == "Secret"] == []
+    assert "ca.key" not in json.dumps(objs)
+
+
+@pytest.fixture(scope="module")
+def pki(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from swarmrec.deployments.kubernetes import kubernetes_pki
+
+    folder = tmp_path_factory.mktemp("k8s-pki") / "pki"
+    return kubernetes_pki(folder, "lab", 3, "ns", router_names=("10.96.0.10",), gateway_names=("10.96.0.11",))
+
+
+def test_the_secrets_hold_each_kinds_pairs_and_never_the_ca_key(pki: Path) -> None:
+    from swarmrec.deployments.kubernetes import secret_objects
+    from swarmrec.security.certs import load_certificate, sans_of
+
+    objs = {o["metadata"]["name"]: o for o in secret_objects(pki, "lab", 3, "ns")}
+    assert sorted(objs) == sorted(secret_names())
+    assert all(o["metadata"]["namespace"] == "ns" and o["type"] == "Opaque" for o in objs.values())
+    keys = {name: set(o["data"]) for name, o in objs.items()}
+    assert not any("ca.key" in k for k in keys.values())
+    for kind in ROBOT_KINDS:
+        pairs = {f"r{r}.{kind}.lab.{ext}" for r in range(3) for ext in ("pem", "key")}
+        assert keys[secret_name(kind)] == {"ca.pem", *pairs}
+    assert keys[secret_name("router")] == {"ca.pem", "router.lab.pem", "router.lab.key"}
+    assert keys[secret_name("gateway")] == {"ca.pem", "client.gateway.lab.pem", "client.gateway.lab.key"}
+    assert keys["swarmrec-acl"] == {"acl.json"}
+    # Dialled by DNS name from the pods, by ClusterIP from the node.
+    router = sans_of(load_certificate(pki / "router.lab.pem"))
+    assert {"router.ns.svc", "router.ns.svc.cluster.local", "10.96.0.10"} <= router
+    gateway = sans_of(load_certificate(pki / "client.gateway.lab.pem"))
+    assert {"gateway.ns.svc", "10.96.0.11"} <= gateway
+
+
+def test_a_router_certificate_lacking_a_new_service_address_is_reissued_and_nothing_else(
+    tmp_path: Path,
+) -> None:
+    from swarmrec.deployments.kubernetes import kubernetes_pki
+    from swarmrec.security.certs import load_certificate, sans_of
+
+    folder = kubernetes_pki(tmp_path / "pki", "lab", 2, "ns", router_names=("10.96.0.10",))
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    kubernetes_pki(folder, "lab", 2, "ns", router_names=("10.96.0.99",))
+    after = {p.name: p.read_bytes() for p in folder.iterdir()}
+    assert "10.96.0.99" in sans_of(load_certificate(folder / "router.lab.pem"))
+    changed = {n for n in before if before[n] != after[n]}
+    assert changed == {"router.lab.pem", "router.lab.key"}
+
+
+def _as_mounted(secret: Obj, folder: Path) -> Path:
+    """A Secret's files as the kubelet mounts them with ``defaultMode: 0440`` and an fsGroup."""
+    import base64
+
+    folder.mkdir(parents=True)
+    for name, value in secret["data"].items():
+        (folder / name).write_bytes(base64.b64decode(value))
+        os.chmod(folder / name, 0o440)
+    return folder
+
+
+def test_the_identity_copy_installs_the_pods_own_pair_only_and_the_service_accepts_it(
+    pki: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from swarmrec.cli import main
+    from swarmrec.deployments.kubernetes import secret_objects
+    from swarmrec.runtime.tls import TlsFiles
+
+    objs = {o["metadata"]["name"]: o for o in secret_objects(pki, "lab", 3, "ns")}
+    mounted = _as_mounted(objs[secret_name("index-shard")], tmp_path / "secrets")
+    target = tmp_path / "pki"
+    # What robot 2's shard pod's init container runs (its variables from the pod's env).
+    for name, value in {"SWARMREC_ROBOT": "2", "SWARMREC_SWARM": "lab", "SWARMREC_N_ROBOTS": "3"}.items():
+        monkeypatch.setenv(name, value)
+    argv = ["k8s", "identity", "--kind", "index-shard", "--from", str(mounted), "--to", str(target)]
+    assert main(argv) == 0
+    assert sorted(p.name for p in target.iterdir()) == [
+        "ca.pem",
+        "r2.index-shard.lab.key",
+        "r2.index-shard.lab.pem",
+    ]
+    assert (target / "r2.index-shard.lab.key").stat().st_mode & 0o777 == 0o600
+    TlsFiles.in_dir(target, "r2.index-shard.lab").check()  # what the runner checks before zenoh reads them
+    # The router's copy takes its access control too (its volume projects two Secrets).
+    router = _as_mounted(objs[secret_name("router")], tmp_path / "router")
+    (router / "acl.json").write_bytes((pki / "acl.json").read_bytes())
+    assert (
+        main(["k8s", "identity", "--kind", "router", "--from", str(router), "--to", str(tmp_path / "r")]) == 0
+    )
+    assert sorted(p.name for p in (tmp_path / "r").iterdir()) == [
+        "acl.json",
+        "ca.pem",
+        "router.lab.key",
+        "router.lab.pem",
+    ]
+
+
+def test_the_identity_copy_refuses_a_missing_or_foreign_pair(pki: Path, tmp_path: Path) -> None:
+    from swarmrec.deployments.kubernetes import kubernetes_pki, secret_objects
+    from swarmrec.errors import SecurityError
+    from swarmrec.security.install import install_identity
+
+    objs = {o["metadata"]["name"]: o for o in secret_objects(pki, "lab", 3, "ns")}
+    mounted = _as_mounted(objs[secret_name("verifier")], tmp_path / "secrets")
+    with pytest.raises(SecurityError, match="max-robots"):  # robot 5 of a PKI made for 3
+        install_identity(mounted, tmp_path / "out", "r5.verifier.lab")
+    # Robot 1's pair under robot 0's name; then a pair of another swarm CA.
+    (mounted / "r0.verifier.lab.pem").chmod(0o640)
+    (mounted / "r0.verifier.lab.pem").write_bytes((mounted / "r1.verifier.lab.pem").read_bytes())
+    with pytest.raises(SecurityError, match=re.escape("is for 'r1.verifier.lab'")):
+        install_identity(mounted, tmp_path / "out", "r0.verifier.lab")
+    other = kubernetes_pki(tmp_path / "other", "lab", 3, "ns")
+    (mounted / "r2.verifier.lab.pem").chmod(0o640)
+    (mounted / "r2.verifier.lab.pem").write_bytes((other / "r2.verifier.lab.pem").read_bytes())
+    with pytest.raises(SecurityError, match="was not issued by"):
+        install_identity(mounted, tmp_path / "out", "r2.verifier.lab")
+    assert not (tmp_path / "out").exists() or list((tmp_path / "out").iterdir()) == []
+
+
+# --- the overlay KubernetesDeployment renders for a run ---------------------------------------------
+
+
+def test_a_runs_overlay_sets_the_specs_robots_settings_and_dataset(tmp_path: Path) -> None:
+    import zipfile
+
+    from swarmrec.datasets.constellations import read_constellations
+    from swarmrec.datasets.labels import label_names
+    from swarmrec.datasets.source import DatasetSource
+    from swarmrec.deployments.kubernetes import DEFAULT_OVERLAY, shared_env, write_overlay
+    from swarmrec.experiments.places.pipeline import prepare
+    from swarmrec.experiments.places.settings import PlacesSettings
+
+    run = PlacesSettings(source=DatasetSource(frames=60), robots=2, swarm="lab", out=tmp_path)
+    spec = prepare(run, dataset_dir=tmp_path / "dataset").spec
+    folder = write_overlay(spec, "run-ns", DEFAULT_OVERLAY, tmp_path / "overlay")
+    ensure_kubectl()
+    objs = tuple(yaml_to_objects(kubectl_run("kustomize", str(folder))))
+    assert [e for o in objs for e in validate(o)] == []
+    assert {o["metadata"].get("namespace") for o in objs if o["kind"] != "Namespace"} == {"run-ns"}
+    assert {k: find(objs, "StatefulSet", k)["spec"]["replicas"] for k in ROBOT_KINDS} == dict.fromkeys(
+        ROBOT_KINDS, 2
+    )
+    # Every robot service loads the spec's own place-recognition settings from the ConfigMap.
+    wanted = spec.component(PlaceSettings)
+    for kind in ("index-shard", "verifier", "descriptor"):
+        for robot in (0, 1):
+            config = service_config(kind, robot_environment(objs, kind, robot))
+            assert (
+                config.get(PlaceSettings) == wanted and config.bus.n_robots == 2 and config.bus.robot == robot
+            )
+    assert set(shared_env(spec)) <= set(swarm_config(objs))
+    assert not {"SWARMREC_ROBOT", "SWARMREC_CONNECT", "SWARMREC_PKI_DIR", "SWARMREC_DATASET"} & set(
+        swarm_config(objs)
+    )
+    # The detectors replay the run's own frames, from a ConfigMap, not a world of their own.
+    detector = find(objs, "StatefulSet", "detector")
+    pod = detector["spec"]["template"]["spec"]
+    assert [c["name"] for c in pod["initContainers"]] == ["identity"]
+    (volume,) = [v for v in pod["volumes"] if v["name"] == "dataset"]
+    assert set(volume) == {"name", "configMap"}
+    data = find(objs, "ConfigMap", volume["configMap"]["name"])["binaryData"]["dataset.zip"]
+    config = service_config("detector", robot_environment(objs, "detector", 0))
+    assert config.get(DetectorSettings).dataset == "/data/dataset.zip"
+    import base64
+    import io
+
+    (tmp_path / "in-pod.zip").write_bytes(base64.b64decode(data))
+    with zipfile.ZipFile(io.BytesIO(base64.b64decode(data))) as z:
+        assert z.testzip() is None
+    seq = read_constellations(tmp_path / "in-pod.zip", label_names())
+    assert seq.frame_ids == read_constellations(tmp_path / "dataset", label_names()).frame_ids

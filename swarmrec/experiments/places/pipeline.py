@@ -44,6 +44,7 @@ from swarmrec.datasets.source import load_dataset
 from swarmrec.deployments.base import Deployment, SwarmSpec
 from swarmrec.deployments.compose import ComposeSettings, SwarmFile, write_compose
 from swarmrec.deployments.identities import Security
+from swarmrec.deployments.kubernetes import KubernetesDeployment, KubernetesSettings
 from swarmrec.deployments.links import read_schedule
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.errors import ConfigError
@@ -66,7 +67,7 @@ from swarmrec.wire.codec import constellation_from_proto, constellation_to_proto
 #: How long a run waits after its replay for handoffs and retried stores to finish.
 SETTLE_TIMEOUT_S = 60.0
 
-__all__ = ["Prepared", "as_on_the_wire", "compose", "main", "prepare", "swarm_bounds"]
+__all__ = ["Prepared", "as_on_the_wire", "compose", "kubernetes_up", "main", "prepare", "swarm_bounds"]
 
 IntArray = npt.NDArray[np.int64]
 
@@ -146,6 +147,22 @@ def compose(settings: PlacesSettings, compose_settings: ComposeSettings) -> Swar
     out = compose_settings.out.resolve()
     spec = prepare(settings, dataset_dir=out / "dataset").spec
     return write_compose(spec, compose_settings, experiment=settings.record())
+
+
+def kubernetes_up(settings: PlacesSettings, k8s: KubernetesSettings) -> KubernetesDeployment:
+    """This run's swarm on Kubernetes, left running (``swarmrec k8s up``): deployed, ready, and
+    ``<out>/swarm.json`` written, so ``swarmrec run --attach <out>`` replays through it."""
+    deployment = KubernetesDeployment(k8s.with_(keep=True))
+    spec = prepare(settings, dataset_dir=k8s.out.resolve() / "dataset").spec
+    try:
+        deployment.start(spec, progress=settings.progress)
+        deployment.wait_ready()
+    except BaseException:
+        if deployment.created:  # never a namespace that was there before
+            deployment.remove()
+        raise
+    deployment.write_attach_file(settings.record())
+    return deployment
 
 
 def _link_schedule(

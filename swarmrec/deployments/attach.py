@@ -1,0 +1,52 @@
+"""Attach to a swarm that runs, whatever runs it: ``swarmrec run --attach DIR``.
+
+A deployment that leaves its swarm running (``swarmrec compose up``, ``swarmrec k8s
+up``) writes ``DIR/swarm.json``, an :class:`~swarmrec.deployments.base.AttachFile`
+whose ``deployment`` field names the deployment that wrote it. :func:`attach`
+reads it and returns that deployment, attached: its ``start(spec)`` checks that the
+running swarm is the spec instead of starting one, and its ``stop()`` leaves it
+running.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from swarmrec.deployments.base import AttachFile
+from swarmrec.deployments.compose import ComposeDeployment
+from swarmrec.deployments.kubernetes import KubernetesDeployment
+from swarmrec.errors import ConfigError
+
+__all__ = ["DEPLOYMENTS", "attach", "deployment_of"]
+
+#: The deployments that write an attach file, by the name in its ``deployment`` field.
+DEPLOYMENTS = ("compose", "kubernetes")
+
+
+def deployment_of(folder: Path) -> str:
+    """Which deployment wrote ``folder/swarm.json`` (files of older versions: compose)."""
+    path = folder / "swarm.json"
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(
+            f"{path} not found: start a swarm there first (swarmrec compose up --out {folder}, "
+            f"or swarmrec k8s up --out {folder})"
+        ) from None
+    except json.JSONDecodeError as e:
+        raise ConfigError(f"{path} is not a swarm file: {e}") from None
+    kind = data.get("deployment", "compose") if isinstance(data, dict) else None
+    if kind not in DEPLOYMENTS:
+        raise ConfigError(f"{path}: unknown deployment {kind!r} (known: {', '.join(DEPLOYMENTS)})")
+    return str(kind)
+
+
+def attach(folder: Path) -> tuple[ComposeDeployment | KubernetesDeployment, AttachFile]:
+    """The running swarm ``folder/swarm.json`` describes, as a deployment, and the file."""
+    if deployment_of(folder) == "kubernetes":
+        k8s = KubernetesDeployment.attached(folder)
+        assert k8s.info is not None  # read from the file
+        return k8s, k8s.info
+    compose = ComposeDeployment(folder)
+    return compose, compose.info
