@@ -223,18 +223,21 @@ def ring(groups: Sequence[tuple[int, int]], members: Sequence[int], *, replicas:
     return Placement(0, tuple(groups), owners, ids, replicas)
 
 
-def transition(current: Placement, target: Placement) -> Placement | None:
+def transition(
+    current: Placement, target: Placement, *, alive: Iterable[int] | None = None
+) -> Placement | None:
     """The first step from the settled ``current`` towards ``target``'s owners (same
-    groups): version ``current.version + 1`` where every group's owners that ``target``
-    keeps or that are no member any more go (a gone owner answers nothing), the owners
-    ``target`` adds are learners and those it drops are leaving. A group whose every owner
-    is gone keeps them listed (they come back with their stored records) and learns
-    from nobody. None when there is nothing to do."""
+    groups): version ``current.version + 1`` where owners that are not ``alive`` (default:
+    ``target``'s members) go at once (a gone owner answers nothing), the owners ``target``
+    adds are learners and the live ones it drops are leaving (they answer, and are copied
+    from, until the learners own: a shard draining before it stops is one). A group whose
+    every owner is gone keeps them listed (they come back with their stored records) and
+    learns from nobody. None when there is nothing to do."""
     if not current.settled:
         raise ConfigError("a handoff is in progress: promote it first")
     if current.groups != target.groups:
         raise ConfigError("a placement keeps its groups")
-    live = set(target.members)
+    live = set(target.members) if alive is None else set(alive)
     owners: list[tuple[int, ...]] = []
     learners: list[tuple[int, ...]] = []
     leaving: list[tuple[int, ...]] = []
@@ -250,7 +253,7 @@ def transition(current: Placement, target: Placement) -> Placement | None:
         owners.append(kept)
         learners.append(tuple(m for m in want if m not in kept))
         leaving.append(tuple(m for m in kept if m not in want))
-    members = tuple(sorted(live | {m for own in owners for m in own}))
+    members = tuple(sorted(set(target.members) | {m for own in owners for m in own}))
     if (
         tuple(owners) == current.owners
         and members == current.members

@@ -51,7 +51,7 @@ from swarmrec.runtime.hosting import host_ranges, robots_per_process
 from swarmrec.runtime.settings import Component, Config, to_flags
 from swarmrec.runtime.tls import tls_endpoint
 from swarmrec.security.identity import SERVICE_KINDS, Identity
-from swarmrec.services.settings import GatewaySettings
+from swarmrec.services.settings import GatewaySettings, IndexSettings
 
 __all__ = ["LocalDeployment", "ServiceProcess", "free_port"]
 
@@ -276,9 +276,10 @@ class LocalDeployment:
                 hosts = {*host_ranges(self.hosting, spec.robots), *((r, r) for r in range(spec.robots))}
             # Every kind this swarm runs gets certificates (a plugin's too), the built-in ones always.
             kinds = (*SERVICE_KINDS, *(k for k in spec.kinds if k not in SERVICE_KINDS))
-            self.pki_dir = swarm_pki(
-                self.data_dir / "pki", spec.swarm, spec.robots, hosts=sorted(hosts), kinds=kinds
-            )
+            # Index shards may have ids beyond the robots (IndexSettings.max_shards): certificates too.
+            index = spec.component(IndexSettings)
+            ids = max(spec.robots, index.max_shards if isinstance(index, IndexSettings) else 0)
+            self.pki_dir = swarm_pki(self.data_dir / "pki", spec.swarm, ids, hosts=sorted(hosts), kinds=kinds)
         fixed = self.router_port
         for attempt in range(1, ROUTER_ATTEMPTS + 1):
             self.router_port = fixed or free_port()

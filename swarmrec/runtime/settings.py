@@ -93,6 +93,11 @@ class Component:
         """What is wrong with these values given the other components of ``config``."""
         return []
 
+    def max_robot_id(self, bus: BusSettings) -> int:
+        """The highest robot id this component lets a service take (the bus allows
+        ``n_robots - 1``; the elastic index lets index shards go beyond)."""
+        return bus.n_robots - 1
+
     def __post_init__(self) -> None:
         found = self.problems()
         if found:
@@ -169,8 +174,6 @@ class BusSettings(Component):
             problems.append(str(e))
         if self.n_robots < 1:
             problems.append(f"n_robots must be >= 1, got {self.n_robots}")
-        if not 0 <= self.robot < max(self.n_robots, 1):
-            problems.append(f"robot must be in [0, n_robots={self.n_robots}), got {self.robot}")
         if self.mode not in ("client", "peer", "router"):
             problems.append(f"mode must be client, peer or router, got {self.mode!r}")
         if self.mode == "router" and not self.listen:
@@ -190,7 +193,16 @@ class BusSettings(Component):
             problems.append(
                 f"log_level must be DEBUG, INFO, WARNING, ERROR or CRITICAL, got {self.log_level!r}"
             )
+        if self.robot < 0:
+            problems.append(f"robot must be >= 0, got {self.robot}")
         return problems
+
+    def problems_with(self, config: Config) -> list[str]:
+        # The highest id any component of this service allows (index shards may go beyond n_robots).
+        highest = max(p.max_robot_id(self) for p in config.parts)
+        if self.robot > highest:
+            return [f"robot must be in [0, {highest + 1}) (n_robots={self.n_robots}), got {self.robot}"]
+        return []
 
 
 @dataclass(frozen=True)

@@ -99,7 +99,9 @@ class Coordinator:
         return min(live | {self.shard.shard})
 
     def _stopping(self) -> bool:
-        return self._stop.is_set() or self.shard.ctx.stop.is_set()
+        # Not the service's stop event: a coordinator that is draining its own shard keeps
+        # coordinating until the shard is drained (stop() ends it then).
+        return self._stop.is_set()
 
     def _run(self) -> None:
         self.confirm_on_start()
@@ -234,6 +236,9 @@ class Coordinator:
         # this: they go to a group's other owners as soon as one does not answer.
         grace = self.settings.member_grace_s
         present = live | {m for m in current.members if now - self._seen.get(m, self._started) < grace}
+        # Draining shards are stopping: their groups go elsewhere while they still answer.
+        draining = {m for m, st in states.items() if st.draining}
+        present -= draining
         behind = sorted(
             m
             for m, st in states.items()
@@ -241,6 +246,8 @@ class Coordinator:
         )
         if behind:
             self._adopt(behind, current)
+        if not present:
+            return  # every shard is stopping: nowhere to move anything
         if not current.settled:
             ready = {
                 m: list(st.ready_groups)
@@ -255,7 +262,9 @@ class Coordinator:
         target = follow_members(current, present)
         if target.owners == current.owners and set(target.members) == set(current.members):
             target = self._rebalanced(current, states) or target
-        step = transition(current, target)
+        # Owners gone for less than the grace stay owners (a restart keeps its groups);
+        # draining ones are leaving: they answer and are copied from until the learners own.
+        step = transition(current, target, alive=present | draining | live)
         if step is not None:
             self.publish(step, live)
 

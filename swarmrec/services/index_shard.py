@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -124,6 +125,7 @@ class IndexShard(ServiceBase):
             self.placement, self.ready = saved
             held = set(self.placement.groups_of(self.shard)) | set(self.placement.learning(self.shard))
         self.confirmed = False
+        self.draining = False
         for g in sorted(held):
             self.indexes[g] = RangeIndex(*self.groups[g], self.bus.n_robots)
         restored, skipped = self._replay_log(held)
@@ -204,6 +206,7 @@ class IndexShard(ServiceBase):
                 ready_groups=sorted(self.ready),
                 group_queries=self.served,
                 confirmed=self.confirmed,
+                draining=self.draining,
             )
 
     def follow(self, placement: Placement, *, confirm: bool = True) -> bool:
@@ -328,7 +331,34 @@ class IndexShard(ServiceBase):
         if ready:
             self.coordinator.start()
         else:
+            # Still serving (the runner stops the endpoints after this): hand the groups on first.
+            self.drain()
             self.coordinator.stop()
+
+    def drain(self) -> None:
+        """Before stopping, let the coordinator move this shard's groups to the others (a
+        scale-down loses nothing even when a group's other replica goes too): wait until
+        this shard holds no group, for at most ``drain_timeout_s``. At once when no other
+        shard stays (the whole swarm is stopping) or nothing is held."""
+        self.draining = True
+        deadline = time.monotonic() + self.index_settings.drain_timeout_s
+        waited = False
+        while time.monotonic() < deadline:
+            with self.lock:
+                holds = bool(self.placement.groups_of(self.shard) or self.placement.learning(self.shard))
+            if not holds:
+                break
+            try:
+                states = self.coordinator.states()
+            except CallError:
+                break
+            if not any(m != self.shard and not st.draining for m, st in states.items()):
+                break  # nobody stays to take the groups
+            waited = True
+            time.sleep(0.2)
+        if waited:
+            fields = {"version": self.placement.version, "groups": self.placement.groups_of(self.shard)}
+            self.ctx.log.info("drained", extra={"fields": fields})
 
     def close(self) -> None:
         self.coordinator.stop()

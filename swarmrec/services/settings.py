@@ -184,6 +184,16 @@ class IndexSettings(Component):
         200, "partial queries to observe (since the last rebalancing) before rebalancing on them"
     )
     transfer_page: int = setting(2000, "descriptors in one page of a handoff copy")
+    drain_timeout_s: float = setting(
+        30.0,
+        "a shard told to stop first hands its groups to the others (a scale-down), for at most this "
+        "long; it stops at once when every other shard is stopping too",
+    )
+    max_shards: int = setting(
+        0,
+        "index shards may have ids up to max(n_robots, max_shards) - 1: shards beyond the robots "
+        "(a StatefulSet scaled up); 0: as many as robots",
+    )
     pending_capacity: int = setting(
         100_000,
         "stores a descriptor keeps to retry (on disk) while shards do not acknowledge them; "
@@ -194,6 +204,9 @@ class IndexSettings(Component):
         5.0, "a shard that timed out is asked last for this long (another owner answers first)"
     )
 
+    def max_robot_id(self, bus: BusSettings) -> int:
+        return max(bus.n_robots, self.max_shards) - 1
+
     def problems(self) -> list[str]:
         problems = []
         if not 1 <= self.replicas <= 16:
@@ -202,7 +215,9 @@ class IndexSettings(Component):
             value = getattr(self, name)
             if not (math.isfinite(value) and 0.01 <= value <= 3600):
                 problems.append(f"{name} must be 0.01 to 3600 s, got {value}")
-        for name in ("suspect_s", "member_grace_s"):
+        if self.max_shards < 0:
+            problems.append(f"max_shards must be >= 0, got {self.max_shards}")
+        for name in ("suspect_s", "member_grace_s", "drain_timeout_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and 0 <= value <= 3600):
                 problems.append(f"{name} must be 0 to 3600 s, got {value}")

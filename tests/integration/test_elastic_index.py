@@ -81,10 +81,14 @@ def group_rows(caller: Caller, swarm: str, shard: int, group: int) -> set[tuple[
 
 def expected_rows(dataset: Path, placement: Placement) -> dict[int, set[tuple[int, int]]]:
     """Per group, the (robot, frame) of every queried frame with objects of that group."""
+    return _expected(dataset, placement, ROBOTS)
+
+
+def _expected(dataset: Path, placement: Placement, robots: int) -> dict[int, set[tuple[int, int]]]:
     seq = read_constellations(dataset)
     preset = get_preset("paper")
     out: dict[int, set[tuple[int, int]]] = {g: set() for g in range(len(placement.groups))}
-    for robot, block in enumerate(split_frames(len(seq), ROBOTS)):
+    for robot, block in enumerate(split_frames(len(seq), robots)):
         for frame, i in enumerate(block):
             c = seq.constellations[i]
             if len(c) < preset.min_objects:
@@ -235,13 +239,16 @@ def test_stale_and_far_ahead_placement_versions_are_refused_and_placements_come_
         caller = client.caller
         assert caller is not None
         lookup0 = keys.endpoint(s, "index-shard", 0, "lookup")
-        caller.call(lookup0, _slice(0), pb.CandidatesReply, target_robot=0)  # version 0 is current
+        start = client.wait_index_settled(30.0).placement
+        assert start is not None
+        caller.call(lookup0, _slice(start.version), pb.CandidatesReply, target_robot=0)  # the current one
         # Shard 2 goes: after the grace the coordinator (shard 0) moves its groups on.
         shards.find("index-shard", 2).proc.send_signal(signal.SIGKILL)
-        wait_until(lambda: client.index_state().placement.version >= 2, 30, "placement moved on")  # type: ignore[union-attr]
+        moved = start.version + 2  # the dead owner dropped with learners, then the learners own
+        wait_until(lambda: client.index_state().placement.version >= moved, 30, "placement moved on")  # type: ignore[union-attr]
         version = client.index_state().placement.version  # type: ignore[union-attr]
         with pytest.raises(RemoteError) as stale:
-            caller.call(lookup0, _slice(0), pb.CandidatesReply, target_robot=0)
+            caller.call(lookup0, _slice(start.version), pb.CandidatesReply, target_robot=0)
         assert stale.value.code == ErrorCode.FAILED_PRECONDITION and "refresh" in stale.value.message
         t0 = time.perf_counter()
         with pytest.raises(RemoteError) as ahead:
@@ -262,3 +269,83 @@ def test_stale_and_far_ahead_placement_versions_are_refused_and_placements_come_
     with shards.client(5.0) as client:
         after = {st.shard_id: placement_from_proto(st.placement, 30).version for st in client.shard_states()}
     assert after == {0: version, 1: version}
+
+
+@pytest.mark.slow
+def test_shards_scaled_from_3_to_6_to_2_mid_run_lose_nothing_and_scores_stay_identical(
+    tmp_path: Path,
+) -> None:
+    """The scale-up and scale-down a StatefulSet would do, on local processes: three more
+    shards (ids beyond the robots) join at step 20; at step 55 four of the six are told to
+    stop at once (SIGTERM), and they hand their groups over before they exit."""
+    robots, frames = 3, 330
+    settings = PlacesSettings(
+        source=DatasetSource(frames=frames),
+        robots=robots,
+        out=tmp_path / "run",
+        swarm="elastic-scale",
+        request_timeout_s=1.0,
+        progress=False,
+        plots=False,
+        index=IndexSettings(
+            member_grace_s=1.0,
+            placement_tick_s=0.25,
+            rebalance_target=1000.0,
+            max_shards=6,
+            drain_timeout_s=60.0,
+        ),
+    )
+    held: list[LocalDeployment] = []
+    stopped: dict[int, int] = {}
+    seen: dict[str, Placement] = {}
+
+    def hook(d: Deployment) -> None:
+        assert isinstance(d, LocalDeployment)
+        held.append(d)
+
+    def placed(client: ZenohClient) -> bool:
+        state = client.index_state()
+        return state.settled and state.placement is not None and 5 in state.placement.members
+
+    def on_step(t: int) -> None:
+        swarm = held[0]
+        if t == 20:
+            for shard in (3, 4, 5):
+                swarm.start_robot(shard, ["index-shard"])
+            swarm.wait_ready(60.0)
+            with swarm.client(5.0) as client:
+                wait_until(lambda: placed(client), 60, "the 3 new shards placed")
+                placement = client.index_state().placement
+                assert placement is not None
+                seen["six"] = placement
+        if t == 55:
+            going = [swarm.find("index-shard", s) for s in (2, 3, 4, 5)]
+            for sp in going:
+                sp.proc.send_signal(signal.SIGTERM)
+            for sp in going:
+                stopped[sp.robot] = sp.proc.wait(timeout=90)
+
+    def after(d: Deployment) -> None:
+        assert isinstance(d, LocalDeployment)
+        with d.client(5.0) as client:
+            state = client.index_state()
+        assert state.settled and state.placement is not None
+        placement = state.placement
+        assert {m for own in placement.owners for m in own} == {0, 1}
+        expected = _expected(settings.out / "dataset", placement, robots)
+        with _as_shard(d, 0) as c:
+            caller = Caller(c.session, 0, 5.0)
+            for g, owners in enumerate(placement.owners):
+                for shard in owners:
+                    assert group_rows(caller, d.spec_swarm, shard, g) == expected[g], (g, shard)
+
+    summary = main(settings, swarm_hook=hook, on_step=on_step, after_replay=after)
+
+    assert stopped == {2: 0, 3: 0, 4: 0, 5: 0}  # each drained and exited cleanly
+    six = seen["six"]
+    # The new shards took groups (three groups of two replicas: six places over six shards,
+    # as rendezvous hashing deals them).
+    assert {3, 4, 5} & {m for own in six.owners for m in own}
+    assert summary.offline_check is not None and summary.offline_check.identical, summary.offline_check
+    assert summary.queries.failed_shard_requests == 0
+    assert summary.index is not None and summary.index.handoff_records > 0

@@ -203,3 +203,16 @@ def test_learners_and_leaving_owners_are_checked() -> None:
         Placement(1, GROUPS[:1], ((0,),), (0, 1), 2, learners=((0,),))
     with pytest.raises(ConfigError, match="leaving"):
         Placement(1, GROUPS[:1], ((0,),), (0, 1), 2, leaving=((0,),))
+
+
+def test_a_draining_owner_is_leaving_not_gone_so_it_is_copied_from_until_the_learners_own() -> None:
+    current = ring(GROUPS[:3], range(3), replicas=2)  # (0, 1), (1, 2), (2, 0)
+    # Shards 1 and 2 are stopping (draining) but still answer: only 0 stays.
+    target = follow_members(current, (0,))
+    step = transition(current, target, alive=(0, 1, 2))
+    assert step is not None
+    assert step.owners == ((0, 1), (1, 2), (2, 0))  # nobody dropped yet
+    assert step.leaving == ((1,), (1, 2), (2,))
+    assert step.learners == ((), (0,), ())
+    done = promote(step, {0: [1]}, alive=(0,))
+    assert done is not None and done.owners == ((0,), (0,), (0,))

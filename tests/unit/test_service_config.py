@@ -21,7 +21,13 @@ from swarmrec.runtime.settings import (
     to_flags,
 )
 from swarmrec.services import registry
-from swarmrec.services.settings import DetectorSettings, FusionSettings, PlaceSettings, RgbdSettings
+from swarmrec.services.settings import (
+    DetectorSettings,
+    FusionSettings,
+    IndexSettings,
+    PlaceSettings,
+    RgbdSettings,
+)
 
 SHARD = (BusSettings, StorageSettings, PlaceSettings)
 
@@ -213,10 +219,22 @@ def test_a_float_where_an_integer_is_meant_is_refused(tmp_path: Path) -> None:
         load(env={}, config_file=toml_file(tmp_path, "workers = 2.9\n"))
 
 
-@pytest.mark.parametrize(("robot", "n_robots"), [(3, 3), (4, 3), (-1, 3)])
+@pytest.mark.parametrize(("robot", "n_robots"), [(3, 3), (4, 3)])
 def test_a_robot_id_outside_the_swarm_is_refused(robot: int, n_robots: int) -> None:
-    with pytest.raises(ConfigError, match=rf"robot must be in \[0, n_robots={n_robots}\), got {robot}"):
-        BusSettings(robot=robot, n_robots=n_robots)
+    with pytest.raises(ConfigError, match=rf"robot must be in \[0, 3\) \(n_robots={n_robots}\), got {robot}"):
+        Config.of(BusSettings(robot=robot, n_robots=n_robots))
+
+
+def test_a_negative_robot_id_is_refused() -> None:
+    with pytest.raises(ConfigError, match="robot must be >= 0, got -1"):
+        BusSettings(robot=-1, n_robots=3)
+
+
+def test_index_shards_may_have_ids_beyond_the_robots_up_to_max_shards() -> None:
+    index = IndexSettings(max_shards=6)
+    assert Config.of(BusSettings(robot=5, n_robots=3), index).bus.robot == 5
+    with pytest.raises(ConfigError, match=r"robot must be in \[0, 6\)"):
+        Config.of(BusSettings(robot=6, n_robots=3), index)
 
 
 @pytest.mark.parametrize(
@@ -284,8 +302,8 @@ def test_every_problem_of_a_component_is_reported_at_once() -> None:
 def test_with_validates_the_copy() -> None:
     s = BusSettings(n_robots=4)
     assert s.with_(robot=3).robot == 3
-    with pytest.raises(ConfigError, match="robot must be in"):
-        s.with_(robot=4)
+    with pytest.raises(ConfigError, match="robot must be >= 0"):
+        s.with_(robot=-4)
 
 
 def test_asking_a_config_for_a_component_it_lacks_says_so() -> None:

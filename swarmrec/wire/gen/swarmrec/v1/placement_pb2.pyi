@@ -36,18 +36,20 @@ class PlacementRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class ShardState(_message.Message):
-    __slots__ = ("placement", "shard_id", "ready_groups", "group_queries", "confirmed")
+    __slots__ = ("placement", "shard_id", "ready_groups", "group_queries", "confirmed", "draining")
     PLACEMENT_FIELD_NUMBER: _ClassVar[int]
     SHARD_ID_FIELD_NUMBER: _ClassVar[int]
     READY_GROUPS_FIELD_NUMBER: _ClassVar[int]
     GROUP_QUERIES_FIELD_NUMBER: _ClassVar[int]
     CONFIRMED_FIELD_NUMBER: _ClassVar[int]
+    DRAINING_FIELD_NUMBER: _ClassVar[int]
     placement: Placement
     shard_id: int
     ready_groups: _containers.RepeatedScalarFieldContainer[int]
     group_queries: _containers.RepeatedScalarFieldContainer[int]
     confirmed: bool
-    def __init__(self, placement: _Optional[_Union[Placement, _Mapping]] = ..., shard_id: _Optional[int] = ..., ready_groups: _Optional[_Iterable[int]] = ..., group_queries: _Optional[_Iterable[int]] = ..., confirmed: _Optional[bool] = ...) -> None: ...
+    draining: bool
+    def __init__(self, placement: _Optional[_Union[Placement, _Mapping]] = ..., shard_id: _Optional[int] = ..., ready_groups: _Optional[_Iterable[int]] = ..., group_queries: _Optional[_Iterable[int]] = ..., confirmed: _Optional[bool] = ..., draining: _Optional[bool] = ...) -> None: ...
 
 class AdoptRequest(_message.Message):
     __slots__ = ("placement",)
