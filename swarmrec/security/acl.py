@@ -68,7 +68,11 @@ _EGRESS = ("put", "query", "reply", "declare_subscriber", "declare_queryable", "
 
 # What each kind queries, as (kind, robot, endpoint); "self" is the service's own robot.
 _QUERIES: dict[str, tuple[tuple[str, str, str], ...]] = {
-    "detector": (("descriptor", "self", "process"), ("fusion", "self", "start_round")),
+    "detector": (
+        ("descriptor", "self", "process"),
+        ("place-owner", "self", "process"),
+        ("fusion", "self", "start_round"),
+    ),
     "descriptor": (
         ("index-shard", "*", "query"),
         ("index-shard", "*", "store"),
@@ -84,6 +88,12 @@ _QUERIES: dict[str, tuple[tuple[str, str, str], ...]] = {
         ("index-shard", "*", "transfer"),
     ),
     "verifier": (),
+    # Full-image place recognition: the owner of a query's cluster, the verifier of its match.
+    "place-owner": (
+        ("place-owner", "*", "query"),
+        ("verifier", "*", "verify"),
+        ("verifier", "self", "store"),
+    ),
     "fusion": (),
 }
 
@@ -93,6 +103,8 @@ _CLIENT_QUERIES = (
     ("index-shard", "placement"),
     ("verifier", "verify"),
     ("descriptor", "loop_closures"),
+    ("place-owner", "assignment"),
+    ("place-owner", "loop_closures"),
     ("fusion", "posterior"),
 )
 # What an operator adds: driving the replay (lock-step steps, free replay, classifier views).

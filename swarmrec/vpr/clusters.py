@@ -243,9 +243,11 @@ def load_centres(path: str | Path, k: int) -> Float32Array:
                 raise StateFileError(
                     path,
                     f"no centres for k={k} (it has k in {have}); train them with "
-                    "python -m swarmrec.vpr.centres",
+                    f"swarmrec vpr centres --ks {k} --out FILE",
                 )
             centres = np.asarray(data[f"k{k}"], np.float32)
+    except StateFileError:
+        raise
     except (OSError, ValueError) as exc:
         raise StateFileError(path, f"cannot read centres: {exc}") from exc
     return as_descriptors(centres, _width(centres))

@@ -56,15 +56,28 @@ from swarmrec.wire.gen.swarmrec.v1.replay_pb2 import (
     StoreReply,
 )
 from swarmrec.wire.gen.swarmrec.v1.verify_pb2 import VerifyMatch, VerifyReply, VerifyRequest
+from swarmrec.wire.gen.swarmrec.v1.vpr_pb2 import (
+    AssignmentReply,
+    AssignmentRequest,
+    DescriptorEncoding,
+    PlaceEntry,
+    PlaceFrame,
+    PlaceMatch,
+    PlaceQuery,
+    PlaceReport,
+)
 
 __all__ = [
     "MESSAGE_TYPES",
     "AdoptRequest",
+    "AssignmentReply",
+    "AssignmentRequest",
     "CandidatesReply",
     "ClassifierOutput",
     "ClassifyReply",
     "ClassifyRequest",
     "Constellation",
+    "DescriptorEncoding",
     "ErrorCode",
     "ErrorReply",
     "FusionPosterior",
@@ -79,6 +92,11 @@ __all__ = [
     "MemberInfo",
     "PartialDescriptor",
     "PartialQuery",
+    "PlaceEntry",
+    "PlaceFrame",
+    "PlaceMatch",
+    "PlaceQuery",
+    "PlaceReport",
     "Placement",
     "PlacementRequest",
     "PosteriorRequest",
@@ -106,6 +124,8 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
     schema_name(cls): cls
     for cls in (
         AdoptRequest,
+        AssignmentReply,
+        AssignmentRequest,
         CandidatesReply,
         ClassifierOutput,
         ClassifyReply,
@@ -124,6 +144,11 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         MemberInfo,
         PartialDescriptor,
         PartialQuery,
+        PlaceEntry,
+        PlaceFrame,
+        PlaceMatch,
+        PlaceQuery,
+        PlaceReport,
         Placement,
         PlacementRequest,
         PosteriorRequest,

@@ -1,4 +1,5 @@
 from . import events_pb2 as _events_pb2
+from . import vpr_pb2 as _vpr_pb2
 from google.protobuf.internal import containers as _containers
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
@@ -14,16 +15,18 @@ class StepRequest(_message.Message):
     def __init__(self, step: _Optional[int] = ...) -> None: ...
 
 class StepReply(_message.Message):
-    __slots__ = ("robot_id", "step", "finished", "report")
+    __slots__ = ("robot_id", "step", "finished", "report", "place")
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     STEP_FIELD_NUMBER: _ClassVar[int]
     FINISHED_FIELD_NUMBER: _ClassVar[int]
     REPORT_FIELD_NUMBER: _ClassVar[int]
+    PLACE_FIELD_NUMBER: _ClassVar[int]
     robot_id: int
     step: int
     finished: bool
     report: _events_pb2.QueryReport
-    def __init__(self, robot_id: _Optional[int] = ..., step: _Optional[int] = ..., finished: _Optional[bool] = ..., report: _Optional[_Union[_events_pb2.QueryReport, _Mapping]] = ...) -> None: ...
+    place: _vpr_pb2.PlaceReport
+    def __init__(self, robot_id: _Optional[int] = ..., step: _Optional[int] = ..., finished: _Optional[bool] = ..., report: _Optional[_Union[_events_pb2.QueryReport, _Mapping]] = ..., place: _Optional[_Union[_vpr_pb2.PlaceReport, _Mapping]] = ...) -> None: ...
 
 class ReplayRequest(_message.Message):
     __slots__ = ("rate_hz",)
