@@ -35,6 +35,7 @@ COMMANDS: dict[str, str] = {
     "members": "swarmrec.cli.clients",
     "loop-closures": "swarmrec.cli.clients",
     "pki": "swarmrec.cli.pki",
+    "vpr": "swarmrec.cli.vpr",
 }
 
 

@@ -7,6 +7,7 @@ import argparse
 from pathlib import Path
 
 from swarmrec.cli.common import Subparsers, add_dataset_flags, dataset_source
+from swarmrec.cli.vpr import add_method_flags, run_method
 from swarmrec.deployments.compose import ComposeDeployment
 from swarmrec.deployments.links import LinkSpec
 from swarmrec.experiments.places import PixelSettings, PlacesSettings, PlacesSummary, main
@@ -136,6 +137,7 @@ def add(sub: Subparsers) -> None:
         help="depth camera intrinsics in pixels (default: a render's own, else TUM freiburg3's)",
     )
     pixels.add_argument("--depth-scale", type=float, help="depth units per metre (default 5000, TUM's)")
+    add_method_flags(p)
     p.add_argument(
         "--attach",
         type=Path,
@@ -194,6 +196,8 @@ def run(args: argparse.Namespace) -> int:
             ),
             **common,
         )
+        if args.method != "constellations":
+            return run_method(args, settings, print_summary)
         summary = main(settings)
     print_summary(summary, settings.out)
     return 0
