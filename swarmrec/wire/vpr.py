@@ -85,7 +85,7 @@ def descriptor_from_wire(data: bytes, encoding: int, dimension: int) -> Float32A
         raise WireError(f"descriptor encoding {encoding} is not one of {known}")
     if len(data) != expected:
         name = encoding_name(encoding)
-        raise WireError(f"a {name} descriptor of length {dimension} is {expected} bytes, got {len(data)}")
+        raise WireError(f"{name} descriptors of length {dimension} are {expected} bytes, got {len(data)}")
     raw = np.frombuffer(data, np.uint8)
     try:
         if encoding == ENCODINGS["float32"]:

@@ -45,9 +45,9 @@ def test_int8_is_a_scale_and_d_bytes_within_half_a_step_of_the_descriptor() -> N
 @pytest.mark.parametrize(
     ("data", "encoding", "message"),
     [
-        (b"\x00" * 131, 2, "is 132 bytes, got 131"),
-        (b"\x00" * 512, 2, "is 132 bytes, got 512"),
-        (b"\x00" * 132, 1, "is 512 bytes, got 132"),
+        (b"\x00" * 131, 2, "are 132 bytes, got 131"),
+        (b"\x00" * 512, 2, "are 132 bytes, got 512"),
+        (b"\x00" * 132, 1, "are 512 bytes, got 132"),
         (b"\x00" * 132, 0, "encoding 0 is not one of"),
         (b"\x00" * 132, 7, "encoding 7 is not one of"),
     ],
