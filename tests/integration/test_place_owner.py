@@ -36,7 +36,10 @@ from swarmrec.client import ZenohClient
 from swarmrec.deployments.base import SwarmStartError
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.deployments.metrics import read_metrics
+from swarmrec.errors import NoReply
 from swarmrec.models import DESCRIPTOR_CENTRES, LANDMARK_MODEL, shipped_model
+from swarmrec.runtime.rpc import Caller
+from swarmrec.runtime.tls import TlsFiles
 from swarmrec.services.settings import DetectorSettings, PlaceSettings, VprSettings
 from swarmrec.synthetic import OfficeConfig, generate_office
 from swarmrec.synthetic.render import write_rgbd_sequence
@@ -517,3 +520,92 @@ def test_an_owner_whose_centres_lack_k_does_not_start(tmp_path: Path) -> None:
         pytest.raises(SwarmStartError, match=r"no centres for k=6 \(it has k in \[10, 20, 40, 80, 160\]\)"),
     ):
         local.wait_started(local.start_robot(0), timeout_s=60)
+
+
+# --- the access control (mutual TLS, the deployment's default) ------------------------------
+
+
+def test_the_router_lets_each_identity_call_only_what_the_full_image_method_needs(tmp_path: Path) -> None:
+    """A client reads the table and the loop closures but cannot store into an owner; a robot's
+    detector drives only its own place-owner; a place-owner queries any robot's owner. Each
+    denial is measured behind an allowed request sent after it."""
+    vpr = VprSettings(vpr_clusters_per_robot=C)
+    with running_swarm(
+        tmp_path,
+        "po-acl",
+        PlaceSettings(),
+        vpr,
+        robots=N_ROBOTS,
+        kinds=("verifier", "place-owner"),
+        swarm_kinds=(),
+    ) as local:
+        assert local.pki_dir is not None and local.endpoint.startswith("tls/")
+        s = local.spec_swarm
+
+        def session_of(cn: str) -> ZenohClient:
+            assert local.pki_dir is not None
+            return ZenohClient([local.endpoint], s, timeout_s=3.0, tls=TlsFiles.in_dir(local.pki_dir, cn))
+
+        def stored() -> dict[int, int]:
+            with local.client(role="client") as c:
+                return {m.robot: m.stored_items for m in c.members() if m.kind == "place-owner"}
+
+        x = unit(31)
+        cluster = nearest_cluster(x)
+        owner = TABLE.owners[cluster]
+        query = pb.PlaceQuery(
+            robot_id=1 - owner, frame_index=0, descriptor=int8_code(x), encoding=INT8, cluster=cluster
+        )
+        key = endpoint_key(local, "place-owner", owner, "query")
+        with session_of(f"client.cli.{s}") as client:
+            caller = Caller(client.session, None, 3.0)
+            with pytest.raises(NoReply):  # a client may not store into an owner
+                caller.call(key, query, pb.PlaceMatch, target_robot=owner)
+            table = caller.call(
+                endpoint_key(local, "place-owner", owner, "assignment"),
+                pb.AssignmentRequest(),
+                pb.AssignmentReply,
+                target_robot=owner,
+            )
+            assert tuple(json.loads(table.table_json)["owners"]) == TABLE.owners
+            caller.call(
+                endpoint_key(local, "place-owner", owner, "loop_closures"),
+                pb.LoopClosuresRequest(),
+                pb.LoopClosureList,
+                target_robot=owner,
+            )
+        assert stored() == {0: 0, 1: 0}
+        with session_of(f"r1.detector.{s}") as detector:
+            caller = Caller(detector.session, 1, 3.0)
+            with pytest.raises(NoReply):  # robot 1's detector drives robot 1's place-owner only
+                caller.call(
+                    endpoint_key(local, "place-owner", 0, "process"),
+                    frame_msg(0, 0, x),
+                    pb.PlaceReport,
+                    target_robot=0,
+                )
+            report = caller.call(
+                endpoint_key(local, "place-owner", 1, "process"),
+                frame_msg(1, 0, x),
+                pb.PlaceReport,
+                target_robot=1,
+            )
+            assert report.answered and report.owner_robot_id == owner
+        assert sum(stored().values()) == 1
+        with session_of(f"r{1 - owner}.place-owner.{s}") as querier:
+            caller = Caller(querier.session, 1 - owner, 3.0)
+            second = pb.PlaceQuery(
+                robot_id=1 - owner,
+                frame_index=7,
+                descriptor=int8_code(unit(32)),
+                encoding=INT8,
+                cluster=nearest_cluster(unit(32)),
+            )
+            target = TABLE.owners[second.cluster]
+            caller.call(
+                endpoint_key(local, "place-owner", target, "query"),
+                second,
+                pb.PlaceMatch,
+                target_robot=target,
+            )
+        assert sum(stored().values()) == 2
