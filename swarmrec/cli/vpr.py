@@ -66,6 +66,12 @@ def add(sub: Subparsers) -> None:
                    help=f"the held-out office (default {d.deployment_seed})")  # fmt: skip
     e.add_argument("--deployment-frames", type=int, default=d.deployment_frames,
                    help=f"its frames (default {d.deployment_frames})")  # fmt: skip
+    e.add_argument(
+        "--other-worlds",
+        type=int,
+        default=d.other_worlds,
+        help=f"varied offices the k-means centres are trained on (default {d.other_worlds})",
+    )
     e.add_argument("--threads", type=int, default=d.threads, help="faiss and onnxruntime threads (default 1)")
     e.set_defaults(handler=run_evaluate)
     c = cmds.add_parser(
@@ -107,6 +113,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         runs=args.runs,
         deployment_seed=args.deployment_seed,
         deployment_frames=args.deployment_frames,
+        other_worlds=args.other_worlds,
         threads=args.threads,
     )
     summary = evaluation_main(settings)

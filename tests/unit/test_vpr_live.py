@@ -161,3 +161,43 @@ def test_swarmrec_vpr_lists_evaluate_and_centres(capsys: pytest.CaptureFixture[s
 def test_the_assignment_table_json_the_owners_serve_reads_back() -> None:
     table = swarm_table(10, 1, 0).assignment
     assert Assignment.from_json(json.loads(json.dumps(table.to_json()))) == table
+
+
+@pytest.mark.slow
+def test_swarmrec_vpr_centres_and_evaluate_write_what_their_main_writes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    centres = tmp_path / "c.npz"
+    assert (
+        cli_main(["vpr", "centres", "--ks", "3,5", "--worlds", "1", "--stride", "16", "--out", str(centres)])
+        == 0
+    )
+    with np.load(centres) as data:
+        assert data["k3"].shape == (3, 128) and data["k5"].shape == (5, 128)
+        assert json.loads(str(data["meta"]))["worlds"] == [14_000]
+    assert "2 sets of centres (k = 3, 5)" in capsys.readouterr().out
+    out = tmp_path / "eval"
+    argv = [
+        "vpr",
+        "evaluate",
+        "--robots",
+        "2,4",
+        "--fig7-robots",
+        "4",
+        "--clusters-per-robot",
+        "1,2",
+        "--runs",
+        "1",
+        "--deployment-frames",
+        "300",
+        "--other-worlds",
+        "1",
+        "--out",
+        str(out),
+    ]
+    assert cli_main(argv) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert [row["n_robots"] for row in summary["fig6"]] == [2, 4]
+    assert [row["clusters_per_robot"] for row in summary["fig7"]] == [1, 2]
+    assert (out / "fig6.png").stat().st_size > 0 and (out / "runs.json").is_file()
+    assert "4 robots, c = 2: relative AUC" in capsys.readouterr().out
