@@ -307,15 +307,15 @@ class PlaceOwner(ServiceBase):
             reply = self.ctx.caller.call(
                 key, request, pb.VerifyReply, target_robot=m.robot_id, endpoint="verify"
             )
-            scored = [match_scores(v) for v in reply.matches if v.frame_index == m.frame_index]
+            # The verifier lists only frames that scored > 0: none means not associated (score 0).
+            found = next((v for v in reply.matches if v.frame_index == m.frame_index), None)
+            scores = match_scores(found) if found is not None else (0.0, 0.0)
         except (CallError, WireError) as e:
             report.failure = f"verifier {m.robot_id}: {e}"
             return
         report.verified = True
-        found = next((v for v in reply.matches if v.frame_index == m.frame_index), None)
-        if found is not None and scored:
-            report.score, report.semantic_score = scored[0]
-            report.n_matched = found.n_matched
+        report.score, report.semantic_score = scores
+        report.n_matched = found.n_matched if found is not None else 0
 
     def _loop_closure(self, report: pb.PlaceReport) -> None:
         m = report.match
