@@ -38,11 +38,8 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
-import logging
 import math
 import multiprocessing
-import platform
 import sys
 import time
 from collections.abc import Sequence
@@ -54,7 +51,6 @@ from typing import Any
 import cv2
 import numpy as np
 import numpy.typing as npt
-import onnx
 import onnxruntime as ort  # type: ignore[import-untyped]  # onnxruntime ships no type hints
 import torch
 import torch.nn.functional as F
@@ -73,6 +69,22 @@ from swarmrec.vpr.places import (
     same_place,
 )
 
+# What the three training scripts share lives beside them (models/ is no package).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from training_common import (
+    OPSET,
+    check_export,
+    export_onnx,
+    log,
+    onnx_session,
+    run_onnx,
+    run_script,
+    run_torch,
+    to_input,
+    versions,
+    write_json,
+)
+
 ImageArray = npt.NDArray[np.uint8]
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -85,8 +97,6 @@ CHECK_TORCH_FILE = "check_torch_descriptors.npy"
 INPUT_NAME = "image"
 OUTPUT_NAME = "descriptor"
 DIMENSION = 128
-#: The torch.export-based exporter's lowest opset (the repository's other models use it too).
-OPSET = 18
 #: Largest allowed |torch - onnxruntime| over the test descriptors (unit vectors).
 EXPORT_TOLERANCE = 1e-4
 #: Revisit positives are at least this many frames apart (another pass of the camera).
@@ -255,11 +265,6 @@ class PlaceDescriptor(nn.Module):
         return F.normalize(self.reduce(self.pool(features)), dim=1)
 
 
-def to_input(images: ImageArray) -> torch.Tensor:
-    """uint8 ``(N, H, W, 3)`` RGB -> the model's float32 ``(N, 3, H, W)`` in 0..1."""
-    return torch.from_numpy(images).permute(0, 3, 1, 2).float().div(255.0).contiguous()
-
-
 def augment(batch: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
     """Lighting (gain, contrast, a colour cast) and shifts of up to 6 px: what changes between two
     visits of a place in a real room. No flips: a mirrored room is another place."""
@@ -351,18 +356,12 @@ class BatchSampler:
 
 
 def describe_torch(model: PlaceDescriptor, images: ImageArray, batch_size: int = 256) -> FloatArray:
-    model.eval()
-    with torch.no_grad():
-        chunks = [model(to_input(images[i : i + batch_size])) for i in range(0, len(images), batch_size)]
-    return torch.cat(chunks).double().numpy()
+    descriptors: FloatArray = run_torch(model, images, batch_size)
+    return descriptors
 
 
 def describe_onnx(session: ort.InferenceSession, images: ImageArray, batch_size: int = 256) -> FloatArray:
-    chunks = [
-        session.run([OUTPUT_NAME], {INPUT_NAME: to_input(images[i : i + batch_size]).numpy()})[0]
-        for i in range(0, len(images), batch_size)
-    ]
-    return np.concatenate(chunks).astype(np.float64)
+    return run_onnx(session, images, INPUT_NAME, OUTPUT_NAME, batch_size)
 
 
 def tiny_image(images: ImageArray) -> FloatArray:
@@ -396,30 +395,6 @@ def pooled(per_world: list[RetrievalMetrics]) -> dict[str, float]:
     }
 
 
-def export_onnx(model: PlaceDescriptor, path: Path, example: torch.Tensor) -> None:
-    """One self-contained .onnx file (weights inside) with a dynamic batch dimension."""
-    model.eval()
-    # The exporter warns that torchvision's detection ops cannot be registered; the model uses none.
-    logging.getLogger("torch.onnx._internal.exporter._registration").setLevel(logging.ERROR)
-    torch.onnx.export(
-        model,
-        (example,),
-        str(path),
-        dynamo=True,
-        opset_version=OPSET,
-        external_data=False,
-        input_names=[INPUT_NAME],
-        output_names=[OUTPUT_NAME],
-        dynamic_shapes={"image": {0: torch.export.Dim("batch")}},
-        verbose=False,
-    )
-    onnx.checker.check_model(onnx.load(str(path)))
-
-
-def _log(message: str) -> None:
-    print(message, flush=True)
-
-
 def main(settings: TrainSettings) -> TrainResult:
     """Render the worlds, train, keep the step with the best validation recall@1, export it to
     ONNX, check it against torch and write ``descriptor.onnx`` and ``metrics.json``."""
@@ -435,7 +410,7 @@ def main(settings: TrainSettings) -> TrainResult:
     val = render_split(s.data_seeds[1], s.val_worlds, s, vary=False, stride=s.frame_stride)
     test = render_split(s.data_seeds[2], s.test_worlds, s, vary=False, stride=max(1, s.frame_stride // 2))
     render_s = time.perf_counter() - started
-    _log(
+    log(
         f"rendered {sum(map(len, train))} train, {sum(map(len, val))} val, "
         f"{sum(map(len, test))} test frames in {render_s:.1f} s"
     )
@@ -491,7 +466,7 @@ def main(settings: TrainSettings) -> TrainResult:
                     "seconds": time.perf_counter() - train_started,
                 }
             )
-            _log(
+            log(
                 f"step {steps:5d}/{s.steps}  loss {loss_sum / loss_count:.3f}  "
                 f"val recall@1 {val_recall:.3f}  ({history[-1]['seconds']:.0f} s)"
             )
@@ -499,7 +474,7 @@ def main(settings: TrainSettings) -> TrainResult:
             if val_recall > best_recall:
                 best_recall, best_step, best_state = val_recall, steps, copy.deepcopy(model.state_dict())
         if timed_out:
-            _log(f"stopping after {s.max_minutes} minutes at step {steps}")
+            log(f"stopping after {s.max_minutes} minutes at step {steps}")
             break
     train_s = time.perf_counter() - train_started
     model.load_state_dict(best_state)
@@ -507,10 +482,11 @@ def main(settings: TrainSettings) -> TrainResult:
 
     model_path = out / MODEL_FILE
     test_images = np.concatenate([w.images for w in test])
-    export_onnx(model, model_path, to_input(test_images[:4]))
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = s.threads
-    session = ort.InferenceSession(str(model_path), sess_options=options, providers=["CPUExecutionProvider"])
+    example = to_input(test_images[:4])
+    export_onnx(
+        model, model_path, example, input_name=INPUT_NAME, output_name=OUTPUT_NAME, dynamic_batch="image"
+    )
+    session = onnx_session(model_path, s.threads)
     torch_desc = describe_torch(model, test_images)
     onnx_desc = describe_onnx(session, test_images)
     max_diff = float(np.abs(torch_desc - onnx_desc).max())
@@ -575,25 +551,17 @@ def main(settings: TrainSettings) -> TrainResult:
             "meaning": "unit L2 rows",
         },
         "opset": OPSET,
-        "versions": {
-            "python": platform.python_version(),
-            "torch": torch.__version__,
-            "onnx": onnx.__version__,
-            "onnxruntime": ort.__version__,
-            "numpy": np.__version__,
-        },
+        "versions": versions(),
     }
-    metrics_path = out / METRICS_FILE
-    metrics_path.write_text(json.dumps(metrics, indent=1) + "\n")
-    _log(
+    metrics_path = write_json(out / METRICS_FILE, metrics)
+    log(
         f"test recall@1 {test_metrics['recall_at_1']:.3f} @5 {test_metrics['recall_at_5']:.3f} "
         f"AUC {test_metrics['auc']:.3f} (baseline {baseline['recall_at_1']:.3f} / "
         f"{baseline['recall_at_5']:.3f} / {baseline['auc']:.3f}), {n_params} parameters, "
         f"{metrics['model_bytes']} bytes, "
         f"torch vs onnxruntime max diff {max_diff:.2e}"
     )
-    if not max_diff < EXPORT_TOLERANCE:
-        raise RuntimeError(f"ONNX export differs from torch by {max_diff:.2e} >= {EXPORT_TOLERANCE}")
+    check_export(max_diff, EXPORT_TOLERANCE)
     return TrainResult(model_path, metrics_path, test_metrics["recall_at_1"], max_diff, metrics)
 
 
@@ -652,7 +620,4 @@ def parse_args(argv: Sequence[str] | None = None) -> TrainSettings:
 
 
 if __name__ == "__main__":
-    try:
-        main(parse_args())
-    except ConfigError as exc:
-        sys.exit(f"error: {exc}")
+    run_script(main, parse_args)

@@ -33,11 +33,8 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
-import logging
 import math
 import multiprocessing
-import platform
 import sys
 import time
 from collections.abc import Sequence
@@ -49,8 +46,6 @@ from typing import Any
 import cv2
 import numpy as np
 import numpy.typing as npt
-import onnx
-import onnxruntime as ort  # type: ignore[import-untyped]  # onnxruntime ships no type hints
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -71,6 +66,21 @@ from swarmrec.synthetic.config import DESK_DEPTH_M, DESK_WIDTH_M, MIN_CLEARANCE_
 from swarmrec.synthetic.render import RenderedFrame, SequenceRenderer
 from swarmrec.synthetic.world import build_world
 
+# What the three training scripts share lives beside them (models/ is no package).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from training_common import (
+    OPSET,
+    check_export,
+    export_onnx,
+    log,
+    onnx_session,
+    run_script,
+    run_torch,
+    to_input,
+    versions,
+    write_json,
+)
+
 ImageArray = npt.NDArray[np.uint8]
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -88,8 +98,6 @@ INPUT_NAME = "images"
 OUTPUT_NAME = "output0"
 #: The output's class channels: COCO's 80, the label list of the synthetic world.
 N_COCO = 80
-#: The torch.export-based exporter's lowest opset.
-OPSET = 18
 #: Largest allowed |torch - onnxruntime| / (1 + |torch|) of the outputs: absolute for the scores
 #: (0..1), relative for the boxes (input pixels).
 EXPORT_TOLERANCE = 1e-4
@@ -363,11 +371,6 @@ def training_targets(
         labels[i, :n] = torch.tensor([class_index[int(c)] for c in truth.class_ids[rows]], dtype=torch.long)
         mask[i, :n] = True
     return Targets(boxes, labels, mask)
-
-
-def to_input(images: ImageArray) -> torch.Tensor:
-    """uint8 ``(N, H, W, 3)`` RGB -> the model's float32 ``(N, 3, H, W)`` in 0..1."""
-    return torch.from_numpy(images).permute(0, 3, 1, 2).float().div(255.0).contiguous()
 
 
 def _crop(
@@ -714,12 +717,10 @@ def _predictions(
     return Predictions(boxes[valid], candidates.scores[keep][valid], candidates.class_ids[keep][valid])
 
 
-@torch.no_grad()
 def torch_outputs(model: OfficeDetector, images: ImageArray, batch_size: int = 32) -> npt.NDArray[np.float32]:
     """torch's v8 outputs ``[N, 84, A]`` for uint8 model images, in eval mode."""
-    model.eval()
-    chunks = [model(to_input(images[i : i + batch_size])) for i in range(0, len(images), batch_size)]
-    return torch.cat(chunks).numpy()
+    outputs: npt.NDArray[np.float32] = run_torch(model, images, batch_size, as_float64=False)
+    return outputs
 
 
 def evaluate_torch(model: OfficeDetector, split: Split, placement: Letterbox) -> DetectionEvaluation:
@@ -880,30 +881,6 @@ def _plot_pr(evaluation: DetectionEvaluation, threshold: float, names: Sequence[
     plt.close(fig)
 
 
-def export_onnx(model: OfficeDetector, path: Path) -> None:
-    """One self-contained .onnx file (weights inside) with a static ``[1, 3, H, W]`` input."""
-    model.eval()
-    # The exporter warns that torchvision's detection ops cannot be registered; the model uses none.
-    logging.getLogger("torch.onnx._internal.exporter._registration").setLevel(logging.ERROR)
-    example = torch.rand(1, 3, *model.input_hw)
-    torch.onnx.export(
-        model,
-        (example,),
-        str(path),
-        dynamo=True,
-        opset_version=OPSET,
-        external_data=False,
-        input_names=[INPUT_NAME],
-        output_names=[OUTPUT_NAME],
-        verbose=False,
-    )
-    onnx.checker.check_model(onnx.load(str(path)))
-
-
-def _log(message: str) -> None:
-    print(message, flush=True)
-
-
 def main(settings: TrainSettings) -> TrainResult:
     """Render the splits, train (keeping the epoch of best validation mAP@0.5), export to ONNX,
     check it against torch, choose the confidence threshold on the validation split, score and
@@ -927,7 +904,7 @@ def main(settings: TrainSettings) -> TrainResult:
     render_s = time.perf_counter() - started
     placement = to_model_image(np.zeros((*FRAME_HW, 3), np.uint8), s.input_hw)[1]
     n_objects = sum(int(t.kept.sum()) for t in train.truths)
-    _log(
+    log(
         f"rendered {len(train)} train ({n_objects} objects), {len(val)} val, {len(test)} test frames "
         f"in {render_s:.1f} s"
     )
@@ -956,7 +933,7 @@ def main(settings: TrainSettings) -> TrainResult:
             + 0.98 * 0.5 * (1 + math.cos(math.pi * min(1.0, (step - warmup) / max(1, total_steps - warmup))))
         ),
     )
-    _log(f"model: {n_params} parameters, input {s.input_hw[1]}x{s.input_hw[0]}, {len(classes)} classes")
+    log(f"model: {n_params} parameters, input {s.input_hw[1]}x{s.input_hw[0]}, {len(classes)} classes")
     objects = training_targets(train, placement, class_index, ignored=False)
     ignored = training_targets(train, placement, class_index, ignored=True)
 
@@ -988,7 +965,7 @@ def main(settings: TrainSettings) -> TrainResult:
             batches += 1
             steps += 1
             if steps % 50 == 0:
-                _log(
+                log(
                     f"  step {steps}/{total_steps}  loss {sums['loss'] / batches:.3f}  "
                     f"({(time.perf_counter() - epoch_started) / batches:.2f} s/step)"
                 )
@@ -1004,7 +981,7 @@ def main(settings: TrainSettings) -> TrainResult:
                 "seconds": time.perf_counter() - epoch_started,
             }
         )
-        _log(
+        log(
             f"epoch {epoch:2d}/{s.epochs}  loss {history[-1]['loss']:.3f} (box {history[-1]['box']:.3f}, "
             f"cls {history[-1]['cls']:.3f})  val mAP@0.5 {val_eval.mean_ap:.3f}  "
             f"({history[-1]['seconds']:.1f} s)"
@@ -1012,17 +989,17 @@ def main(settings: TrainSettings) -> TrainResult:
         if val_eval.mean_ap > best_map:
             best_map, best_epoch, best_state = val_eval.mean_ap, epoch, copy.deepcopy(ema.model.state_dict())
         if steps >= total_steps:
-            _log(f"stopping: reached {steps} steps")
+            log(f"stopping: reached {steps} steps")
             break
     train_s = time.perf_counter() - train_started
     model.load_state_dict(best_state)
     model.eval()
 
     model_path = out / MODEL_FILE
-    export_onnx(model, model_path)
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = s.threads
-    session = ort.InferenceSession(str(model_path), sess_options=options, providers=["CPUExecutionProvider"])
+    # A static [1, 3, H, W] input: the detector runs one frame at a time.
+    example = torch.rand(1, 3, *model.input_hw)
+    export_onnx(model, model_path, example, input_name=INPUT_NAME, output_name=OUTPUT_NAME)
+    session = onnx_session(model_path, s.threads)
     check = val.images[: max(_CHECK_IMAGES, min(32, len(val)))]
     torch_out = torch_outputs(model, check)
     onnx_out = np.concatenate(
@@ -1118,23 +1095,15 @@ def main(settings: TrainSettings) -> TrainResult:
             "meaning": "cx cy w h (input pixels), 80 COCO class scores (0..1)",
         },
         "opset": OPSET,
-        "versions": {
-            "python": platform.python_version(),
-            "torch": torch.__version__,
-            "onnx": onnx.__version__,
-            "onnxruntime": ort.__version__,
-            "numpy": np.__version__,
-            "opencv": cv2.__version__,
-        },
+        "versions": versions(opencv=cv2.__version__),
         "threads": s.threads,
     }
-    metrics_path = out / METRICS_FILE
-    metrics_path.write_text(json.dumps(metrics, indent=1) + "\n")
+    metrics_path = write_json(out / METRICS_FILE, metrics)
     picks = np.linspace(0, len(test) - 1, 4).round().astype(int).tolist()
     _draw_examples(test, test_found, picks, threshold, names, out / EXAMPLES_FILE)
     _plot_pr(test_eval, threshold, names, out / PR_FILE)
     fast = speed["recommended_threshold"]
-    _log(
+    log(
         f"test mAP@0.5 {test_eval.mean_ap:.3f} over {len(test_eval.evaluated_classes)} classes; "
         f"conf {threshold:.2f}: precision {at_threshold.precision:.3f}, recall {at_threshold.recall:.3f}, "
         f"{at_threshold.detections_per_frame:.1f} detections per frame "
@@ -1142,8 +1111,7 @@ def main(settings: TrainSettings) -> TrainResult:
         f"{fast['ms_per_frame_mean']:.1f} ms per 640x480 frame ({fast['fps']:.0f} fps, 2 threads); "
         f"{n_params} parameters, {metrics['model_bytes']} bytes, torch vs onnxruntime max diff {max_diff:.2e}"
     )
-    if not max_diff < EXPORT_TOLERANCE:
-        raise RuntimeError(f"ONNX export differs from torch by {max_diff:.2e} >= {EXPORT_TOLERANCE}")
+    check_export(max_diff, EXPORT_TOLERANCE)
     return TrainResult(model_path, metrics_path, test_eval.mean_ap, max_diff, metrics)
 
 
@@ -1206,7 +1174,4 @@ def parse_args(argv: Sequence[str] | None = None) -> TrainSettings:
 
 
 if __name__ == "__main__":
-    try:
-        main(parse_args())
-    except ConfigError as exc:
-        sys.exit(f"error: {exc}")
+    run_script(main, parse_args)

@@ -29,11 +29,8 @@ from __future__ import annotations
 import argparse
 import copy
 import itertools
-import json
-import logging
 import math
 import multiprocessing
-import platform
 import sys
 import time
 from collections.abc import Sequence
@@ -44,7 +41,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-import onnx
 import onnxruntime as ort  # type: ignore[import-untyped]  # onnxruntime ships no type hints
 import torch
 import torch.nn.functional as F
@@ -52,6 +48,22 @@ from torch import nn
 
 from swarmrec.errors import ConfigError
 from swarmrec.fusion.facades import FACADE_DESIGNS, IMAGE_SIZE, FacadeDesign, render_view, sample_view
+
+# What the three training scripts share lives beside them (models/ is no package).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from training_common import (
+    OPSET,
+    check_export,
+    export_onnx,
+    log,
+    onnx_session,
+    run_onnx,
+    run_script,
+    run_torch,
+    to_input,
+    versions,
+    write_json,
+)
 
 ImageArray = npt.NDArray[np.uint8]
 LabelArray = npt.NDArray[np.int64]
@@ -67,8 +79,6 @@ CHECK_TORCH_FILE = "check_torch_probabilities.npy"
 INPUT_NAME = "image"
 OUTPUT_NAME = "probabilities"
 N_CLASSES = len(FACADE_DESIGNS)
-#: The torch.export-based exporter's lowest opset.
-OPSET = 18
 #: Largest allowed |torch - onnxruntime| over the test set's probabilities.
 EXPORT_TOLERANCE = 1e-4
 #: Views per class in one render shard. Fixed, so a split is the same whatever the worker count.
@@ -213,11 +223,6 @@ def render_split(per_class: int, seed: int, workers: int) -> Split:
     return np.concatenate(images), np.concatenate(labels), np.concatenate(geometry)
 
 
-def to_input(images: ImageArray) -> torch.Tensor:
-    """uint8 ``(N, H, W, 3)`` RGB -> the model's float32 ``(N, 3, H, W)`` in 0..1."""
-    return torch.from_numpy(images).permute(0, 3, 1, 2).float().div(255.0).contiguous()
-
-
 def _shift(batch: torch.Tensor, shift: int, generator: torch.Generator) -> torch.Tensor:
     """Each image moved by up to ``shift`` px each way: the camera aims a little off.
     (No flips: a door on the left is a different landmark from one on the right.)"""
@@ -229,39 +234,13 @@ def _shift(batch: torch.Tensor, shift: int, generator: torch.Generator) -> torch
 
 def predict(model: LandmarkCNN, images: ImageArray, batch_size: int = 256) -> FloatArray:
     """torch's probabilities for uint8 images, in eval mode."""
-    model.eval()
-    with torch.no_grad():
-        chunks = [model(to_input(images[i : i + batch_size])) for i in range(0, len(images), batch_size)]
-    return torch.cat(chunks).double().numpy()
+    probabilities: FloatArray = run_torch(model, images, batch_size)
+    return probabilities
 
 
 def predict_onnx(session: ort.InferenceSession, images: ImageArray, batch_size: int = 256) -> FloatArray:
     """onnxruntime's probabilities for uint8 images."""
-    chunks = [
-        session.run([OUTPUT_NAME], {INPUT_NAME: to_input(images[i : i + batch_size]).numpy()})[0]
-        for i in range(0, len(images), batch_size)
-    ]
-    return np.concatenate(chunks).astype(np.float64)
-
-
-def export_onnx(model: LandmarkCNN, path: Path, example: torch.Tensor) -> None:
-    """One self-contained .onnx file (weights inside) with a dynamic batch dimension."""
-    model.eval()
-    # The exporter warns that torchvision's detection ops cannot be registered; the model uses none.
-    logging.getLogger("torch.onnx._internal.exporter._registration").setLevel(logging.ERROR)
-    torch.onnx.export(
-        model,
-        (example,),
-        str(path),
-        dynamo=True,
-        opset_version=OPSET,
-        external_data=False,
-        input_names=[INPUT_NAME],
-        output_names=[OUTPUT_NAME],
-        dynamic_shapes={"image": {0: torch.export.Dim("batch")}},
-        verbose=False,
-    )
-    onnx.checker.check_model(onnx.load(str(path)))
+    return run_onnx(session, images, INPUT_NAME, OUTPUT_NAME, batch_size)
 
 
 def _top_confusions(confusion: npt.NDArray[np.int64], count: int = 8) -> list[dict[str, Any]]:
@@ -323,10 +302,6 @@ def _plot_confusion(confusion: npt.NDArray[np.int64], accuracy: float, path: Pat
     plt.close(fig)
 
 
-def _log(message: str) -> None:
-    print(message, flush=True)
-
-
 def main(settings: TrainSettings) -> TrainResult:
     """Render the splits, train with early stopping on validation accuracy, export the
     best epoch to ONNX, check it against torch, score it on the test set and write
@@ -343,7 +318,7 @@ def main(settings: TrainSettings) -> TrainResult:
     val_x, val_y, _ = render_split(s.val_size, s.data_seeds[1], s.workers)
     test_x, test_y, test_views = render_split(s.test_size, s.data_seeds[2], s.workers)
     render_s = time.perf_counter() - started
-    _log(f"rendered {len(train_y)} train, {len(val_y)} val, {len(test_y)} test views in {render_s:.1f} s")
+    log(f"rendered {len(train_y)} train, {len(val_y)} val, {len(test_y)} test views in {render_s:.1f} s")
 
     pixels = train_x.reshape(-1, 3).astype(np.float64) / 255.0
     model = LandmarkCNN(pixels.mean(axis=0).tolist(), pixels.std(axis=0).tolist())
@@ -394,27 +369,32 @@ def main(settings: TrainSettings) -> TrainResult:
                 "seconds": time.perf_counter() - epoch_started,
             }
         )
-        _log(
+        log(
             f"epoch {epoch:2d}/{s.epochs}  loss {loss_sum / seen:.3f}  train acc {correct / seen:.3f}  "
             f"val acc {val_acc:.3f}  ({history[-1]['seconds']:.1f} s)"
         )
         if val_acc > best_acc:
             best_acc, best_epoch, best_state = val_acc, epoch, copy.deepcopy(model.state_dict())
         if s.max_steps is not None and steps >= s.max_steps:
-            _log(f"stopping: reached {steps} steps")
+            log(f"stopping: reached {steps} steps")
             break
         if epoch - best_epoch >= s.patience:
-            _log(f"early stop: no better validation accuracy for {s.patience} epochs")
+            log(f"early stop: no better validation accuracy for {s.patience} epochs")
             break
     train_s = time.perf_counter() - train_started
     model.load_state_dict(best_state)
     model.eval()
 
     model_path = out / MODEL_FILE
-    export_onnx(model, model_path, to_input(test_x[:8]))
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = s.threads
-    session = ort.InferenceSession(str(model_path), sess_options=options, providers=["CPUExecutionProvider"])
+    export_onnx(
+        model,
+        model_path,
+        to_input(test_x[:8]),
+        input_name=INPUT_NAME,
+        output_name=OUTPUT_NAME,
+        dynamic_batch="image",
+    )
+    session = onnx_session(model_path, s.threads)
     torch_probs = predict(model, test_x)
     onnx_probs = predict_onnx(session, test_x)
     max_diff = float(np.abs(torch_probs - onnx_probs).max())
@@ -463,24 +443,16 @@ def main(settings: TrainSettings) -> TrainResult:
         },
         "output": {"name": OUTPUT_NAME, "shape": ["N", N_CLASSES], "dtype": "float32", "meaning": "softmax"},
         "opset": OPSET,
-        "versions": {
-            "python": platform.python_version(),
-            "torch": torch.__version__,
-            "onnx": onnx.__version__,
-            "onnxruntime": ort.__version__,
-            "numpy": np.__version__,
-        },
+        "versions": versions(),
         "threads": s.threads,
     }
-    metrics_path = out / METRICS_FILE
-    metrics_path.write_text(json.dumps(metrics, indent=1) + "\n")
+    metrics_path = write_json(out / METRICS_FILE, metrics)
     _plot_confusion(confusion, accuracy, out / CONFUSION_FILE)
-    _log(
+    log(
         f"test accuracy {accuracy:.3f} (worst landmark {metrics['worst_class']}: {min(per_class):.3f}), "
         f"{n_params} parameters, {metrics['model_bytes']} bytes, torch vs onnxruntime max diff {max_diff:.2e}"
     )
-    if not max_diff < EXPORT_TOLERANCE:
-        raise RuntimeError(f"ONNX export differs from torch by {max_diff:.2e} >= {EXPORT_TOLERANCE}")
+    check_export(max_diff, EXPORT_TOLERANCE)
     return TrainResult(model_path, metrics_path, accuracy, max_diff, metrics)
 
 
@@ -527,7 +499,4 @@ def parse_args(argv: Sequence[str] | None = None) -> TrainSettings:
 
 
 if __name__ == "__main__":
-    try:
-        main(parse_args())
-    except ConfigError as exc:
-        sys.exit(f"error: {exc}")
+    run_script(main, parse_args)

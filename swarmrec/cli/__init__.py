@@ -37,6 +37,7 @@ COMMANDS: dict[str, str] = {
     "explain": "swarmrec.cli.explain",
     "pki": "swarmrec.cli.pki",
     "k8s": "swarmrec.cli.k8s",
+    "vpr": "swarmrec.cli.vpr",
 }
 
 

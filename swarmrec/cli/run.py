@@ -9,6 +9,7 @@ from pathlib import Path
 
 from swarmrec.cli.common import Subparsers, add_dataset_flags, dataset_source
 from swarmrec.cli.k8s import add_cluster_flags, kubectl_of
+from swarmrec.cli.vpr import add_method_flags, run_method
 from swarmrec.deployments.attach import attach
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.kubernetes import DEFAULT_OVERLAY, KubernetesDeployment, KubernetesSettings
@@ -141,6 +142,7 @@ def add(sub: Subparsers) -> None:
         help="depth camera intrinsics in pixels (default: a render's own, else TUM freiburg3's)",
     )
     pixels.add_argument("--depth-scale", type=float, help="depth units per metre (default 5000, TUM's)")
+    add_method_flags(p)
     p.add_argument(
         "--attach",
         type=Path,
@@ -233,6 +235,10 @@ def run(args: argparse.Namespace) -> int:
             )
         )
         deployment = k8s
+    if args.method != "constellations":
+        if deployment is not None:
+            raise ConfigError("--method dvpr and both run on local processes (not --deployment k8s)")
+        return run_method(args, settings, print_summary)
     summary = main(settings, deployment)
     print_summary(summary, settings.out)
     if k8s is not None and args.keep:

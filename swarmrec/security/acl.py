@@ -69,7 +69,11 @@ _EGRESS = ("put", "query", "reply", "declare_subscriber", "declare_queryable", "
 
 # What each kind queries, as (kind, robot, endpoint); "self" is the service's own robot.
 _QUERIES: dict[str, tuple[tuple[str, str, str], ...]] = {
-    "detector": (("descriptor", "self", "process"), ("fusion", "self", "start_round")),
+    "detector": (
+        ("descriptor", "self", "process"),
+        ("place-owner", "self", "process"),
+        ("fusion", "self", "start_round"),
+    ),
     "descriptor": (
         ("index-shard", "*", "query"),
         ("index-shard", "*", "store"),
@@ -85,6 +89,12 @@ _QUERIES: dict[str, tuple[tuple[str, str, str], ...]] = {
         ("index-shard", "*", "transfer"),
     ),
     "verifier": (),
+    # Full-image place recognition: the owner of a query's cluster, the verifier of its match.
+    "place-owner": (
+        ("place-owner", "*", "query"),
+        ("verifier", "*", "verify"),
+        ("verifier", "self", "store"),
+    ),
     "fusion": (),
 }
 
@@ -95,6 +105,8 @@ _CLIENT_QUERIES = (
     ("verifier", "verify"),
     ("descriptor", "loop_closures"),
     ("descriptor", "explain"),
+    ("place-owner", "assignment"),
+    ("place-owner", "loop_closures"),
     ("fusion", "posterior"),
 )
 # What an operator adds: driving the replay (lock-step steps, free replay, classifier views).

@@ -26,6 +26,7 @@ __all__ = [
     "DetectorMetrics",
     "FusionMetrics",
     "GatewayMetrics",
+    "PlaceOwnerMetrics",
     "ShardMetrics",
     "VerifierMetrics",
 ]
@@ -181,6 +182,53 @@ class DescriptorMetrics(MetricSet):
 
 
 @dataclass
+class PlaceOwnerMetrics(MetricSet):
+    title: ClassVar[str] = "place-owner"
+
+    owner_queries: Counter
+    cluster_queries: Counter
+    stored_descriptors: Gauge
+    snapshots: Counter
+    loop_closures: Counter
+    query_seconds: Histogram
+
+    @classmethod
+    def create(cls, registry: CollectorRegistry) -> PlaceOwnerMetrics:
+        return cls(
+            owner_queries=Counter(
+                "swarmrec_place_owner_queries",
+                "Queries this robot answered as the owner of their cluster (its load), its own included",
+                registry=registry,
+            ),
+            cluster_queries=Counter(
+                "swarmrec_place_owner_cluster_queries",
+                "Queries this owner answered, by cluster",
+                ["cluster"],
+                registry=registry,
+            ),
+            stored_descriptors=Gauge(
+                "swarmrec_place_owner_stored_descriptors",
+                "Descriptors this owner holds (every robot's frames routed to its clusters)",
+                registry=registry,
+            ),
+            snapshots=Counter(
+                "swarmrec_place_owner_snapshots",
+                "Times this owner saved its faiss index to its data folder",
+                registry=registry,
+            ),
+            loop_closures=Counter(
+                "swarmrec_loop_closures", "Loop closures found by this robot", registry=registry
+            ),
+            query_seconds=Histogram(
+                "swarmrec_place_query_duration_seconds",
+                "Time of one full-image query of this robot's, frame in to the verifier's reply",
+                buckets=LATENCY_BUCKETS,
+                registry=registry,
+            ),
+        )
+
+
+@dataclass
 class FusionMetrics(MetricSet):
     title: ClassVar[str] = "fusion"
 
@@ -249,7 +297,8 @@ class DetectorMetrics(MetricSet):
             ),
             stage_seconds=Histogram(
                 "swarmrec_detector_stage_seconds",
-                "Time of one frame in each detector stage (decode, detect, points)",
+                "Time of one frame in each detector stage (decode, detect, points; describe: the full-image "
+                "descriptor, place_method dvpr)",
                 ("stage",),
                 buckets=_STAGE_BUCKETS,
                 registry=registry,

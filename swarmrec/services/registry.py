@@ -35,6 +35,7 @@ from swarmrec.services.metrics import (
     DetectorMetrics,
     FusionMetrics,
     GatewayMetrics,
+    PlaceOwnerMetrics,
     ShardMetrics,
     VerifierMetrics,
 )
@@ -48,6 +49,7 @@ from swarmrec.services.settings import (
     LandmarkSettings,
     PlaceSettings,
     RgbdSettings,
+    VprSettings,
 )
 from swarmrec.wire import messages as pb
 
@@ -155,6 +157,7 @@ for _entry in (
             PlaceSettings,
             DetectorSettings,
             RgbdSettings,
+            VprSettings,
             ClassifierSettings,
             LandmarkSettings,
         ),
@@ -187,6 +190,16 @@ for _entry in (
         stateful=True,
         components=_PLACES,
         metrics=VerifierMetrics,
+    ),
+    ServiceSpec(
+        "place-owner",
+        pb.ServiceKind.SERVICE_KIND_PLACE_OWNER,
+        "swarmrec.services.place_owner:PlaceOwner",
+        "full-image place recognition: owns clusters of the descriptor space (answers and stores the "
+        "queries routed to them) and queries, verifies and keeps the loop closures of its robot's frames",
+        stateful=True,
+        components=(PlaceSettings, VprSettings),
+        metrics=PlaceOwnerMetrics,
     ),
     ServiceSpec(
         "fusion",
@@ -235,6 +248,8 @@ load_plugins()
 #: Each robot's services for each experiment, in start order.
 WORKLOADS: Mapping[str, tuple[str, ...]] = {
     "places": ("index-shard", "verifier", "descriptor", "detector"),
+    # Full-image place recognition (docs/vpr.md): the verifiers check what the owners match.
+    "dvpr": ("verifier", "place-owner", "detector"),
     "landmarks": ("fusion", "detector"),
 }
 

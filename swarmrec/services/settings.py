@@ -40,6 +40,7 @@ __all__ = [
     "LandmarkSettings",
     "PlaceSettings",
     "RgbdSettings",
+    "VprSettings",
 ]
 
 DetectorMode = Literal["replay", "rgbd", "classifier"]
@@ -47,6 +48,10 @@ WirePositions = Literal["mm", "exact"]
 WIRE_POSITIONS: tuple[str, ...] = ("mm", "exact")
 DETECTOR_MODES: tuple[str, ...] = ("replay", "rgbd", "classifier")
 FusionLaw = Literal["paper", "agreement"]
+PlaceMethod = Literal["constellations", "dvpr"]
+PLACE_METHODS: tuple[str, ...] = ("constellations", "dvpr")
+VprCode = Literal["int8", "float32"]
+VPR_CODES: tuple[str, ...] = ("int8", "float32")
 
 
 @dataclass(frozen=True)
@@ -325,6 +330,54 @@ class RgbdSettings(Component):
         return CameraIntrinsics(
             self.camera_fx, self.camera_fy, self.camera_cx, self.camera_cy, self.depth_scale
         )
+
+
+@dataclass(frozen=True)
+class VprSettings(Component):
+    """Full-image place recognition (docs/vpr.md): the descriptor model, the centres and
+    their owners, how queries carry descriptors."""
+
+    title: ClassVar[str] = "full-image place recognition"
+
+    place_method: PlaceMethod = setting(
+        "constellations",
+        "what the detector sends each frame to: constellations (the descriptor service's two-step "
+        "query) or dvpr (a full-image descriptor to its robot's place-owner; rgbd mode only)",
+    )
+    descriptor_model: str = setting("", "the full-image descriptor's ONNX model; empty: the project's own")
+    descriptor_threads: int = setting(1, "onnxruntime threads describing one frame (0: onnxruntime decides)")
+    vpr_centres: str = setting(
+        "",
+        "k-means centres (.npz, one array per k; swarmrec vpr centres makes them); empty: the shipped "
+        "models/descriptor/centres.npz. k = n_robots x vpr_clusters_per_robot",
+    )
+    vpr_clusters_per_robot: int = setting(1, "clusters each robot owns (the paper's c)")
+    vpr_assignment_seed: int = setting(0, "seed of the paper's random assignment of clusters to robots")
+    vpr_assignment: Path | None = setting(
+        None, "an assignment table (JSON, swarmrec.vpr.assignment/1) instead of the seeded random one"
+    )
+    vpr_wire_code: VprCode = setting(
+        "int8",
+        "how a query carries its descriptor to the owner: int8 (4 + d bytes, recall within 0.1 point) "
+        "or float32 (4 d bytes, the paper's)",
+    )
+    vpr_snapshot_every: int = setting(
+        1000, "an owner saves its faiss index after this many new descriptors (and when it stops)"
+    )
+
+    def problems(self) -> list[str]:
+        problems = []
+        if self.place_method not in PLACE_METHODS:
+            problems.append(f"place_method must be {' or '.join(PLACE_METHODS)}, got {self.place_method!r}")
+        if self.vpr_wire_code not in VPR_CODES:
+            problems.append(f"vpr_wire_code must be {' or '.join(VPR_CODES)}, got {self.vpr_wire_code!r}")
+        if self.descriptor_threads < 0:
+            problems.append(f"descriptor_threads must be >= 0 (0: automatic), got {self.descriptor_threads}")
+        if self.vpr_clusters_per_robot < 1:
+            problems.append(f"vpr_clusters_per_robot must be >= 1, got {self.vpr_clusters_per_robot}")
+        if self.vpr_snapshot_every < 1:
+            problems.append(f"vpr_snapshot_every must be >= 1, got {self.vpr_snapshot_every}")
+        return problems
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,10 @@ The assignment is a table ``owners[cluster] = robot`` (:class:`Assignment`), wri
 .. code-block:: json
 
     {"format": "swarmrec.vpr.assignment/1", "n_robots": 3, "owners": [2, 0, 1, 1, 0, 2],
-     "method": "random", "seed": 7}
+     "method": "random", "seed": 7, "version": 0}
+
+``version`` counts the tables a swarm has used (0: its first); a live swarm's queries carry
+the version they were routed with, so an owner can tell a sender routing with another table.
 
 The paper's assignment (:func:`random_assignment`) gives every robot exactly c clusters in a
 seeded random order; :mod:`swarmrec.vpr.balance` builds others. :class:`Router` is immutable,
@@ -99,6 +102,8 @@ class Assignment:
     method: str = "given"
     seed: int | None = None
     extra: dict[str, Any] = field(default_factory=dict, compare=False)
+    #: Which table of a swarm this is (0: its first; a re-assignment makes the next).
+    version: int = 0
 
     def __post_init__(self) -> None:
         if self.n_robots < 1:
@@ -108,6 +113,8 @@ class Assignment:
         bad = [o for o in self.owners if not (isinstance(o, int) and 0 <= o < self.n_robots)]
         if bad:
             raise ConfigError(f"owners must be robots in [0, {self.n_robots}), got {bad[:5]}")
+        if not (isinstance(self.version, int) and 0 <= self.version < 2**63):
+            raise ConfigError(f"version must be an integer >= 0, got {self.version!r}")
 
     @property
     def n_clusters(self) -> int:
@@ -131,6 +138,7 @@ class Assignment:
             "owners": list(self.owners),
             "method": self.method,
             "seed": self.seed,
+            "version": self.version,
             **({"extra": self.extra} if self.extra else {}),
         }
 
@@ -145,6 +153,7 @@ class Assignment:
                 method=str(data.get("method", "given")),
                 seed=None if data.get("seed") is None else int(data["seed"]),
                 extra=dict(data.get("extra", {})),
+                version=int(data.get("version", 0)),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise StateFileError(source, f"bad assignment table: {exc}") from exc
@@ -234,9 +243,11 @@ def load_centres(path: str | Path, k: int) -> Float32Array:
                 raise StateFileError(
                     path,
                     f"no centres for k={k} (it has k in {have}); train them with "
-                    "python -m swarmrec.vpr.centres",
+                    f"swarmrec vpr centres --ks {k} --out FILE",
                 )
             centres = np.asarray(data[f"k{k}"], np.float32)
+    except StateFileError:
+        raise
     except (OSError, ValueError) as exc:
         raise StateFileError(path, f"cannot read centres: {exc}") from exc
     return as_descriptors(centres, _width(centres))

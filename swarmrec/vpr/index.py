@@ -118,6 +118,17 @@ class OwnerIndex:
         with self._lock:
             return self._search(x, robot)
 
+    def get(self, robot: int, frame: int) -> npt.NDArray[np.float32] | None:
+        """The stored descriptor of ``robot``'s ``frame`` (a copy), or None when none is stored:
+        what a service compares a store against (the same content again is accepted, other
+        content refused)."""
+        entry = _entry_id(robot, frame)
+        with self._lock:
+            if entry not in self._ids:
+                return None
+            vector = np.asarray(self._index.reconstruct(entry), np.float32)
+        return vector.reshape(self.dimension).copy()
+
     def _add(self, x: npt.NDArray[np.float32], entry: int) -> bool:
         if entry in self._ids:
             return False

@@ -58,6 +58,17 @@ def test_the_assignment_table_survives_json(tmp_path: Path) -> None:
     assert Assignment.load(path) == table
 
 
+def test_the_table_version_travels_in_the_json_and_an_older_table_reads_as_version_0(tmp_path: Path) -> None:
+    table = Assignment((1, 0, 1), 2, version=3)
+    table.save(tmp_path / "t.json")
+    assert json.loads((tmp_path / "t.json").read_text())["version"] == 3
+    assert Assignment.load(tmp_path / "t.json").version == 3
+    older = {"format": "swarmrec.vpr.assignment/1", "n_robots": 2, "owners": [1, 0, 1]}
+    assert Assignment.from_json(older).version == 0
+    with pytest.raises(ConfigError, match="version must be an integer >= 0"):
+        Assignment((0,), 1, version=-1)
+
+
 def test_a_bad_assignment_is_refused() -> None:
     with pytest.raises(ConfigError, match="owners must be robots"):
         Assignment((0, 3), 3)

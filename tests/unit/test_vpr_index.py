@@ -52,6 +52,21 @@ def test_a_query_delivered_twice_is_stored_once() -> None:
     assert index.store(unit(0, 1), robot=0, frame=1) is False
 
 
+def test_get_gives_back_exactly_what_was_stored_and_none_for_a_frame_never_stored(tmp_path: Path) -> None:
+    index = OwnerIndex(3)
+    first = np.array([0.6, 0.8, 0.0], np.float32)
+    index.query_then_store(first, robot=2, frame=5)
+    index.store(unit(0, 0, 1), robot=1, frame=5)
+    stored = index.get(2, 5)
+    assert stored is not None and stored.dtype == np.float32
+    np.testing.assert_array_equal(stored, first)
+    assert index.get(2, 6) is None and index.get(0, 5) is None
+    index.save(tmp_path / "owner.npz")
+    again = OwnerIndex.load(tmp_path / "owner.npz").get(1, 5)
+    assert again is not None
+    np.testing.assert_array_equal(again, unit(0, 0, 1))
+
+
 def test_a_restarted_owner_answers_exactly_as_before(tmp_path: Path) -> None:
     rng = np.random.default_rng(0)
     x = rng.normal(size=(50, 8)).astype(np.float32)

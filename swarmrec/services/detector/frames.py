@@ -20,6 +20,12 @@ and the descriptor's idempotent stores keep a frame sent twice stored once.
   until no robot has frames ``pending``.
 * ``replay`` (free replay): the whole block at ``rate_hz`` (0: as fast as the
   swarm answers), in the background; reports appear on ``events/query/<robot>``.
+
+With ``place_method`` dvpr (rgbd mode only) each frame goes instead to the robot's
+place-owner (``place-owner/<robot>/process``) as a :class:`PlaceFrame`: its float32
+full-image descriptor and its constellation; the step answers with the
+:class:`PlaceReport` in ``StepReply.place``, and a free replay's reports appear on
+``events/place_query/<robot>``.
 """
 
 from __future__ import annotations
@@ -29,11 +35,15 @@ import threading
 import time
 from typing import Protocol
 
+import numpy as np
+import numpy.typing as npt
+
 from swarmrec.core.split import split_frames
 from swarmrec.core.types import Constellation
 from swarmrec.errors import (
     TRANSIENT_CODES,
     CallError,
+    ConfigError,
     ErrorCode,
     InvalidArgument,
     RemoteError,
@@ -44,9 +54,10 @@ from swarmrec.errors import (
 from swarmrec.runtime import ServiceContext, keys
 from swarmrec.runtime.settings import BusSettings
 from swarmrec.services.detector.outbox import Outbox
-from swarmrec.services.settings import DetectorSettings, PlaceSettings
+from swarmrec.services.settings import DetectorSettings, PlaceSettings, VprSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import constellation_to_proto
+from swarmrec.wire.vpr import descriptor_to_wire
 
 __all__ = ["FramePlayer", "FrameSource", "robot_block"]
 
@@ -78,6 +89,14 @@ class FrameSource(Protocol):
         ...
 
 
+class PlaceSource(FrameSource, Protocol):
+    """A source that also gives each frame's full-image descriptor (rgbd with place_method dvpr)."""
+
+    def place_frame(self, t: int) -> tuple[Constellation, npt.NDArray[np.float32]]:
+        """Frame ``t``'s constellation and float32 descriptor; RequestError as ``constellation``."""
+        ...
+
+
 class FramePlayer:
     """Sends a source's frames to the robot's descriptor, by step or as a free replay."""
 
@@ -94,6 +113,13 @@ class FramePlayer:
         self._retrier.start()
         self.replaying: threading.Thread | None = None
         self.key = keys.endpoint(bus.swarm, "descriptor", bus.robot, "process")
+        self.dvpr = ctx.settings(VprSettings).place_method == "dvpr"
+        if self.dvpr and not hasattr(source, "place_frame"):
+            raise ConfigError(
+                "place_method dvpr describes camera images: run the detector in rgbd mode "
+                "(a replayed constellation has no image)"
+            )
+        self.place_key = keys.endpoint(bus.swarm, "place-owner", bus.robot, "process")
         # A frame's query holds several nested requests; give it their time and some.
         self.timeout_s = 4 * bus.request_timeout_s
         self.exact = ctx.settings(PlaceSettings).exact_positions
@@ -145,7 +171,38 @@ class FramePlayer:
         late, self.late = self.late, []
         return late
 
+    def _send_place(self, t: int) -> pb.PlaceReport:
+        robot = self.ctx.bus.robot
+        source: PlaceSource = self.source  # type: ignore[assignment]  # checked in __init__
+        c, descriptor = source.place_frame(t)
+        try:
+            wire = constellation_to_proto(c, robot, t, self.source.frame_ids[t], exact=self.exact)
+        except WireError as e:
+            self.ctx.metrics.rejected.labels("frame", "ERROR_CODE_INVALID_ARGUMENT").inc()
+            self.ctx.log.warning("frame not sent", extra={"fields": {"frame": t, "reason": str(e)}})
+            raise InvalidArgument(f"frame {t}: {e}") from None
+        # The robot's own place-owner routes with the exact float32 values (robot scope, no radio).
+        data, encoding = descriptor_to_wire(descriptor, "float32")
+        msg = pb.PlaceFrame(
+            robot_id=robot,
+            frame_index=t,
+            frame_id=self.source.frame_ids[t],
+            descriptor=data,
+            encoding=encoding,  # type: ignore[arg-type]  # an enum value
+            constellation=wire,
+        )
+        return self.ctx.caller.call(
+            self.place_key,
+            msg,
+            pb.PlaceReport,
+            target_robot=robot,
+            endpoint="process",
+            timeout_s=self.timeout_s,
+        )
+
     def step(self, req: pb.StepRequest) -> pb.StepReply:
+        if self.dvpr:
+            return self._step_place(req)
         robot = self.ctx.bus.robot
         deadline = time.monotonic() + self.timeout_s
         with self.lock:  # steps of one robot run in order
@@ -173,6 +230,20 @@ class FramePlayer:
             if own is not None:
                 reply.report.CopyFrom(own)
             return reply
+
+    def _step_place(self, req: pb.StepRequest) -> pb.StepReply:
+        """A dvpr step: the frame to the robot's place-owner, answered at once. Full-image
+        frames do not go through the outbox: the dvpr lock-step is sequential, and an
+        owner's answer depends on the order queries reached it (docs/vpr.md)."""
+        robot = self.ctx.bus.robot
+        if req.step >= len(self.source.frame_ids):
+            return pb.StepReply(robot_id=robot, step=req.step, finished=True)
+        with self.lock:
+            try:
+                report = self._send_place(req.step)
+            except CallError as e:
+                raise Unavailable(f"place-owner: {e}") from None
+        return pb.StepReply(robot_id=robot, step=req.step, place=report)
 
     def _retry(self) -> None:
         """Send queued frames again in the background (a free replay, or between steps)."""

@@ -30,15 +30,24 @@ constellation made is also written to ``<data_dir>/constellations/<frame id>.txt
 (the constellation format, so ``swarmrec evaluate`` reads it); the main job
 builds its report from these.
 
-A model that does not load or does not fit the label list, a missing
-sequence folder or label list are start-up errors with a message naming the
-file: the service does not start.
+With ``place_method`` dvpr (full-image place recognition, docs/vpr.md) each frame's
+RGB image is also described by the full-image descriptor model
+(:class:`swarmrec.vpr.model.DescriptorModel`, stage ``describe``), and with a
+``data_dir`` the float32 descriptor is written to ``<data_dir>/descriptors/<frame id>.npy``
+(what the main job checks the owners' answers against).
+
+A model that does not load or does not fit the label list (or, for dvpr, a
+descriptor model that is not one), a missing sequence folder or label list are
+start-up errors with a message naming the file: the service does not start.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
 
 from swarmrec.core.types import Constellation
 from swarmrec.datasets.constellations import format_constellation
@@ -50,7 +59,9 @@ from swarmrec.runtime import ServiceContext
 from swarmrec.runtime.settings import StorageSettings
 from swarmrec.services.detector.frames import robot_block
 from swarmrec.services.metrics import DetectorMetrics
-from swarmrec.services.settings import DetectorSettings, PlaceSettings, RgbdSettings
+from swarmrec.services.settings import DetectorSettings, PlaceSettings, RgbdSettings, VprSettings
+from swarmrec.vpr.errors import VprError
+from swarmrec.vpr.model import DescriptorModel
 
 __all__ = ["SKIP_OUTCOMES", "FrameResult", "RgbdSource", "process_frame"]
 
@@ -66,7 +77,8 @@ class FrameResult:
     made, else why the frame is skipped (``missing_image``, ``corrupt_image``,
     ``size_mismatch``, ``detector_error``): then ``constellation`` is None,
     ``reason`` names the file and the problem and ``code`` is the ErrorCode
-    the step answers with. ``seconds`` holds the time of each stage run.
+    the step answers with. ``seconds`` holds the time of each stage run;
+    ``descriptor`` the full-image descriptor when a describer was given.
     """
 
     outcome: str
@@ -75,10 +87,14 @@ class FrameResult:
     reason: str = ""
     code: ErrorCode = ErrorCode.UNSPECIFIED
     seconds: dict[str, float] = field(default_factory=dict)
+    descriptor: npt.NDArray[np.float32] | None = None
 
 
-def process_frame(pipeline: RgbdPipeline, frame: RgbdFrame) -> FrameResult:
-    """Decode a frame's images and make its constellation; a bad frame is a skip, never an exception."""
+def process_frame(
+    pipeline: RgbdPipeline, frame: RgbdFrame, describer: DescriptorModel | None = None
+) -> FrameResult:
+    """Decode a frame's images and make its constellation (and, with ``describer``, its
+    full-image descriptor); a bad frame is a skip, never an exception."""
     t0 = time.perf_counter()
     try:
         rgb, depth = load_rgbd(frame.rgb_path, frame.depth_path)
@@ -94,11 +110,22 @@ def process_frame(pipeline: RgbdPipeline, frame: RgbdFrame) -> FrameResult:
             "detector_error", None, reason=str(e), code=ErrorCode.INTERNAL, seconds={"decode": decode_s}
         )
     c = result.constellation
+    seconds = {"decode": decode_s, **result.seconds}
+    descriptor = None
+    if describer is not None:
+        t1 = time.perf_counter()
+        try:
+            descriptor = describer.describe_frames(rgb)[0]
+        except VprError as e:
+            code = ErrorCode.INTERNAL
+            return FrameResult("detector_error", None, reason=str(e), code=code, seconds=seconds)
+        seconds["describe"] = time.perf_counter() - t1
     return FrameResult(
         "detected" if len(c) else "no_objects",
         c,
         dropped_no_depth=result.dropped_no_depth,
-        seconds={"decode": decode_s, **result.seconds},
+        seconds=seconds,
+        descriptor=descriptor,
     )
 
 
@@ -125,15 +152,26 @@ class RgbdSource:
             threads=rgbd.detector_threads,
         )
         self.pipeline = RgbdPipeline(model, rgbd.camera())
+        vpr = ctx.settings(VprSettings)
+        self.describer: DescriptorModel | None = None
+        if vpr.place_method == "dvpr":
+            # A file that is not a descriptor model is refused here, before the service serves.
+            model_path = vpr.descriptor_model or None
+            self.describer = DescriptorModel(model_path, intra_op_threads=vpr.descriptor_threads)
         storage = ctx.settings(StorageSettings)
         self.out_dir = storage.data_dir / "constellations" if storage.data_dir else None
         if self.out_dir is not None:
             self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.descriptor_dir = None
+        if storage.data_dir and self.describer is not None:
+            self.descriptor_dir = storage.data_dir / "descriptors"
+            self.descriptor_dir.mkdir(parents=True, exist_ok=True)
         m = ctx.metric_set(DetectorMetrics)
         self.frames_total = m.frames
         self.dropped = m.boxes_dropped.labels("no_depth")
         self.objects = m.objects
-        self.stage = {name: m.stage_seconds.labels(name) for name in ("decode", "detect", "points")}
+        stages = ("decode", "detect", "points") + (("describe",) if self.describer is not None else ())
+        self.stage = {name: m.stage_seconds.labels(name) for name in stages}
         fields = {
             "dataset": detector.dataset,
             "frames": len(self.frames),
@@ -141,11 +179,24 @@ class RgbdSource:
             "layout": str(model.layout),
             "input_hw": list(model.input_hw),
             "conf_threshold": model.settings.conf_threshold,
+            "descriptor_model": self.describer.model if self.describer is not None else None,
         }
         ctx.log.info("sequence and model loaded", extra={"fields": fields})
 
     def constellation(self, t: int) -> Constellation:
-        result = process_frame(self.pipeline, self.frames[t])
+        return self.observe(t)[0]
+
+    def place_frame(self, t: int) -> tuple[Constellation, npt.NDArray[np.float32]]:
+        """Frame ``t``'s constellation and full-image descriptor (place_method dvpr)."""
+        c, descriptor = self.observe(t)
+        if descriptor is None:
+            raise ConfigError("this detector has no descriptor model: set place_method dvpr")
+        return c, descriptor
+
+    def observe(self, t: int) -> tuple[Constellation, npt.NDArray[np.float32] | None]:
+        """What frame ``t`` gives: its constellation and (dvpr) its descriptor, both written to
+        the data folder; RequestError for a frame that is skipped."""
+        result = process_frame(self.pipeline, self.frames[t], self.describer)
         self.frames_total.labels(result.outcome).inc()
         for name, seconds in result.seconds.items():
             self.stage[name].observe(seconds)
@@ -162,4 +213,6 @@ class RgbdSource:
         if self.out_dir is not None:
             path = self.out_dir / f"{self.frame_ids[t]}.txt"
             path.write_text(format_constellation(c, self.names), encoding="utf-8")
-        return c
+        if self.descriptor_dir is not None and result.descriptor is not None:
+            np.save(self.descriptor_dir / f"{self.frame_ids[t]}.npy", result.descriptor)
+        return c, result.descriptor

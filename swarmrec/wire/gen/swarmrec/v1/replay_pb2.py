@@ -23,33 +23,34 @@ _sym_db = _symbol_database.Default()
 
 
 from . import events_pb2 as swarmrec_dot_v1_dot_events__pb2
+from . import vpr_pb2 as swarmrec_dot_v1_dot_vpr__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18swarmrec/v1/replay.proto\x12\x0bswarmrec.v1\x1a\x18swarmrec/v1/events.proto\")\n\x0bStepRequest\x12\x11\n\x04step\x18\x01 \x01(\rH\x00\x88\x01\x01\x42\x07\n\x05_step\"\xb8\x01\n\tStepReply\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x0c\n\x04step\x18\x02 \x01(\r\x12\x10\n\x08\x66inished\x18\x03 \x01(\x08\x12(\n\x06report\x18\x04 \x01(\x0b\x32\x18.swarmrec.v1.QueryReport\x12\x0e\n\x06queued\x18\x05 \x01(\x08\x12.\n\x0clate_reports\x18\x06 \x03(\x0b\x32\x18.swarmrec.v1.QueryReport\x12\x0f\n\x07pending\x18\x07 \x01(\r\"1\n\rReplayRequest\x12\x14\n\x07rate_hz\x18\x01 \x01(\x02H\x00\x88\x01\x01\x42\n\n\x08_rate_hz\"1\n\x0bReplayReply\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x10\n\x08n_frames\x18\x02 \x01(\r\"#\n\nStoreReply\x12\x15\n\rstored_frames\x18\x01 \x01(\r\"(\n\x13LoopClosuresRequest\x12\x11\n\tmin_score\x18\x01 \x01(\x02\"T\n\x0fLoopClosureList\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12/\n\rloop_closures\x18\x02 \x03(\x0b\x32\x18.swarmrec.v1.LoopClosure\":\n\x0e\x45xplainRequest\x12\x18\n\x0b\x66rame_index\x18\x01 \x01(\rH\x00\x88\x01\x01\x42\x0e\n\x0c_frame_index\"\xbe\x02\n\x0c\x45xplainReply\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12)\n\x06status\x18\x02 \x01(\x0e\x32\x19.swarmrec.v1.ReportStatus\x12(\n\x06report\x18\x03 \x01(\x0b\x32\x18.swarmrec.v1.QueryReport\x12\x14\n\x0creports_kept\x18\x04 \x01(\r\x12\x14\n\x0creports_held\x18\x05 \x01(\r\x12\x1a\n\x12oldest_frame_index\x18\x06 \x01(\r\x12\x1a\n\x12newest_frame_index\x18\x07 \x01(\r\x12\x1e\n\x16loop_closure_min_score\x18\x08 \x01(\x01\x12\x11\n\texclusion\x18\t \x01(\r\x12\x13\n\x0bmin_objects\x18\n \x01(\r\x12\r\n\x05n_ret\x18\x0b \x01(\r\x12\x0c\n\x04n_fq\x18\x0c \x01(\r*}\n\x0cReportStatus\x12\x1d\n\x19REPORT_STATUS_UNSPECIFIED\x10\x00\x12\x16\n\x12REPORT_STATUS_HELD\x10\x01\x12\x1a\n\x16REPORT_STATUS_AGED_OUT\x10\x02\x12\x1a\n\x16REPORT_STATUS_NOT_SEEN\x10\x03\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18swarmrec/v1/replay.proto\x12\x0bswarmrec.v1\x1a\x18swarmrec/v1/events.proto\x1a\x15swarmrec/v1/vpr.proto\")\n\x0bStepRequest\x12\x11\n\x04step\x18\x01 \x01(\rH\x00\x88\x01\x01\x42\x07\n\x05_step\"\xe1\x01\n\tStepReply\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x0c\n\x04step\x18\x02 \x01(\r\x12\x10\n\x08\x66inished\x18\x03 \x01(\x08\x12(\n\x06report\x18\x04 \x01(\x0b\x32\x18.swarmrec.v1.QueryReport\x12\x0e\n\x06queued\x18\x05 \x01(\x08\x12.\n\x0clate_reports\x18\x06 \x03(\x0b\x32\x18.swarmrec.v1.QueryReport\x12\x0f\n\x07pending\x18\x07 \x01(\r\x12\'\n\x05place\x18\x08 \x01(\x0b\x32\x18.swarmrec.v1.PlaceReport\"1\n\rReplayRequest\x12\x14\n\x07rate_hz\x18\x01 \x01(\x02H\x00\x88\x01\x01\x42\n\n\x08_rate_hz\"1\n\x0bReplayReply\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x10\n\x08n_frames\x18\x02 \x01(\r\"#\n\nStoreReply\x12\x15\n\rstored_frames\x18\x01 \x01(\r\"(\n\x13LoopClosuresRequest\x12\x11\n\tmin_score\x18\x01 \x01(\x02\"T\n\x0fLoopClosureList\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12/\n\rloop_closures\x18\x02 \x03(\x0b\x32\x18.swarmrec.v1.LoopClosure\":\n\x0e\x45xplainRequest\x12\x18\n\x0b\x66rame_index\x18\x01 \x01(\rH\x00\x88\x01\x01\x42\x0e\n\x0c_frame_index\"\xbe\x02\n\x0c\x45xplainReply\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12)\n\x06status\x18\x02 \x01(\x0e\x32\x19.swarmrec.v1.ReportStatus\x12(\n\x06report\x18\x03 \x01(\x0b\x32\x18.swarmrec.v1.QueryReport\x12\x14\n\x0creports_kept\x18\x04 \x01(\r\x12\x14\n\x0creports_held\x18\x05 \x01(\r\x12\x1a\n\x12oldest_frame_index\x18\x06 \x01(\r\x12\x1a\n\x12newest_frame_index\x18\x07 \x01(\r\x12\x1e\n\x16loop_closure_min_score\x18\x08 \x01(\x01\x12\x11\n\texclusion\x18\t \x01(\r\x12\x13\n\x0bmin_objects\x18\n \x01(\r\x12\r\n\x05n_ret\x18\x0b \x01(\r\x12\x0c\n\x04n_fq\x18\x0c \x01(\r*}\n\x0cReportStatus\x12\x1d\n\x19REPORT_STATUS_UNSPECIFIED\x10\x00\x12\x16\n\x12REPORT_STATUS_HELD\x10\x01\x12\x1a\n\x16REPORT_STATUS_AGED_OUT\x10\x02\x12\x1a\n\x16REPORT_STATUS_NOT_SEEN\x10\x03\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, __name__, _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_REPORTSTATUS']._serialized_start=945
-  _globals['_REPORTSTATUS']._serialized_end=1070
-  _globals['_STEPREQUEST']._serialized_start=67
-  _globals['_STEPREQUEST']._serialized_end=108
-  _globals['_STEPREPLY']._serialized_start=111
-  _globals['_STEPREPLY']._serialized_end=295
-  _globals['_REPLAYREQUEST']._serialized_start=297
-  _globals['_REPLAYREQUEST']._serialized_end=346
-  _globals['_REPLAYREPLY']._serialized_start=348
-  _globals['_REPLAYREPLY']._serialized_end=397
-  _globals['_STOREREPLY']._serialized_start=399
-  _globals['_STOREREPLY']._serialized_end=434
-  _globals['_LOOPCLOSURESREQUEST']._serialized_start=436
-  _globals['_LOOPCLOSURESREQUEST']._serialized_end=476
-  _globals['_LOOPCLOSURELIST']._serialized_start=478
-  _globals['_LOOPCLOSURELIST']._serialized_end=562
-  _globals['_EXPLAINREQUEST']._serialized_start=564
-  _globals['_EXPLAINREQUEST']._serialized_end=622
-  _globals['_EXPLAINREPLY']._serialized_start=625
-  _globals['_EXPLAINREPLY']._serialized_end=943
+  _globals['_REPORTSTATUS']._serialized_start=1009
+  _globals['_REPORTSTATUS']._serialized_end=1134
+  _globals['_STEPREQUEST']._serialized_start=90
+  _globals['_STEPREQUEST']._serialized_end=131
+  _globals['_STEPREPLY']._serialized_start=134
+  _globals['_STEPREPLY']._serialized_end=359
+  _globals['_REPLAYREQUEST']._serialized_start=361
+  _globals['_REPLAYREQUEST']._serialized_end=410
+  _globals['_REPLAYREPLY']._serialized_start=412
+  _globals['_REPLAYREPLY']._serialized_end=461
+  _globals['_STOREREPLY']._serialized_start=463
+  _globals['_STOREREPLY']._serialized_end=498
+  _globals['_LOOPCLOSURESREQUEST']._serialized_start=500
+  _globals['_LOOPCLOSURESREQUEST']._serialized_end=540
+  _globals['_LOOPCLOSURELIST']._serialized_start=542
+  _globals['_LOOPCLOSURELIST']._serialized_end=626
+  _globals['_EXPLAINREQUEST']._serialized_start=628
+  _globals['_EXPLAINREQUEST']._serialized_end=686
+  _globals['_EXPLAINREPLY']._serialized_start=689
+  _globals['_EXPLAINREPLY']._serialized_end=1007
 # @@protoc_insertion_point(module_scope)

@@ -1,4 +1,5 @@
 from . import events_pb2 as _events_pb2
+from . import vpr_pb2 as _vpr_pb2
 from google.protobuf.internal import containers as _containers
 from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 from google.protobuf import descriptor as _descriptor
@@ -26,7 +27,7 @@ class StepRequest(_message.Message):
     def __init__(self, step: _Optional[int] = ...) -> None: ...
 
 class StepReply(_message.Message):
-    __slots__ = ("robot_id", "step", "finished", "report", "queued", "late_reports", "pending")
+    __slots__ = ("robot_id", "step", "finished", "report", "queued", "late_reports", "pending", "place")
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     STEP_FIELD_NUMBER: _ClassVar[int]
     FINISHED_FIELD_NUMBER: _ClassVar[int]
@@ -34,6 +35,7 @@ class StepReply(_message.Message):
     QUEUED_FIELD_NUMBER: _ClassVar[int]
     LATE_REPORTS_FIELD_NUMBER: _ClassVar[int]
     PENDING_FIELD_NUMBER: _ClassVar[int]
+    PLACE_FIELD_NUMBER: _ClassVar[int]
     robot_id: int
     step: int
     finished: bool
@@ -41,7 +43,8 @@ class StepReply(_message.Message):
     queued: bool
     late_reports: _containers.RepeatedCompositeFieldContainer[_events_pb2.QueryReport]
     pending: int
-    def __init__(self, robot_id: _Optional[int] = ..., step: _Optional[int] = ..., finished: _Optional[bool] = ..., report: _Optional[_Union[_events_pb2.QueryReport, _Mapping]] = ..., queued: _Optional[bool] = ..., late_reports: _Optional[_Iterable[_Union[_events_pb2.QueryReport, _Mapping]]] = ..., pending: _Optional[int] = ...) -> None: ...
+    place: _vpr_pb2.PlaceReport
+    def __init__(self, robot_id: _Optional[int] = ..., step: _Optional[int] = ..., finished: _Optional[bool] = ..., report: _Optional[_Union[_events_pb2.QueryReport, _Mapping]] = ..., queued: _Optional[bool] = ..., late_reports: _Optional[_Iterable[_Union[_events_pb2.QueryReport, _Mapping]]] = ..., pending: _Optional[int] = ..., place: _Optional[_Union[_vpr_pb2.PlaceReport, _Mapping]] = ...) -> None: ...
 
 class ReplayRequest(_message.Message):
     __slots__ = ("rate_hz",)

@@ -1,0 +1,128 @@
+from . import constellation_pb2 as _constellation_pb2
+from google.protobuf.internal import containers as _containers
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable, Mapping as _Mapping
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class DescriptorEncoding(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    DESCRIPTOR_ENCODING_UNSPECIFIED: _ClassVar[DescriptorEncoding]
+    DESCRIPTOR_ENCODING_FLOAT32: _ClassVar[DescriptorEncoding]
+    DESCRIPTOR_ENCODING_INT8: _ClassVar[DescriptorEncoding]
+DESCRIPTOR_ENCODING_UNSPECIFIED: DescriptorEncoding
+DESCRIPTOR_ENCODING_FLOAT32: DescriptorEncoding
+DESCRIPTOR_ENCODING_INT8: DescriptorEncoding
+
+class PlaceFrame(_message.Message):
+    __slots__ = ("robot_id", "frame_index", "frame_id", "descriptor", "encoding", "constellation")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    FRAME_INDEX_FIELD_NUMBER: _ClassVar[int]
+    FRAME_ID_FIELD_NUMBER: _ClassVar[int]
+    DESCRIPTOR_FIELD_NUMBER: _ClassVar[int]
+    ENCODING_FIELD_NUMBER: _ClassVar[int]
+    CONSTELLATION_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    frame_index: int
+    frame_id: str
+    descriptor: bytes
+    encoding: DescriptorEncoding
+    constellation: _constellation_pb2.Constellation
+    def __init__(self, robot_id: _Optional[int] = ..., frame_index: _Optional[int] = ..., frame_id: _Optional[str] = ..., descriptor: _Optional[bytes] = ..., encoding: _Optional[_Union[DescriptorEncoding, str]] = ..., constellation: _Optional[_Union[_constellation_pb2.Constellation, _Mapping]] = ...) -> None: ...
+
+class PlaceQuery(_message.Message):
+    __slots__ = ("robot_id", "frame_index", "descriptor", "encoding", "cluster", "assignment_version")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    FRAME_INDEX_FIELD_NUMBER: _ClassVar[int]
+    DESCRIPTOR_FIELD_NUMBER: _ClassVar[int]
+    ENCODING_FIELD_NUMBER: _ClassVar[int]
+    CLUSTER_FIELD_NUMBER: _ClassVar[int]
+    ASSIGNMENT_VERSION_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    frame_index: int
+    descriptor: bytes
+    encoding: DescriptorEncoding
+    cluster: int
+    assignment_version: int
+    def __init__(self, robot_id: _Optional[int] = ..., frame_index: _Optional[int] = ..., descriptor: _Optional[bytes] = ..., encoding: _Optional[_Union[DescriptorEncoding, str]] = ..., cluster: _Optional[int] = ..., assignment_version: _Optional[int] = ...) -> None: ...
+
+class PlaceMatch(_message.Message):
+    __slots__ = ("found", "distance", "robot_id", "frame_index")
+    FOUND_FIELD_NUMBER: _ClassVar[int]
+    DISTANCE_FIELD_NUMBER: _ClassVar[int]
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    FRAME_INDEX_FIELD_NUMBER: _ClassVar[int]
+    found: bool
+    distance: float
+    robot_id: int
+    frame_index: int
+    def __init__(self, found: _Optional[bool] = ..., distance: _Optional[float] = ..., robot_id: _Optional[int] = ..., frame_index: _Optional[int] = ...) -> None: ...
+
+class PlaceReport(_message.Message):
+    __slots__ = ("robot_id", "frame_index", "cluster", "owner_robot_id", "answered", "match", "verified", "score", "semantic_score", "n_matched", "loop_closure", "n_objects", "duration_us", "failure")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    FRAME_INDEX_FIELD_NUMBER: _ClassVar[int]
+    CLUSTER_FIELD_NUMBER: _ClassVar[int]
+    OWNER_ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    ANSWERED_FIELD_NUMBER: _ClassVar[int]
+    MATCH_FIELD_NUMBER: _ClassVar[int]
+    VERIFIED_FIELD_NUMBER: _ClassVar[int]
+    SCORE_FIELD_NUMBER: _ClassVar[int]
+    SEMANTIC_SCORE_FIELD_NUMBER: _ClassVar[int]
+    N_MATCHED_FIELD_NUMBER: _ClassVar[int]
+    LOOP_CLOSURE_FIELD_NUMBER: _ClassVar[int]
+    N_OBJECTS_FIELD_NUMBER: _ClassVar[int]
+    DURATION_US_FIELD_NUMBER: _ClassVar[int]
+    FAILURE_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    frame_index: int
+    cluster: int
+    owner_robot_id: int
+    answered: bool
+    match: PlaceMatch
+    verified: bool
+    score: float
+    semantic_score: float
+    n_matched: int
+    loop_closure: bool
+    n_objects: int
+    duration_us: int
+    failure: str
+    def __init__(self, robot_id: _Optional[int] = ..., frame_index: _Optional[int] = ..., cluster: _Optional[int] = ..., owner_robot_id: _Optional[int] = ..., answered: _Optional[bool] = ..., match: _Optional[_Union[PlaceMatch, _Mapping]] = ..., verified: _Optional[bool] = ..., score: _Optional[float] = ..., semantic_score: _Optional[float] = ..., n_matched: _Optional[int] = ..., loop_closure: _Optional[bool] = ..., n_objects: _Optional[int] = ..., duration_us: _Optional[int] = ..., failure: _Optional[str] = ...) -> None: ...
+
+class AssignmentRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class AssignmentReply(_message.Message):
+    __slots__ = ("robot_id", "version", "table_json", "owned_clusters", "centres_sha256", "dimension", "wire_encoding")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    TABLE_JSON_FIELD_NUMBER: _ClassVar[int]
+    OWNED_CLUSTERS_FIELD_NUMBER: _ClassVar[int]
+    CENTRES_SHA256_FIELD_NUMBER: _ClassVar[int]
+    DIMENSION_FIELD_NUMBER: _ClassVar[int]
+    WIRE_ENCODING_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    version: int
+    table_json: str
+    owned_clusters: _containers.RepeatedScalarFieldContainer[int]
+    centres_sha256: str
+    dimension: int
+    wire_encoding: DescriptorEncoding
+    def __init__(self, robot_id: _Optional[int] = ..., version: _Optional[int] = ..., table_json: _Optional[str] = ..., owned_clusters: _Optional[_Iterable[int]] = ..., centres_sha256: _Optional[str] = ..., dimension: _Optional[int] = ..., wire_encoding: _Optional[_Union[DescriptorEncoding, str]] = ...) -> None: ...
+
+class PlaceEntry(_message.Message):
+    __slots__ = ("robot_id", "frame_index", "descriptor", "encoding")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    FRAME_INDEX_FIELD_NUMBER: _ClassVar[int]
+    DESCRIPTOR_FIELD_NUMBER: _ClassVar[int]
+    ENCODING_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    frame_index: int
+    descriptor: bytes
+    encoding: DescriptorEncoding
+    def __init__(self, robot_id: _Optional[int] = ..., frame_index: _Optional[int] = ..., descriptor: _Optional[bytes] = ..., encoding: _Optional[_Union[DescriptorEncoding, str]] = ...) -> None: ...
