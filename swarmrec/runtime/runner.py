@@ -524,11 +524,23 @@ def _start(r: _Running) -> None:
     service.serving(True)
 
 
+def _tell_stopping(running: Sequence[_Running]) -> None:
+    """``serving(False)`` for every service, all at once (each in a thread: one may wait,
+    an index shard handing its groups on), while they all still serve."""
+    threads = []
+    for r in running:
+        r.ctx.metrics.ready.set(0)
+        if r.service is not None:
+            t = threading.Thread(target=r.service.serving, args=(False,), name=f"stopping-{r.hosted.name}")
+            t.start()
+            threads.append(t)
+    for t in threads:
+        t.join()
+
+
 def _stop(r: _Running) -> None:
-    """Token first, then queryables and subscribers, workers, the service, its logs."""
-    r.ctx.metrics.ready.set(0)
-    if r.service is not None:
-        r.service.serving(False)
+    """Token first, then queryables and subscribers, workers, the service, its logs (the
+    service was told it stops before: :func:`_tell_stopping`)."""
     if r.token is not None:
         r.token.undeclare()
     for d in r.declared:
@@ -625,6 +637,9 @@ def run_services(
                 server.set_ready(False)  # first: a probe must not route to a stopping process
             if host_ready is not None:
                 host_ready.set(0)
+            # Every hosted service is told it stops at once (an index shard drains then, and
+            # must see its neighbours in this process stopping too), then each is taken down.
+            _tell_stopping(running)
             for r in reversed(running):
                 _stop(r)
             if server is not None:

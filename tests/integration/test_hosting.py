@@ -42,8 +42,10 @@ def test_one_process_per_service_per_robot_or_for_all_robots_scores_the_same(tmp
         assert same == pairs, hosting
         assert summary.offline_check is not None and summary.offline_check.identical, hosting
         # The queries' and the replicas' bytes; the index coordinator's own traffic depends
-        # on how many of its ticks a run lasts, not on the hosting.
+        # on how many of its ticks a run lasts, and a store's reply on how much the shard
+        # held when it answered, not on the hosting.
         assert summary.bytes.per_query == services.bytes.per_query, hosting
-        assert summary.bytes.replication_per_query == services.bytes.replication_per_query, hosting
+        shard_stores = summary.bytes.per_query_by_message["ShardStore"]
+        assert shard_stores == services.bytes.per_query_by_message["ShardStore"], hosting
         assert summary.shard_load.partial_queries == services.shard_load.partial_queries, hosting
         assert all(code == 0 for code in summary.exit_codes.values()), summary.exit_codes
