@@ -57,7 +57,6 @@ from swarmrec.services.detector.outbox import Outbox
 from swarmrec.services.settings import DetectorSettings, PlaceSettings, VprSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import constellation_to_proto
-from swarmrec.wire.vpr import descriptor_to_wire
 
 __all__ = ["FramePlayer", "FrameSource", "robot_block"]
 
@@ -181,6 +180,9 @@ class FramePlayer:
             self.ctx.metrics.rejected.labels("frame", "ERROR_CODE_INVALID_ARGUMENT").inc()
             self.ctx.log.warning("frame not sent", extra={"fields": {"frame": t, "reason": str(e)}})
             raise InvalidArgument(f"frame {t}: {e}") from None
+        # Imported here: a constellation detector never loads the full-image method's code.
+        from swarmrec.wire.vpr import descriptor_to_wire
+
         # The robot's own place-owner routes with the exact float32 values (robot scope, no radio).
         data, encoding = descriptor_to_wire(descriptor, "float32")
         msg = pb.PlaceFrame(
