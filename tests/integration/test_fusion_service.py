@@ -22,15 +22,20 @@ import math
 import queue
 import time
 from collections.abc import Iterator
+from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
 import pytest
 import zenoh
 
+from swarmrec.client import ZenohClient
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.fusion import FusionState, make_weight_law
 from swarmrec.runtime import keys
+from swarmrec.runtime.tls import TlsFiles
+from swarmrec.security.identity import Identity
+from swarmrec.security.pki import ensure_identity
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import schema_name
 from tests.integration.conftest import running_swarm, swarm_name
@@ -65,6 +70,17 @@ def fusion_swarm(
     monkeypatch.setenv("SWARMREC_FUSION_LAW", LAW)
     with running_swarm(tmp_path, swarm_name(request), robots=N, kinds=["fusion"], timeout_s=60.0) as swarm:
         yield swarm
+
+
+def speaking_as(swarm: LocalDeployment, kind: str, robot: int) -> ZenohClient:
+    """A session with robot ``robot``'s ``kind`` certificate (issued by the swarm's CA if the
+    deployment did not): under mutual TLS only a robot's fusion may put on another robot's
+    inbox, and only its detector may start its round."""
+    assert swarm.pki_dir is not None
+    ident = Identity.service(swarm.spec_swarm, kind, robot)
+    ensure_identity(swarm.pki_dir, ident)
+    tls = TlsFiles.in_dir(swarm.pki_dir, ident.common_name)
+    return ZenohClient([swarm.endpoint], swarm.spec_swarm, timeout_s=5.0, tls=tls)
 
 
 def put(
@@ -108,8 +124,13 @@ def test_five_robots_on_a_line_flood_to_neighbours_only_and_fuse_as_the_core_doe
     swarm = fusion_swarm.spec_swarm
     urls = [metrics_url(fusion_swarm.find("fusion", r)) for r in range(N)]
     events: queue.Queue[pb.FusionUpdate] = queue.Queue()
-    with fusion_swarm.client(5.0) as client:
+    with ExitStack() as stack:
+        client = stack.enter_context(fusion_swarm.client(5.0))
+        robot4 = stack.enter_context(speaking_as(fusion_swarm, "fusion", 4))
+        detectors = [stack.enter_context(speaking_as(fusion_swarm, "detector", r)) for r in range(N)]
         session = client.session
+        # The bad messages come from robot 4's fusion: a faulty or lying robot of the swarm.
+        radio = robot4.session
         # The token is declared after the inbox subscriber: once the router shows it,
         # puts to that inbox are routed.
         client.wait_for({("fusion", r) for r in range(N)})
@@ -120,21 +141,26 @@ def test_five_robots_on_a_line_flood_to_neighbours_only_and_fuse_as_the_core_doe
         try:
             # --- bad messages, before any round starts ---------------------------------
             good = [float(p) for p in PROBS[1]]
-            put(session, swarm, 2, b"\x1a\x05\x00", CLASSIFIER)  # truncated: does not decode
-            put(session, swarm, 2, output(1, 1, 0, good), schema_name(pb.FusionUpdate))
-            put(session, swarm, 2, output(1, 1, 0, good), CLASSIFIER, sender=4)  # robot 4 claims to be 1
-            put(session, swarm, 0, output(1, 1, 0, [math.nan] * N_CLASSES), CLASSIFIER)  # from a neighbour
-            put(session, swarm, 0, output(3, 3, 0, good), CLASSIFIER)  # robot 3 is out of robot 0's range
-            wait_until(
-                lambda: (
-                    refused(urls[2], "ERROR_CODE_MALFORMED") == 1
-                    and refused(urls[2], "ERROR_CODE_INVALID_ARGUMENT") == 1  # another message's schema
-                    and rejected(urls[2], "sender_mismatch") == 1
-                    and metric(urls[0], "swarmrec_fusion_early_messages_total") == 2
-                ),
-                10.0,
-                "bad messages counted",
-            )
+            put(radio, swarm, 2, b"\x1a\x05\x00", CLASSIFIER)  # truncated: does not decode
+            put(radio, swarm, 2, output(1, 1, 0, good), schema_name(pb.FusionUpdate))
+            put(radio, swarm, 2, output(1, 1, 0, good), CLASSIFIER, sender=4)  # robot 4 claims to be 1
+            put(radio, swarm, 0, output(1, 1, 0, [math.nan] * N_CLASSES), CLASSIFIER)  # from a neighbour
+            put(radio, swarm, 0, output(3, 3, 0, good), CLASSIFIER)  # robot 3 is out of robot 0's range
+
+            def bad_counts() -> tuple[float, ...]:
+                return (
+                    refused(urls[2], "ERROR_CODE_MALFORMED"),
+                    refused(urls[2], "ERROR_CODE_INVALID_ARGUMENT"),  # another message's schema
+                    rejected(urls[2], "sender_mismatch"),
+                    metric(urls[0], "swarmrec_fusion_early_messages_total"),
+                )
+
+            try:
+                wait_until(lambda: bad_counts() == (1, 1, 1, 2), 10.0, "bad messages counted")
+            except AssertionError as e:
+                raise AssertionError(
+                    f"{e}: (malformed, schema, sender_mismatch, early) = {bad_counts()}"
+                ) from None
 
             # --- the round, last robot first ---------------------------------------------
             for i in reversed(range(N)):
@@ -145,7 +171,9 @@ def test_five_robots_on_a_line_flood_to_neighbours_only_and_fuse_as_the_core_doe
                     neighbour_robot_ids=LINE[i],
                 )
                 started = reply_of(
-                    request(session, endpoint_key(fusion_swarm, "fusion", i, "start_round"), start),
+                    request(
+                        detectors[i].session, endpoint_key(fusion_swarm, "fusion", i, "start_round"), start
+                    ),
                     pb.FusionRoundStarted,
                 )
                 assert (started.robot_id, started.round_id, started.sent) == (i, ROUND, len(LINE[i]))

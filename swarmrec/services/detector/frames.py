@@ -124,10 +124,36 @@ class FramePlayer:
         self.exact = ctx.settings(PlaceSettings).exact_positions
         # Frames the descriptor refused for what they are (answered with the step's error).
         self.refused: dict[int, Exception] = {}
+        # Constellations made for frames still in the outbox: a frame is detected once, when
+        # played, not again at each send (bounded by the outbox's capacity; after a restart a
+        # queued frame is made again from its source).
+        self.made: dict[int, Constellation] = {}
+        self.unmade: dict[int, RequestError] = {}  # at most one per frame of the block
+
+    def _make(self, t: int) -> None:
+        """Make frame ``t`` (RequestError for a frame that cannot be made) and queue it.
+        A frame that cannot be made is remembered: asked again (a lock-step retry), it is
+        refused with the same error without being decoded, detected and counted twice."""
+        unmade = self.unmade.get(t)
+        if unmade is not None:
+            raise RequestError(str(unmade), code=unmade.code)
+        try:
+            c = self.source.constellation(t)
+        except RequestError as e:
+            self.unmade[t] = e
+            raise
+        self.outbox.add(t)
+        self.made[t] = c
+
+    def _done(self, t: int) -> None:
+        self.outbox.done(t)
+        self.made.pop(t, None)
 
     def _send(self, t: int) -> pb.QueryReport:
         robot = self.ctx.bus.robot
-        c = self.source.constellation(t)
+        c = self.made.get(t)
+        if c is None:
+            c = self.made[t] = self.source.constellation(t)
         try:
             wire = constellation_to_proto(c, robot, t, self.source.frame_ids[t], exact=self.exact)
         except WireError as e:
@@ -152,17 +178,17 @@ class FramePlayer:
             except RemoteError as e:
                 if e.code in TRANSIENT_CODES:
                     break
-                self.outbox.done(frame)
+                self._done(frame)
                 self.ctx.log.warning("frame refused", extra={"fields": {"frame": frame, "reason": str(e)}})
                 self.refused[frame] = e
                 continue
             except CallError:
                 break
             except RequestError as e:
-                self.outbox.done(frame)
+                self._done(frame)
                 self.refused[frame] = e
                 continue
-            self.outbox.done(frame)
+            self._done(frame)
             delivered.append((frame, report))
         return delivered
 
@@ -217,8 +243,7 @@ class FramePlayer:
                     late_reports=[r for _f, r in delivered] + self._take_late(),
                     pending=len(self.outbox),
                 )
-            self.source.constellation(req.step)  # a frame that cannot be made is refused here
-            self.outbox.add(req.step)
+            self._make(req.step)  # a frame that cannot be made is refused here
             self.refused.pop(req.step, None)
             delivered = self._flush(deadline)
             refused = self.refused.pop(req.step, None)
@@ -290,8 +315,7 @@ class FramePlayer:
                     return
             with self.lock:
                 try:
-                    self.source.constellation(t)
-                    self.outbox.add(t)
+                    self._make(t)
                 except RequestError as e:
                     self.ctx.log.warning("frame failed", extra={"fields": {"frame": t, "reason": str(e)}})
                     continue
