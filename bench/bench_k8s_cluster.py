@@ -12,10 +12,16 @@ Figures (2-core machine, single node, deploy/k8s/):
 * warm up: ``cluster-up.sh`` with the binaries cached and no cluster running,
   by phase; down: ``cluster-down.sh``, with the swarm's namespace removed first.
 * the swarm: the images loaded (``load-images.sh``), the local overlay's identities
-  (``swarmrec k8s secrets``: its Namespace and Services, the PKI for 6 robots, the
-  Secrets), the overlay (3 robots, 15 pods) applied until every pod is Ready, a shard
-  pod deleted until its successor is Ready, and ``kubectl scale`` of the shard
-  StatefulSet 3 -> 6 -> 2 -> 3 until the pods are Ready (or gone).
+  (``swarmrec k8s secrets``: its Namespace and Services, the PKI for its
+  ``SWARMREC_MAX_SHARDS`` = 6 robots, the Secrets), the overlay (3 robots, 15 pods)
+  applied until every pod is Ready, 100 lock-step steps replayed (300 frames stored,
+  so the elastic index has something to hand over), then: a shard pod deleted until
+  its successor is Ready and the index has settled again; two of the three deleted
+  at once (a node's worth on this single node), likewise; and ``kubectl scale`` of the
+  shard StatefulSet 3 -> 6 -> 2 -> 3: until the pods are Ready (or gone), until the
+  index has settled on the live shards (every one following one settled placement
+  whose members they are, nothing pending), and the descriptors the handoffs copied
+  (``swarmrec_shard_handoff_records_total`` of the live shards, read from each pod).
 * baseline: the compose swarm's up-to-healthy on the same machine kind
   (bench/results/compose.json, 4 robots = 18 containers).
 
@@ -28,6 +34,7 @@ import argparse
 import json
 import os
 import platform
+import socket
 import subprocess
 import tempfile
 import time
@@ -35,12 +42,19 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from swarmrec.client import ZenohClient
+from swarmrec.core.placement import Placement
+from swarmrec.deployments.identities import client_tls
 from swarmrec.deployments.kubernetes import Kubectl, install_identities
+from swarmrec.deployments.metrics import read_metrics
+from swarmrec.runtime.tls import tls_endpoint
 
 REPO = Path(__file__).resolve().parents[1]
 K8S = REPO / "deploy" / "k8s"
 NAMESPACE = "swarmrec-bench"
 KINDS = ("index-shard", "verifier", "descriptor", "detector")
+#: Lock-step steps replayed before the shards are moved (3 robots: 300 frames to hand over).
+STEPS = 100
 
 
 def env_sh() -> dict[str, str]:
@@ -100,12 +114,54 @@ def all_ready() -> bool:
     )
 
 
+def port_open(host: str, port: int) -> bool:
+    try:
+        with socket.create_connection((host, port), timeout=2.0):
+            return True
+    except OSError:
+        return False
+
+
 def api_answers() -> bool:
     try:
         kubectl("get", "--raw", "/readyz")
     except (subprocess.CalledProcessError, FileNotFoundError):
         return False
     return True
+
+
+def shard_counter(name: str) -> dict[tuple[str, str], float]:
+    """``name``'s value in each Ready shard pod, read from the pod's own metrics page (the node
+    reaches pod addresses), by (pod name, uid): a recreated pod counts from 0 again."""
+    items = json.loads(
+        kubectl("-n", NAMESPACE, "get", "pods", "-l", "app.kubernetes.io/component=index-shard", "-o", "json")
+    )["items"]
+    out = {}
+    for p in items:
+        ip = p["status"].get("podIP")
+        if ip and "deletionTimestamp" not in p["metadata"]:
+            samples = read_metrics(f"http://{ip}:9464/metrics")
+            value = sum(v for (n, _), v in samples.items() if n == name)
+            out[(p["metadata"]["name"], p["metadata"]["uid"])] = value
+    return out
+
+
+def settled_on(client: ZenohClient, live: set[int], timeout_s: float = 300.0) -> Placement:
+    """The placement once every live shard follows it, settled, with ``live`` its members."""
+    deadline = time.perf_counter() + timeout_s
+    while True:
+        state = client.wait_index_settled(timeout_s=max(deadline - time.perf_counter(), 1.0))
+        p = state.placement
+        if state.settled and p is not None and set(p.members) == live and set(state.versions) == live:
+            return p
+        if time.perf_counter() > deadline:
+            raise TimeoutError(f"the index did not settle on {sorted(live)}: {state}")
+        time.sleep(0.2)
+
+
+def recreated(old: dict[str, str]) -> bool:
+    now = pods("index-shard")
+    return all(n in now and now[n][0] != uid and now[n][1] for n, uid in old.items())
 
 
 def bench_swarm() -> dict[str, Any]:
@@ -116,29 +172,72 @@ def bench_swarm() -> dict[str, Any]:
         manifest = kubectl("kustomize", tmp)
         t0 = time.perf_counter()
         cluster = Kubectl((f"{ENV['K8S_BIN']}/kubectl",), Path(ENV["KUBECONFIG_ADMIN"]))
-        install_identities(cluster, cluster.objects(manifest), Path(tmp) / "pki", max_robots=6)
+        # Identities for as many shards as the overlay's SWARMREC_MAX_SHARDS (6).
+        ids = install_identities(cluster, cluster.objects(manifest), Path(tmp) / "pki")
         out["identities_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    kubectl("apply", "-f", "-", stdin=manifest)
-    until(all_ready)
-    out[f"apply_to_{PODS}_pods_ready_s"] = time.perf_counter() - t0
-
-    old = pods("index-shard")["index-shard-1"][0]
-    t0 = time.perf_counter()
-    kubectl("-n", NAMESPACE, "delete", "pod", "index-shard-1", "--wait=false")
-    until(lambda: (p := pods("index-shard").get("index-shard-1")) is not None and p[0] != old and p[1])
-    out["shard_pod_delete_to_ready_s"] = time.perf_counter() - t0
-
-    sts = json.loads(kubectl("-n", NAMESPACE, "get", "statefulset", "index-shard", "-o", "json"))
-    configmap = sts["spec"]["template"]["spec"]["containers"][0]["envFrom"][0]["configMapRef"]["name"]
-    for before, after in ((3, 6), (6, 2), (2, 3)):
-        patch = json.dumps({"data": {"SWARMREC_N_ROBOTS": str(after)}})
-        kubectl("-n", NAMESPACE, "patch", "configmap", configmap, "--type", "merge", "-p", patch)
+        out["max_shards"] = ids.robots
         t0 = time.perf_counter()
-        kubectl("-n", NAMESPACE, "scale", "statefulset/index-shard", f"--replicas={after}")
-        want = [f"index-shard-{r}" for r in range(after)]
-        until(lambda want=want: sorted(p := pods("index-shard")) == want and all(r for _, r in p.values()))
-        out[f"scale_{before}_to_{after}_s"] = time.perf_counter() - t0
+        kubectl("apply", "-f", "-", stdin=manifest)
+        until(all_ready)
+        out[f"apply_to_{PODS}_pods_ready_s"] = time.perf_counter() - t0
+
+        router = tls_endpoint(ids.cluster_ips["router"], 7447)
+        until(lambda: port_open(ids.cluster_ips["router"], 7447))
+        with ZenohClient([router], ids.swarm, timeout_s=10.0, tls=client_tls(ids.pki, ids.swarm)) as client:
+            client.wait_for({(k, r) for k in KINDS for r in range(3)}, timeout_s=120)
+            # Something to hand over: the first STEPS lock-step steps of the overlay's synthetic world.
+            t0 = time.perf_counter()
+            for t in range(STEPS):
+                client.step(t, 30.0)
+            first = settled_on(client, {0, 1, 2})
+            out[f"replay_{STEPS}_steps_and_settle_s"] = time.perf_counter() - t0
+            out["stored_slices_per_shard"] = {
+                m.robot: m.stored_items for m in client.members() if m.kind == "index-shard"
+            }
+            out["placement_version_after_replay"] = first.version
+
+            old = {"index-shard-1": pods("index-shard")["index-shard-1"][0]}
+            t0 = time.perf_counter()
+            kubectl("-n", NAMESPACE, "delete", "pod", "index-shard-1", "--wait=false")
+            until(lambda: recreated(old))
+            out["shard_pod_delete_to_ready_s"] = time.perf_counter() - t0
+            settled_on(client, {0, 1, 2})
+            out["shard_pod_delete_to_settled_s"] = time.perf_counter() - t0
+
+            # A node's worth at once on this single node: two of the three shards.
+            now = pods("index-shard")
+            old = {n: now[n][0] for n in ("index-shard-1", "index-shard-2")}
+            t0 = time.perf_counter()
+            kubectl("-n", NAMESPACE, "delete", "pod", *old, "--wait=false")
+            until(lambda: recreated(old))
+            out["two_shard_pods_delete_to_ready_s"] = time.perf_counter() - t0
+            first = settled_on(client, {0, 1, 2})
+            out["two_shard_pods_delete_to_settled_s"] = time.perf_counter() - t0
+            out["placement_version_before_scaling"] = first.version
+
+            # kubectl scale alone: the elastic index moves the label groups.
+            for before, after in ((3, 6), (6, 2), (2, 3)):
+                copied = shard_counter("swarmrec_shard_handoff_records_total")
+                t0 = time.perf_counter()
+                kubectl("-n", NAMESPACE, "scale", "statefulset/index-shard", f"--replicas={after}")
+                want = [f"index-shard-{r}" for r in range(after)]
+                until(
+                    lambda want=want: (
+                        sorted(p := pods("index-shard")) == want and all(r for _, r in p.values())
+                    )
+                )
+                out[f"scale_{before}_to_{after}_s"] = time.perf_counter() - t0
+                placement = settled_on(client, set(range(after)))
+                out[f"scale_{before}_to_{after}_settled_s"] = time.perf_counter() - t0
+                handed = shard_counter("swarmrec_shard_handoff_records_total")
+                # Copied records new to the learner: a shard that held the group before finds
+                # its slices in its own record log (its volume) and copies none of them again.
+                out[f"scale_{before}_to_{after}_handoff_records"] = sum(
+                    v - copied.get(pod, 0.0) for pod, v in handed.items()
+                )
+                out[f"scale_{before}_to_{after}_placement_versions"] = [first.version, placement.version]
+                out[f"scale_{before}_to_{after}_owners"] = [list(o) for o in placement.owners]
+                first = placement
 
     t0 = time.perf_counter()
     kubectl("delete", "namespace", NAMESPACE, "--wait=true", "--timeout=180s")

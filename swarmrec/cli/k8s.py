@@ -119,11 +119,16 @@ def identity(args: argparse.Namespace) -> int:
     from swarmrec.runtime.settings import BusSettings, load_config
     from swarmrec.security.install import install_identity
     from swarmrec.services import registry
+    from swarmrec.services.settings import IndexSettings
 
     if not args.kind:
         raise ConfigError("identity needs --kind")
-    bus = load_config([BusSettings]).bus
-    cn = registry.spec(args.kind).common_name(bus.swarm, bus.robot)
+    # The robot ids the kind's service accepts: index shards' go past the robots (max_shards),
+    # so a shard StatefulSet scaled beyond SWARMREC_N_ROBOTS gets its identities too.
+    entry = registry.spec(args.kind)
+    bound = [c for c in entry.all_components if c is IndexSettings]
+    bus = load_config([BusSettings, *bound]).bus
+    cn = entry.common_name(bus.swarm, bus.robot)
     written = install_identity(args.source, args.target, cn)
     print(f"identity {cn}: {', '.join(p.name for p in written)} in {args.target}")
     return 0

@@ -7,8 +7,11 @@ of a swarm on a cluster. ``start(spec)``:
    (``k8s/overlays/local`` by default): the namespace, each robot StatefulSet's
    ``replicas`` = the spec's robots, the ``swarm`` ConfigMap holding every setting
    the robots' services share (generated from the spec's components, as the compose
-   file's environment is), and the detectors' dataset as a ConfigMap (a zip, at most
-   1 MiB) instead of the synthetic world the static overlays make in each pod;
+   file's environment is; :func:`cluster_spec`: index shards may have ids up to
+   ``max_robots``, so ``kubectl scale statefulset/index-shard`` needs nothing else),
+   the index shards' termination grace period from the spec's drain timeout
+   (:func:`termination_grace_s`), and the detectors' dataset as a ConfigMap (a zip,
+   at most 1 MiB) instead of the synthetic world the static overlays make in each pod;
 2. applies the namespace and the Services first, and reads the router's and the
    gateway's ClusterIPs;
 3. makes the swarm's PKI in ``<out>/pki`` (:func:`kubernetes_pki`: the router's
@@ -37,6 +40,7 @@ from __future__ import annotations
 
 import base64
 import json
+import math
 import os
 import shutil
 import socket
@@ -60,21 +64,24 @@ from swarmrec.runtime.tls import ACL_FILE, tls_endpoint
 from swarmrec.security.certs import load_certificate, sans_of
 from swarmrec.security.identity import Identity
 from swarmrec.services import registry
-from swarmrec.services.settings import DetectorSettings
+from swarmrec.services.settings import DetectorSettings, IndexSettings
 
 __all__ = [
     "ACL_SECRET",
     "DEFAULT_OVERLAY",
     "K8S_DIR",
+    "STOP_MARGIN_S",
     "Identities",
     "Kubectl",
     "KubernetesDeployment",
     "KubernetesError",
     "KubernetesFile",
     "KubernetesSettings",
+    "cluster_spec",
     "install_identities",
     "kubernetes_pki",
     "make_secrets",
+    "max_shards_of",
     "overlay_document",
     "read_kubernetes_file",
     "secret_name",
@@ -83,6 +90,7 @@ __all__ = [
     "service_names",
     "shared_env",
     "swarm_of",
+    "termination_grace_s",
     "write_overlay",
 ]
 
@@ -102,6 +110,9 @@ DATASET_CONFIGMAP = "dataset"
 #: What a ConfigMap holds at most (the apiserver refuses a larger one).
 CONFIGMAP_LIMIT = 1 << 20
 FIELD_MANAGER = "swarmrec"
+#: What an index shard's stop may take besides its drain: the 15 s every robot service gets
+#: to stop (k8s/base/robot-pod.yaml) and as much again for a loaded node (k8s/base/index-shard-stop.yaml).
+STOP_MARGIN_S = 30
 #: Settings that differ per pod or are the manifests' own (addresses, identity, storage, the
 #: dataset's path in the pod): never in the shared ConfigMap.
 PER_POD = frozenset(
@@ -328,6 +339,17 @@ def swarm_of(objects: Sequence[Obj]) -> tuple[str, str, int]:
     return namespaces.pop(), data["SWARMREC_SWARM"], int(data["SWARMREC_N_ROBOTS"])
 
 
+def max_shards_of(objects: Sequence[Obj]) -> int:
+    """The most index shards a rendered overlay's swarm may scale to: its ``SWARMREC_MAX_SHARDS``
+    (the shards accept ids up to it, :class:`~swarmrec.services.settings.IndexSettings`), at
+    least its robots."""
+    _, _, robots = swarm_of(objects)
+    (data,) = [
+        o["data"] for o in objects if o["kind"] == "ConfigMap" and "SWARMREC_N_ROBOTS" in o.get("data", {})
+    ]
+    return max(robots, int(data.get("SWARMREC_MAX_SHARDS", "0") or "0"))
+
+
 def install_identities(
     kubectl: Kubectl,
     objects: Sequence[Obj],
@@ -340,10 +362,11 @@ def install_identities(
     """The identities of the swarm a rendered overlay describes: its Namespace and Services
     are applied first (their ClusterIPs go into the router's and gateway's certificates, so
     this machine can reach both by address), then the PKI is made or completed in ``pki`` for
-    ``max_robots`` robots (at least the overlay's), and the Secrets applied. The pods of the
-    overlay, applied after, find them."""
-    namespace, swarm, robots = swarm_of(objects)
-    robots = max(robots, max_robots)
+    ``max_robots`` robots (at least the overlay's robots and its ``SWARMREC_MAX_SHARDS``, so
+    every shard the StatefulSet may be scaled to has its identity), and the Secrets applied.
+    The pods of the overlay, applied after, find them."""
+    namespace, swarm, _ = swarm_of(objects)
+    robots = max(max_shards_of(objects), max_robots)
     kubectl.apply([o for o in objects if o["kind"] in ("Namespace", "Service")])
     ips = {
         svc["metadata"]["name"]: svc["spec"].get("clusterIP", "")
@@ -365,6 +388,32 @@ def install_identities(
 
 
 # --- the overlay of one run ---------------------------------------------------------------
+
+
+def cluster_spec(spec: SwarmSpec, max_robots: int) -> SwarmSpec:
+    """``spec`` as it runs on a cluster whose certificates cover ``max_robots`` robots: its
+    index shards accept ids up to ``max_robots - 1`` (``IndexSettings.max_shards``), so
+    ``kubectl scale statefulset/index-shard --replicas=N`` up to it needs nothing else (the
+    elastic index places label groups on whichever shards are alive). ``max_robots`` 0 (a
+    swarm file written before this was recorded): ``spec`` as it is."""
+    index = spec.component(IndexSettings)
+    index = index if isinstance(index, IndexSettings) else IndexSettings()
+    if max_robots <= 0 or index.max_shards == max_robots:
+        return spec
+    others = tuple(c for c in spec.components if not isinstance(c, IndexSettings))
+    return replace(spec, components=(*others, index.with_(max_shards=max_robots)))
+
+
+def termination_grace_s(spec: SwarmSpec) -> int:
+    """The index shards' ``terminationGracePeriodSeconds``. A shard told to stop (scaled down,
+    its pod deleted or evicted) first drains: it hands its label groups to the shards that stay
+    while it still answers, for up to ``drain_timeout_s``; then it stops as every service does.
+    The kubelet kills what still runs when the grace ends, and a shard killed mid-drain leaves
+    its groups a replica short (possibly none, when both owners go) until it comes back. So the
+    drain, and :data:`STOP_MARGIN_S` for the rest of the stop."""
+    index = spec.component(IndexSettings)
+    drain = index.drain_timeout_s if isinstance(index, IndexSettings) else IndexSettings().drain_timeout_s
+    return math.ceil(drain) + STOP_MARGIN_S
 
 
 def shared_env(spec: SwarmSpec) -> dict[str, str]:
@@ -441,6 +490,16 @@ def detector_patch(files: dict[str, str]) -> Obj:
     }
 
 
+def index_shard_patch(spec: SwarmSpec) -> Obj:
+    """The index shards' grace period for this run's drain timeout (:func:`termination_grace_s`)."""
+    return {
+        "apiVersion": "apps/v1",
+        "kind": "StatefulSet",
+        "metadata": {"name": "index-shard"},
+        "spec": {"template": {"spec": {"terminationGracePeriodSeconds": termination_grace_s(spec)}}},
+    }
+
+
 def overlay_document(spec: SwarmSpec, namespace: str, base: str, files: dict[str, str]) -> Obj:
     """The kustomization of one run on top of the overlay at the relative path ``base``."""
     return {
@@ -457,7 +516,10 @@ def overlay_document(spec: SwarmSpec, namespace: str, base: str, files: dict[str
             },
             {"name": DATASET_CONFIGMAP, "files": sorted(files)},
         ],
-        "patches": [{"path": "detector.json", "target": {"kind": "StatefulSet", "name": "detector"}}],
+        "patches": [
+            {"path": "detector.json", "target": {"kind": "StatefulSet", "name": "detector"}},
+            {"path": "index-shard.json", "target": {"kind": "StatefulSet", "name": "index-shard"}},
+        ],
     }
 
 
@@ -468,6 +530,7 @@ def write_overlay(spec: SwarmSpec, namespace: str, overlay: Path, folder: Path) 
     folder.mkdir(parents=True)
     files = dataset_files(spec, folder)
     (folder / "detector.json").write_text(json.dumps(detector_patch(files), indent=1) + "\n")
+    (folder / "index-shard.json").write_text(json.dumps(index_shard_patch(spec), indent=1) + "\n")
     doc = overlay_document(spec, namespace, os.path.relpath(overlay.resolve(), folder.resolve()), files)
     # JSON is YAML: kustomize reads it, and nothing needs a YAML library.
     (folder / "kustomization.yaml").write_text(
@@ -542,6 +605,8 @@ class KubernetesFile(AttachFile):
     kubeconfig: str = ""
     #: Node folders of its volumes (removed with it).
     node_volumes: list[str] = field(default_factory=list)
+    #: Robots with certificates, the most index shards it scales to (0: written before it was kept).
+    max_robots: int = 0
 
 
 def read_kubernetes_file(folder: Path) -> KubernetesFile:
@@ -642,11 +707,7 @@ class KubernetesDeployment:
     def start(self, spec: SwarmSpec, *, progress: bool = False) -> None:
         """Deploy ``spec`` into a new namespace (or, attached, check the running swarm is it)."""
         self._progress = progress
-        if self.info is not None:
-            self._check(spec)
-        else:
-            self._deploy(spec)
-        self.spec = spec
+        self.spec = self._check(spec) if self.info is not None else self._deploy(spec)
         self._baseline = scrape_prometheus(self._info().prometheus_url, fresh_after=time.time())
 
     def wait_ready(self, timeout_s: float = 120.0) -> None:
@@ -677,8 +738,10 @@ class KubernetesDeployment:
         if self._progress:
             print(f"k8s: {what}", file=sys.stderr, flush=True)
 
-    def _check(self, spec: SwarmSpec) -> None:
+    def _check(self, spec: SwarmSpec) -> SwarmSpec:
+        """The running swarm is ``spec`` (as deployed: :func:`cluster_spec`), or ConfigError."""
         info, problems = self._info(), []
+        spec = cluster_spec(spec, info.max_robots)
         if spec.workload and spec.workload != info.workload:
             problems.append(f"it runs the {info.workload} workload, not {spec.workload}")
         if tuple(info.kinds) != spec.kinds or info.robots != spec.robots or info.swarm != spec.swarm:
@@ -699,17 +762,24 @@ class KubernetesDeployment:
             raise ConfigError(
                 f"the swarm in namespace {info.namespace} is not this run's: " + "; ".join(problems)
             )
+        return spec
 
-    def _deploy(self, spec: SwarmSpec) -> None:
+    def _deploy(self, spec: SwarmSpec) -> SwarmSpec:
+        """Deploy ``spec`` (as :func:`cluster_spec` makes it for the certificates' robots)."""
         s, t0 = self.settings, time.monotonic()
         if spec.kinds != ROBOT_KINDS or spec.swarm_kinds != ("gateway",):
             raise ConfigError(
                 f"the Kubernetes manifests run {', '.join(ROBOT_KINDS)} on each robot and a gateway "
                 f"(the places workload), not {', '.join(spec.kinds)}"
             )
-        max_robots = s.max_robots or spec.robots
-        if max_robots < spec.robots:
-            raise ConfigError(f"max_robots ({max_robots}) is smaller than the swarm ({spec.robots} robots)")
+        if 0 < s.max_robots < spec.robots:
+            raise ConfigError(f"max_robots ({s.max_robots}) is smaller than the swarm ({spec.robots} robots)")
+        # Certificates for every shard the StatefulSet may be scaled to (a spec's own max_shards too).
+        index = spec.component(IndexSettings)
+        max_robots = max(
+            s.max_robots, spec.robots, index.max_shards if isinstance(index, IndexSettings) else 0
+        )
+        spec = cluster_spec(spec, max_robots)
         out = s.out.resolve()
         objects = self.kubectl.render(write_overlay(spec, self.namespace, s.overlay, out / "overlay"))
         self.timings["render_s"] = time.monotonic() - t0
@@ -771,7 +841,9 @@ class KubernetesDeployment:
             kubectl=list(self.kubectl.command),
             kubeconfig=str(self.kubectl.kubeconfig or ""),
             node_volumes=self._volumes,
+            max_robots=ids.robots,
         )
+        return spec
 
     def write_attach_file(self, experiment: dict[str, Any]) -> Path:
         """Write ``<out>/swarm.json`` (with the experiment's record) for ``--attach``; its path."""

@@ -8,8 +8,14 @@ is reused (and left up); one this module started is brought down at the end unle
 
 The module's fixture runs the main job through the cluster first (``swarmrec run --deployment k8s
 --keep`` does the same): a lock-step replay whose pair scores must equal the offline evaluation's.
-The tests then check the running swarm: identities, refused clients, the gateway from the host, a
-deleted pod keeping its records, and the shard StatefulSet scaled.
+The tests then check the running swarm: identities, refused clients, the gateway from the host, and
+the elastic index under Kubernetes: a deleted shard pod, two deleted at once (both owners of a
+label group), the shard StatefulSet scaled 3 -> 6 -> 2 -> 3 with ``kubectl scale`` alone; after
+each, the index settles on the live shards, every group has its replicas among them, every owner
+holds exactly what the dataset put in the group (read back through the shards' ``transfer``), and
+queries of stored frames are answered by every shard asked. Last, a swarm of its own is scaled
+3 -> 6 -> 2 while a paced replay runs: no store lost, every query answered or reported failed, and
+no answer emptier than what the shards held long before it.
 """
 
 from __future__ import annotations
@@ -17,20 +23,28 @@ from __future__ import annotations
 import json
 import os
 import subprocess
+import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import grpc
+import numpy as np
+import numpy.typing as npt
 import pytest
 import zenoh
 
 from swarmrec.client import ZenohClient
+from swarmrec.core.descriptor import semantic_descriptor
+from swarmrec.core.placement import Placement, groups_from_bounds
+from swarmrec.core.presets import get_preset
 from swarmrec.core.split import split_frames
+from swarmrec.core.types import ConstellationSequence
 from swarmrec.datasets.source import DatasetSource, load_dataset
 from swarmrec.deployments.attach import attach
+from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.kubernetes import (
     DEFAULT_OVERLAY,
     Kubectl,
@@ -41,13 +55,23 @@ from swarmrec.deployments.kubernetes import (
 from swarmrec.errors import ConfigError
 from swarmrec.experiments.places import PlacesSettings, PlacesSummary, main
 from swarmrec.experiments.places.pipeline import prepare
+from swarmrec.runtime import keys
+from swarmrec.runtime.rpc import Caller
+from swarmrec.runtime.tls import TlsFiles
+from swarmrec.services.settings import IndexSettings, PlaceSettings
+from swarmrec.wire import messages as pb
 from swarmrec.wire.gen.swarmrec.v1 import gateway_pb2, gateway_pb2_grpc
 from tests.conftest import REPO
 from tests.unit.test_k8s_manifests import ROBOT_KINDS, cluster_env
 
 ROBOTS, FRAMES = 3, 300
-#: Certificates for 6 robots: the scaling test takes the shards to 6.
+#: Certificates for 6 robots: the scaling tests take the shards to 6 (SWARMREC_MAX_SHARDS follows).
 MAX_ROBOTS = 6
+PAPER = get_preset("paper")
+#: Replicas of each label group (the default); with rebalancing off only membership moves groups,
+#: so every group has exactly this many owners once settled (the load would add replicas of hot ones).
+REPLICAS = IndexSettings().replicas
+NO_REBALANCING = 1000.0
 KEEP = os.environ.get("SWARMREC_K8S_KEEP") == "1"
 
 
@@ -160,6 +184,7 @@ def swarm(loaded: Cluster, tmp_path_factory: pytest.TempPathFactory) -> Iterator
         out=tmp / "report",
         plots=False,
         progress=False,
+        index=IndexSettings(rebalance_target=NO_REBALANCING),
     )
     try:
         # What `swarmrec run --deployment k8s --keep` does: deploy, replay in lock-step, report.
@@ -296,12 +321,127 @@ def test_swarm_json_attaches_to_the_running_swarm_and_refuses_another_spec(
         KubernetesDeployment.attached(path.parent).start(other)
 
 
-def _shard_records(swarm: Swarm) -> dict[int, int]:
+# --- The elastic index on the cluster: holdings after pod loss and scaling ----------------------------
+#
+# What the checks compare with is computed from the dataset (each robot replays its block of the split;
+# a frame with at least the preset's min_objects stores its non-empty slice of each label group), never
+# asked of the swarm. What each shard holds is read back through its own `transfer` pages, speaking as
+# a shard (r<k>.index-shard.<swarm>, from the run's PKI) through the router's Service from the host.
+
+Rows = set[tuple[int, int]]
+
+
+def label_groups(deployment: KubernetesDeployment) -> tuple[tuple[int, int], ...]:
+    """The run's label groups: the ranges its label bounds make (the scaling changes none)."""
+    spec = deployment.spec
+    assert spec is not None
+    places = spec.component(PlaceSettings)
+    assert isinstance(places, PlaceSettings)
+    return groups_from_bounds(places.bounds(spec.bus).tolist())
+
+
+def frame_descriptors(
+    seq: ConstellationSequence, robots: int
+) -> dict[tuple[int, int], npt.NDArray[np.int64]]:
+    """(robot, local frame) -> the descriptor of every frame the replay queries and stores."""
+    out = {}
+    for robot, block in enumerate(split_frames(len(seq), robots)):
+        for frame, i in enumerate(block):
+            c = seq.constellations[i]
+            if len(c) >= PAPER.min_objects:
+                out[(robot, frame)] = semantic_descriptor(c, seq.n_labels)
+    return out
+
+
+def expected_holdings(
+    seq: ConstellationSequence, groups: Sequence[tuple[int, int]], robots: int
+) -> dict[int, Rows]:
+    """Per label group, the (robot, frame) of every frame with a non-empty slice in it."""
+    descs = frame_descriptors(seq, robots)
+    return {g: {rf for rf, d in descs.items() if d[lo:hi].any()} for g, (lo, hi) in enumerate(groups)}
+
+
+def group_rows(caller: Caller, swarm: str, shard: int, group: int) -> Rows:
+    """Every (robot, frame) ``shard`` holds for ``group``, paged through its ``transfer``."""
+    rows: Rows = set()
+    start = 0
+    while True:
+        reply = caller.call(
+            keys.endpoint(swarm, "index-shard", shard, "transfer"),
+            pb.TransferRequest(group=group, start_row=start),
+            pb.TransferReply,
+            target_robot=shard,
+        )
+        rows |= {(r.robot_id, r.frame_index) for r in reply.records}
+        start = reply.next_row
+        if reply.done:
+            return rows
+
+
+def settled_on(deployment: KubernetesDeployment, live: set[int], timeout_s: float = 240.0) -> Placement:
+    """The placement once the index has settled on exactly the ``live`` shards: every live shard
+    answers and follows it, no handoff is in progress, no store is pending, its members are them."""
+    deadline = time.monotonic() + timeout_s
+    with deployment.client(10.0, role="client") as client:
+        while True:
+            state = client.wait_index_settled(timeout_s=max(deadline - time.monotonic(), 1.0))
+            p = state.placement
+            if state.settled and p is not None and set(p.members) == live and set(state.versions) == live:
+                return p
+            if time.monotonic() > deadline:
+                pytest.fail(f"the index did not settle on shards {sorted(live)} in {timeout_s:g} s: {state}")
+            time.sleep(0.5)
+
+
+def check_index(
+    deployment: KubernetesDeployment, placement: Placement, live: set[int], seq: ConstellationSequence
+) -> None:
+    """Every label group of the run has ``replicas`` owners among the ``live`` shards, and every
+    owner holds exactly the slices the replayed dataset put in the group."""
+    info = deployment.info
+    assert info is not None
+    assert placement.groups == label_groups(deployment)
+    replicas = min(REPLICAS, len(live))
+    assert all(set(o) <= live and len(o) == replicas for o in placement.owners), placement.owners
+    expected = expected_holdings(seq, placement.groups, info.robots)
+    assert all(expected.values())
+    asker = min(live)
+    tls = TlsFiles.in_dir(deployment.pki_dir, f"r{asker}.index-shard.{info.swarm}")
+    with ZenohClient([deployment.endpoint], info.swarm, timeout_s=10.0, tls=tls) as shard:
+        caller = Caller(shard.session, asker, 10.0)
+        for g, owners in enumerate(placement.owners):
+            for owner in owners:
+                assert group_rows(caller, info.swarm, owner, g) == expected[g], (g, owner)
+
+
+def check_queries(swarm: Swarm) -> None:
+    """Read-only queries of stored frames through the router: every shard asked answers, and each
+    frame finds itself with the best score. The frames asked are the two with the most objects
+    of robots 1 and 2 (a client's query goes as robot 0's frame 0, so the preset's exclusion keeps
+    robot 0's first frames, its whole block here, out of the matches)."""
+    seq = load_dataset(DatasetSource(frames=FRAMES)).sequence
+    blocks = split_frames(FRAMES, ROBOTS)
     with swarm.client() as client:
-        return {m.robot: m.stored_items for m in client.members() if m.kind == "index-shard"}
+        for robot in range(1, ROBOTS):
+            block = blocks[robot]
+            richest = sorted(range(len(block)), key=lambda f: (-len(seq.constellations[block[f]]), f))
+            for local in richest[:2]:
+                result = client.query(seq.constellations[block[local]])
+                assert result.failed_shards == [] and result.complete, result
+                scores = {(m.match_robot_id, m.match_frame_index): m.score for m in result.matches}
+                assert scores and scores.get((robot, local)) == max(scores.values()), (robot, local, scores)
 
 
-def _wait(what: str, cond: Any, timeout_s: float = 180.0) -> float:
+def check_swarm(swarm: Swarm, live: set[int], placement: Placement | None = None) -> Placement:
+    """The index settled on ``live`` (``placement``: found so already), holding everything,
+    answering queries; the placement."""
+    placement = placement or settled_on(swarm.deployment, live)
+    check_index(swarm.deployment, placement, live, load_dataset(DatasetSource(frames=FRAMES)).sequence)
+    check_queries(swarm)
+    return placement
+
+
+def _wait(what: str, cond: Any, timeout_s: float = 240.0) -> float:
     t0 = time.monotonic()
     while not cond():
         if time.monotonic() - t0 > timeout_s:
@@ -310,81 +450,273 @@ def _wait(what: str, cond: Any, timeout_s: float = 180.0) -> float:
     return time.monotonic() - t0
 
 
-def test_a_deleted_shard_pod_comes_back_with_its_records(swarm: Swarm) -> None:
-    before = _shard_records(swarm)
-    assert before[1] > 0
-    old = swarm.pods("index-shard")["index-shard-1"]["uid"]
+def _recreated(swarm: Swarm, old: dict[str, str]) -> bool:
+    """Each pod of ``old`` (name -> uid) has a successor that is Ready."""
+    pods = swarm.pods("index-shard")
+    return all(n in pods and pods[n]["uid"] != uid and pods[n]["ready"] for n, uid in old.items())
+
+
+def test_a_deleted_shard_pod_comes_back_and_every_group_is_whole_again(swarm: Swarm) -> None:
+    check_swarm(swarm, {0, 1, 2})
+    old = {"index-shard-1": swarm.pods("index-shard")["index-shard-1"]["uid"]}
     t0 = time.monotonic()
     swarm.k("delete", "pod", "index-shard-1", "--wait=false")
-
-    def back() -> bool:
-        pod = swarm.pods("index-shard").get("index-shard-1")
-        return pod is not None and pod["uid"] != old and pod["ready"]
-
-    _wait("index-shard-1 recreated and ready", back)
+    # It drains first (its groups to the other two while it answers), then its successor starts
+    # with the same volume and identity and takes groups again.
+    _wait("index-shard-1 recreated and ready", lambda: _recreated(swarm, old))
     swarm.timings["pod_delete_to_ready_s"] = time.monotonic() - t0
-    with swarm.client() as client:
-        client.wait_for({("index-shard", 1)}, timeout_s=60)
-    # Same name, same folder on the node: the record log replayed on start; its identity installed
-    # again by its init container from the Secret.
-    assert _shard_records(swarm) == before
+    check_swarm(swarm, {0, 1, 2})
+    swarm.timings["pod_delete_to_settled_s"] = time.monotonic() - t0
 
 
-# --- Scaling the index shards -------------------------------------------------------------------------
-#
-# ELASTIC INDEX: CONNECT HERE. Today a shard's label range is fixed at start by (robot, SWARMREC_N_ROBOTS),
-# so this test tells new pods the new size (ConfigMap patch) and checks only what Kubernetes itself
-# guarantees: pods started and stopped, each with its own identity (certificates for MAX_ROBOTS robots),
-# records kept across scale-down and back. When the elastic index lands (label groups placed on shards,
-# versioned placement), replace `resize`'s ConfigMap patch by `kubectl scale` alone and add, after each
-# resize: the placement version the shards report has moved on, every label group is held by the shards
-# alive, and a lock-step replay of fresh frames through the resized swarm is identical to the offline
-# evaluation with the new placement (docs/kubernetes.md, "Scaling").
+def test_two_shard_pods_deleted_at_once_both_owners_of_a_group_come_back_with_everything(
+    swarm: Swarm,
+) -> None:
+    # A node's worth of shards at once, on this single node: both owners of a label group (with two
+    # replicas over three shards, each group's pair). Deleted together they drain together, into
+    # the one shard left; the StatefulSet recreates both with their volumes and they take groups again.
+    placement = check_swarm(swarm, {0, 1, 2})
+    seq = load_dataset(DatasetSource(frames=FRAMES)).sequence
+    expected = expected_holdings(seq, placement.groups, ROBOTS)
+    group = max(range(len(placement.groups)), key=lambda g: len(expected[g]))
+    pair = sorted(placement.owners[group])
+    assert len(pair) == 2
+    names = [f"index-shard-{r}" for r in pair]
+    pods = swarm.pods("index-shard")
+    old = {n: pods[n]["uid"] for n in names}
+    t0 = time.monotonic()
+    swarm.k("delete", "pod", *names, "--wait=false")
+    _wait(f"{', '.join(names)} recreated and ready", lambda: _recreated(swarm, old))
+    swarm.timings["two_pods_delete_to_ready_s"] = time.monotonic() - t0
+    check_swarm(swarm, {0, 1, 2})
+    swarm.timings["two_pods_delete_to_settled_s"] = time.monotonic() - t0
 
 
 def test_the_shard_statefulset_scales_from_3_to_6_to_2_and_back(swarm: Swarm) -> None:
-    records = _shard_records(swarm)
+    # `kubectl scale` alone: the shards accept ordinals up to MAX_ROBOTS (the run's ConfigMap has
+    # SWARMREC_MAX_SHARDS, the Secret their identities), and the elastic index places the run's
+    # label groups (its bounds unchanged) on whichever shards are alive.
+    before = check_swarm(swarm, {0, 1, 2})
     uids = {n: p["uid"] for n, p in swarm.pods("index-shard").items()}
-    sts = json.loads(swarm.k("get", "statefulset", "index-shard", "-o", "json"))
-    configmap = sts["spec"]["template"]["spec"]["containers"][0]["envFrom"][0]["configMapRef"]["name"]
+    maps = json.loads(swarm.k("get", "configmaps", "-o", "json"))["items"]
+    (shared,) = [m["data"] for m in maps if "SWARMREC_N_ROBOTS" in m.get("data", {})]
+    assert (shared["SWARMREC_N_ROBOTS"], shared["SWARMREC_MAX_SHARDS"]) == (str(ROBOTS), str(MAX_ROBOTS))
 
-    def resize(n: int) -> float:
-        # Today a shard's label range is fixed at start by (robot, SWARMREC_N_ROBOTS, the run's label
-        # bounds), and a robot id outside the swarm is refused: pods created from now on are told the
-        # new size, and even ranges for it (empty bounds; the run wrote its own for 3 robots).
-        patch = json.dumps({"data": {"SWARMREC_N_ROBOTS": str(n), "SWARMREC_LABEL_BOUNDS": ""}})
-        swarm.k("patch", "configmap", configmap, "--type", "merge", "-p", patch)
+    def resize(n: int) -> Placement:
         t0 = time.monotonic()
         swarm.k("scale", "statefulset/index-shard", f"--replicas={n}")
+        want = [f"index-shard-{r}" for r in range(n)]
 
-        def settled() -> bool:
+        def pods_done() -> bool:
             pods = swarm.pods("index-shard")
-            return sorted(pods) == [f"index-shard-{r}" for r in range(n)] and all(
-                p["ready"] for p in pods.values()
-            )
+            return sorted(pods) == want and all(p["ready"] for p in pods.values())
 
-        _wait(f"index-shard scaled to {n}", settled)
-        took = time.monotonic() - t0
-        with swarm.client() as client:
-            client.wait_for({("index-shard", r) for r in range(n)}, timeout_s=60)
-            _wait(
-                f"{n} shards alive",
-                lambda: {r for k, r in client.alive() if k == "index-shard"} == set(range(n)),
-                timeout_s=30,
-            )
-        return took
+        _wait(f"index-shard scaled to {n}", pods_done)
+        pods_s = time.monotonic() - t0
+        placement = settled_on(swarm.deployment, set(range(n)))
+        swarm.timings[f"scale_to_{n}_pods_s"] = pods_s
+        swarm.timings[f"scale_to_{n}_settled_s"] = time.monotonic() - t0
+        return check_swarm(swarm, set(range(n)), placement)
 
-    swarm.timings["scale_3_to_6_s"] = resize(6)
+    six = resize(6)
+    assert six.version > before.version
     now = swarm.pods("index-shard")
     assert all(now[n]["uid"] == uid for n, uid in uids.items())  # the first three were left alone
-    added = _shard_records(swarm)
-    assert {r: added[r] for r in range(3)} == records and {added[r] for r in range(3, 6)} == {0}
+    assert {3, 4, 5} & {m for own in six.owners for m in own}, six.owners  # the new shards took groups
 
-    swarm.timings["scale_6_to_2_s"] = resize(2)
+    two = resize(2)
+    assert two.version > six.version
     assert {n: p["uid"] for n, p in swarm.pods("index-shard").items()} == {
         n: uids[n] for n in ("index-shard-0", "index-shard-1")
     }
 
-    swarm.timings["scale_2_to_3_s"] = resize(3)
-    # index-shard-2 was scaled away and back: its folder stayed, so did its records.
-    assert _shard_records(swarm) == records
+    three = resize(3)
+    assert three.version > two.version
+    # index-shard-2 was scaled away and back: same volume, same identity; it holds groups again.
+    assert 2 in {m for own in three.owners for m in own}, three.owners
+
+
+# --- Scaling while a run replays --------------------------------------------------------------------------
+
+LIVE_FRAMES = 450  # 150 a robot
+LIVE_RATE_HZ = 3.0  # frames a second each detector plays: a 50 s replay
+#: Frames back in a robot's own sequence that every owner must hold when a later frame of that robot
+#: queries: 10 s at the replay's rate, long after their stores were acknowledged (or retried).
+STORED_BEFORE = 30
+
+
+@dataclass
+class LiveScaler:
+    """Scales the shard StatefulSet 3 -> 6 -> 2 while a paced replay runs (from a thread started
+    once the swarm is up), and keeps every query report the swarm publishes (its own subscriber,
+    declared before the replay starts). ``marks``: what happened, with the reports seen by then."""
+
+    reports: list[bytes] = field(default_factory=list)
+    marks: dict[str, tuple[int, float]] = field(default_factory=dict)
+    error: BaseException | None = None
+    _client: ZenohClient | None = None
+    _sub: Any = None
+    _thread: threading.Thread | None = None
+    _t0: float = 0.0
+
+    def start(self, deployment: Deployment) -> None:
+        assert isinstance(deployment, KubernetesDeployment)
+        info = deployment.info
+        assert info is not None
+        self._client = deployment.client(10.0, role="client")
+        self._client.open()
+        # The callback only keeps the payload; the checks parse them after the run.
+        self._sub = self._client.session.declare_subscriber(
+            keys.event(info.swarm, "query", "*"),
+            lambda sample: self.reports.append(sample.payload.to_bytes()),
+        )
+        self._t0 = time.monotonic()
+        self._thread = threading.Thread(target=self._scale, args=(deployment,), daemon=True)
+        self._thread.start()
+
+    def mark(self, what: str) -> None:
+        self.marks[what] = (len(self.reports), time.monotonic() - self._t0)
+
+    def _until(self, what: str, cond: Any, timeout_s: float = 240.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not cond():
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"{what}: not after {timeout_s:g} s (marks {self.marks})")
+            time.sleep(0.25)
+        self.mark(what)
+
+    def _owners(self) -> set[int]:
+        assert self._client is not None
+        placement = self._client.index_state().placement
+        return {m for own in placement.owners for m in own} if placement is not None else set()
+
+    def _scale(self, d: KubernetesDeployment) -> None:
+        try:
+            self._until("replaying", lambda: len(self.reports) >= LIVE_FRAMES // 10)
+            d.k("scale", "statefulset/index-shard", "--replicas=6")
+            self.mark("scale_to_6_issued")
+            self._until("new_shards_own_groups", lambda: bool(self._owners() & {3, 4, 5}))
+            self._until("half_replayed", lambda: len(self.reports) >= LIVE_FRAMES // 2)
+            d.k("scale", "statefulset/index-shard", "--replicas=2")
+            self.mark("scale_to_2_issued")
+            self._until("groups_on_0_and_1", lambda: self._owners() == {0, 1})
+            names = {"index-shard-0", "index-shard-1"}
+            self._until("pods_3_to_5_and_2_gone", lambda: set(_pods(d, "index-shard")) == names)
+        except BaseException as e:  # the test raises it (after_replay)
+            self.error = e
+
+    def stop(self) -> None:
+        """Wait for the scaling to end; then no more reports are kept."""
+        if self._thread is not None:
+            self._thread.join(timeout=600)
+        if self._sub is not None:
+            self._sub.undeclare()
+            self._sub = None
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+
+    def finish(self) -> None:
+        """:meth:`stop`, then what went wrong in the scaling thread, raised here."""
+        self.stop()
+        if self.error is not None:
+            raise self.error
+
+
+def _pods(d: KubernetesDeployment, component: str) -> list[str]:
+    items = json.loads(d.k("get", "pods", "-l", f"app.kubernetes.io/component={component}", "-o", "json"))
+    return [p["metadata"]["name"] for p in items["items"]]
+
+
+def check_reports(
+    reports: Sequence[pb.QueryReport],
+    seq: ConstellationSequence,
+    groups: Sequence[tuple[int, int]],
+    robots: int,
+    holdings: dict[int, Rows],
+) -> dict[str, int]:
+    """Every frame's report against the dataset and what the shards hold at the end: a frame with
+    enough objects was queried, each of its non-empty label groups answered by a shard once or the
+    report names failed shards, and every answer's candidate count is at most what the group holds
+    sharing a label with the slice (n_ret at most) and at least what the robot's own frames
+    ``STORED_BEFORE`` or more back that share one account for: never silently empty."""
+    descs = frame_descriptors(seq, robots)
+    slots = {(r, f) for r, block in enumerate(split_frames(len(seq), robots)) for f in range(len(block))}
+    assert {(r.robot_id, r.frame_index) for r in reports} == slots  # a report for every frame
+    seen = {"reports": len(reports), "answers": 0, "empty_answers": 0, "failed_groups": 0, "bounded_below": 0}
+    for rep in reports:
+        rf = (rep.robot_id, rep.frame_index)
+        desc = descs.get(rf)
+        assert rep.queried == (desc is not None), rf
+        if desc is None:
+            continue
+        need = {g for g, (lo, hi) in enumerate(groups) if desc[lo:hi].any()}
+        got = [sc.group for sc in rep.shard_candidates]
+        assert len(got) == len(set(got)) and set(got) <= need, (rf, got, need)
+        if need - set(got):
+            assert rep.failed_shard_robot_ids, (rf, "a group neither answered nor reported failed")
+            seen["failed_groups"] += len(need - set(got))
+        for sc in rep.shard_candidates:
+            lo, hi = groups[sc.group]
+            bins = np.flatnonzero(desc[lo:hi])
+            sharing = {other for other in holdings[sc.group] if descs[other][lo:hi][bins].any()}
+            earlier = {(r, f) for r, f in sharing if r == rf[0] and f <= rf[1] - STORED_BEFORE}
+            low, high = min(PAPER.n_ret, len(earlier)), min(PAPER.n_ret, len(sharing))
+            assert low <= sc.n_candidates <= high, (rf, sc.group, sc.robot_id, sc.n_candidates, low, high)
+            seen["answers"] += 1
+            seen["empty_answers"] += sc.n_candidates == 0
+            seen["bounded_below"] += low > 0
+    return seen
+
+
+def test_scaling_the_shards_during_a_paced_replay_loses_no_store_and_leaves_no_query_silently_empty(
+    loaded: Cluster, tmp_path: Path
+) -> None:
+    # A swarm of its own (free replay at a rate), while the module's keeps running: 3 -> 6 once a
+    # tenth of the frames are in, 6 -> 2 at half, both with `kubectl scale` alone.
+    namespace, name = f"swarmrec-e2e-live-{os.getpid()}", f"e2e_live_{os.getpid()}"
+    settings = KubernetesSettings(
+        namespace=namespace, out=tmp_path / "k8s", kubectl=_kubectl(), max_robots=MAX_ROBOTS
+    )
+    deployment = KubernetesDeployment(settings)
+    run = PlacesSettings(
+        source=DatasetSource(frames=LIVE_FRAMES),
+        robots=ROBOTS,
+        swarm=name,
+        pace=str(LIVE_RATE_HZ),
+        request_timeout_s=5.0,
+        out=tmp_path / "report",
+        plots=False,
+        progress=False,
+        index=IndexSettings(rebalance_target=NO_REBALANCING),
+    )
+    seq = load_dataset(DatasetSource(frames=LIVE_FRAMES)).sequence
+    scaler = LiveScaler()
+    seen: dict[str, Any] = {}
+
+    def after(d: Deployment) -> None:
+        assert isinstance(d, KubernetesDeployment)
+        scaler.finish()
+        placement = settled_on(d, {0, 1})
+        check_index(d, placement, {0, 1}, seq)
+        holdings = expected_holdings(seq, placement.groups, ROBOTS)
+        reports = [pb.QueryReport.FromString(b) for b in scaler.reports]
+        seen.update(check_reports(reports, seq, placement.groups, ROBOTS, holdings))
+
+    t0 = time.monotonic()
+    try:
+        summary = main(run, deployment, swarm_hook=scaler.start, after_replay=after)
+    finally:
+        scaler.stop()
+        if deployment.created:
+            deployment.remove()
+    loaded.timings["live_run_s"] = time.monotonic() - t0
+    loaded.timings.update({f"live_{k}_at_s": t for k, (_, t) in scaler.marks.items()})
+    print(json.dumps({"k8s_live_scaling": {"marks": scaler.marks, "reports": seen}}))
+    assert summary.queries.missing_slots == 0 and summary.queries.errors == []
+    assert summary.index is not None and summary.index.settled and summary.index.pending_stores == 0
+    # The re-partitioning happened while frames were still coming: the new shards owned groups,
+    # and the scale-down began, before the last report.
+    assert scaler.marks["new_shards_own_groups"][0] < LIVE_FRAMES, scaler.marks
+    assert scaler.marks["scale_to_2_issued"][0] < LIVE_FRAMES, scaler.marks
+    assert seen["answers"] > 0 and seen["bounded_below"] > 0, seen

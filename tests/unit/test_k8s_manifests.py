@@ -35,6 +35,7 @@ import pytest
 
 import swarmrec
 from swarmrec.deployments.kubernetes import secret_name, secret_names
+from swarmrec.errors import ConfigError
 from swarmrec.runtime.settings import ENV_PREFIX, BusSettings, Config, StorageSettings, describe, load_config
 from swarmrec.services import registry
 from swarmrec.services.settings import DetectorSettings, GatewaySettings, PlaceSettings
@@ -586,6 +587,92 @@ def test_the_hpa_example_scales_the_shard_statefulset_on_its_partial_query_rate(
     find(rendered("local"), "StatefulSet", "index-shard")
     (metric,) = hpa["spec"]["metrics"]
     assert metric["pods"]["metric"]["name"] == "swarmrec_shard_partial_queries_per_second"
+    # It never scales past the shards the production swarm accepts (and has identities for), nor
+    # below the replicas of a label group (fewer shards than robots is fine: groups are placed).
+    from swarmrec.services.settings import IndexSettings
+
+    config = swarm_config(rendered("production"))
+    assert IndexSettings().replicas <= hpa["spec"]["minReplicas"]
+    assert hpa["spec"]["maxReplicas"] <= int(config["SWARMREC_MAX_SHARDS"])
+
+
+# --- scaling the index shards: ids past the robots, a grace period that outlasts the drain ------------
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_the_shard_statefulset_may_scale_to_max_shards_and_only_the_shards_go_past_the_robots(
+    overlay: str,
+) -> None:
+    from swarmrec.deployments.kubernetes import max_shards_of
+    from swarmrec.services.settings import IndexSettings
+
+    objs = rendered(overlay)
+    robots = int(swarm_config(objs)["SWARMREC_N_ROBOTS"])
+    most = max_shards_of(objs)
+    assert most == int(swarm_config(objs)["SWARMREC_MAX_SHARDS"]) > robots
+    # The last ordinal the shard StatefulSet may be scaled to loads with the services' own loader.
+    config = service_config("index-shard", robot_environment(objs, "index-shard", most - 1))
+    assert (config.bus.robot, config.bus.n_robots, config.get(IndexSettings).max_shards) == (
+        most - 1,
+        robots,
+        most,
+    )
+    # One past it is refused; the other kinds stay within the robots (their ids are robots).
+    with pytest.raises(ConfigError, match=rf"robot must be in \[0, {most}\)"):
+        service_config("index-shard", robot_environment(objs, "index-shard", most))
+    for kind in ("verifier", "detector"):
+        with pytest.raises(ConfigError, match=rf"robot must be in \[0, {robots}\)"):
+            service_config(kind, robot_environment(objs, kind, robots))
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_the_index_shards_grace_period_outlasts_their_drain(overlay: str) -> None:
+    from swarmrec.deployments.kubernetes import STOP_MARGIN_S
+    from swarmrec.services.settings import IndexSettings
+
+    objs = rendered(overlay)
+    drain = service_config("index-shard", robot_environment(objs, "index-shard", 0)).get(IndexSettings)
+    grace = {
+        k: find(objs, "StatefulSet", k)["spec"]["template"]["spec"]["terminationGracePeriodSeconds"]
+        for k in ROBOT_KINDS
+    }
+    assert grace["index-shard"] >= drain.drain_timeout_s + STOP_MARGIN_S
+    assert {k: g for k, g in grace.items() if k != "index-shard"} == dict.fromkeys(ROBOT_KINDS[1:], 15)
+
+
+def _ingress(acl: Obj, cn: str) -> set[tuple[str, str]]:
+    """(message, key expression) an identity may send the router, from the router's acl.json."""
+    rules = {r["id"]: r for r in acl["rules"]}
+    (subject,) = [s["id"] for s in acl["subjects"] if cn in s.get("cert_common_names", [])]
+    return {
+        (m, k)
+        for policy in acl["policies"]
+        if subject in policy["subjects"]
+        for rid in policy["rules"]
+        if "ingress" in rules[rid]["flows"]
+        for m in rules[rid]["messages"]
+        for k in rules[rid]["key_exprs"]
+    }
+
+
+def test_identities_and_access_control_cover_every_shard_up_to_max_robots(tmp_path: Path) -> None:
+    from swarmrec.deployments.kubernetes import kubernetes_pki, secret_objects
+
+    folder = kubernetes_pki(tmp_path / "pki", "lab", 6, "ns")
+    objs = {o["metadata"]["name"]: o for o in secret_objects(folder, "lab", 6, "ns")}
+    assert {"r5.index-shard.lab.pem", "r5.index-shard.lab.key"} <= set(
+        objs[secret_name("index-shard")]["data"]
+    )
+    acl = json.loads((folder / "acl.json").read_text())
+    shard5 = _ingress(acl, "r5.index-shard.lab")
+    assert ("declare_queryable", "swarmrec/v1/lab/index-shard/5/*") in shard5
+    assert ("liveliness_token", "swarmrec/v1/lab/alive/index-shard/5") in shard5
+    # The descriptors of a 3-robot swarm reach every shard id; shard 5 reaches the others' transfer.
+    assert {
+        ("query", "swarmrec/v1/lab/index-shard/*/query"),
+        ("query", "swarmrec/v1/lab/index-shard/*/store"),
+    } <= _ingress(acl, "r0.descriptor.lab")
+    assert ("query", "swarmrec/v1/lab/index-shard/*/transfer") in shard5
 
 
 # --- identities: every pod its own, from Secrets no pod reads whole, none holding ca.key ---------------
@@ -776,6 +863,38 @@ def test_the_identity_copy_installs_the_pods_own_pair_only_and_the_service_accep
     ]
 
 
+def test_the_identity_copy_installs_a_shard_past_the_robots_up_to_max_shards_only(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from swarmrec.cli import main
+    from swarmrec.deployments.kubernetes import kubernetes_pki, secret_objects
+
+    folder = kubernetes_pki(tmp_path / "pki", "lab", 6, "ns")
+    objs = {o["metadata"]["name"]: o for o in secret_objects(folder, "lab", 6, "ns")}
+    # A shard StatefulSet of a 3-robot swarm scaled to 6: pod index-shard-5's init container.
+    env = {
+        "SWARMREC_ROBOT": "5",
+        "SWARMREC_SWARM": "lab",
+        "SWARMREC_N_ROBOTS": "3",
+        "SWARMREC_MAX_SHARDS": "6",
+    }
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    shards = _as_mounted(objs[secret_name("index-shard")], tmp_path / "shards")
+    argv = ["k8s", "identity", "--kind", "index-shard", "--from", str(shards), "--to", str(tmp_path / "s5")]
+    assert main(argv) == 0
+    assert sorted(p.name for p in (tmp_path / "s5").iterdir()) == [
+        "ca.pem",
+        "r5.index-shard.lab.key",
+        "r5.index-shard.lab.pem",
+    ]
+    # A verifier's ids are robots: robot 5 of 3 is refused, though its Secret holds the pair.
+    verifiers = _as_mounted(objs[secret_name("verifier")], tmp_path / "verifiers")
+    argv = ["k8s", "identity", "--kind", "verifier", "--from", str(verifiers), "--to", str(tmp_path / "v5")]
+    assert main(argv) != 0
+    assert not (tmp_path / "v5").exists()
+
+
 def test_the_identity_copy_refuses_a_missing_or_foreign_pair(pki: Path, tmp_path: Path) -> None:
     from swarmrec.deployments.kubernetes import kubernetes_pki, secret_objects
     from swarmrec.errors import SecurityError
@@ -830,6 +949,21 @@ def test_a_runs_overlay_sets_the_specs_robots_settings_and_dataset(tmp_path: Pat
                 config.get(PlaceSettings) == wanted and config.bus.n_robots == 2 and config.bus.robot == robot
             )
     assert set(shared_env(spec)) <= set(swarm_config(objs))
+    # A deployment with certificates for 5 robots: its shards accept ids up to 4; their grace
+    # period follows the run's drain timeout.
+    from swarmrec.deployments.kubernetes import STOP_MARGIN_S, cluster_spec
+    from swarmrec.services.settings import IndexSettings
+
+    scaled = prepare(
+        run.with_(index=IndexSettings(drain_timeout_s=90.0)), dataset_dir=tmp_path / "dataset"
+    ).spec
+    folder = write_overlay(cluster_spec(scaled, 5), "run-ns", DEFAULT_OVERLAY, tmp_path / "scaled")
+    more = tuple(yaml_to_objects(kubectl_run("kustomize", str(folder))))
+    assert swarm_config(more)["SWARMREC_MAX_SHARDS"] == "5" and swarm_config(more)["SWARMREC_N_ROBOTS"] == "2"
+    shard4 = service_config("index-shard", robot_environment(more, "index-shard", 4))
+    assert (shard4.bus.robot, shard4.get(IndexSettings).drain_timeout_s) == (4, 90.0)
+    pod = find(more, "StatefulSet", "index-shard")["spec"]["template"]["spec"]
+    assert pod["terminationGracePeriodSeconds"] == 90 + STOP_MARGIN_S
     assert not {"SWARMREC_ROBOT", "SWARMREC_CONNECT", "SWARMREC_PKI_DIR", "SWARMREC_DATASET"} & set(
         swarm_config(objs)
     )
