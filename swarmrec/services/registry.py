@@ -36,6 +36,7 @@ from swarmrec.services.metrics import (
     FusionMetrics,
     GatewayMetrics,
     ShardMetrics,
+    SlamMetrics,
     VerifierMetrics,
 )
 from swarmrec.services.settings import (
@@ -47,6 +48,7 @@ from swarmrec.services.settings import (
     LandmarkSettings,
     PlaceSettings,
     RgbdSettings,
+    SlamServiceSettings,
 )
 from swarmrec.wire import messages as pb
 
@@ -193,6 +195,15 @@ for _entry in (
         metrics=FusionMetrics,
     ),
     ServiceSpec(
+        "slam",
+        pb.ServiceKind.SERVICE_KIND_SLAM,
+        "swarmrec.services.slam:SlamService",
+        "its robot's part of the distributed two-stage Gauss-Seidel: takes turns, exchanges separator "
+        "estimates only",
+        components=(SlamServiceSettings,),
+        metrics=SlamMetrics,
+    ),
+    ServiceSpec(
         "gateway",
         pb.ServiceKind.SERVICE_KIND_GATEWAY,
         "swarmrec.services.gateway:Gateway",
@@ -232,6 +243,7 @@ load_plugins()
 WORKLOADS: Mapping[str, tuple[str, ...]] = {
     "places": ("index-shard", "verifier", "descriptor", "detector"),
     "landmarks": ("fusion", "detector"),
+    "slam": ("slam",),
 }
 
 
