@@ -152,7 +152,7 @@ def add(sub: Subparsers) -> None:
             "loop_closures.csv and the synthetic world's camera poses): each robot's odometry chain "
             "(simulated from the world's poses with noise), and for every verified loop closure between "
             "two robots the relative pose of the two frames from their matched objects (the verifier's "
-            "association, then RANSAC rigid alignment); robust outlier rejection (PCM); then the "
+            "association, then RANSAC rigid alignment); outlier rejection (PCM, then GNC); then the "
             "distributed solve, live as slam services (default) or in one process (--offline). Reports "
             "the merged map's error against the world's ground truth."
         ),
@@ -177,6 +177,12 @@ def add(sub: Subparsers) -> None:
         help="a matched object pair is an inlier within this (m)",
     )
     merge.add_argument("--noise-seed", type=int, default=0, help="seed of the simulated odometry noise")
+    merge.add_argument(
+        "--reject",
+        choices=("none", "pcm", "pcm+gnc"),
+        default="pcm+gnc",
+        help="rejecting wrong inter-robot constraints before the solve (default pcm+gnc)",
+    )
     merge.add_argument("--offline", action="store_true", help="solve in one process instead of as services")
     merge.add_argument("--insecure", action="store_true", help="plaintext links (debugging; logged)")
     merge.add_argument("--overwrite", action="store_true", help="replace an earlier report in OUT")
@@ -238,6 +244,7 @@ def run_merge(args: argparse.Namespace) -> int:
         odometry_sigma_m=args.odometry_sigma_m,
         noise_seed=args.noise_seed,
         ransac_threshold_m=args.ransac_threshold_m,
+        reject=args.reject,
         live=not args.offline,
         security="insecure" if args.insecure else "mtls",
         centralized=args.centralized,

@@ -104,7 +104,7 @@ def test_a_place_recognition_run_merges_into_one_map_close_to_the_worlds_truth(
     assert len(closures) > 0 and s["constraints_kept"] >= 3  # at least a chain linking the 4 robots
     kept = [c for c in closures if c["kept"]]
     assert all(c["status"] == "aligned" for c in kept)
-    # PCM keeps mostly constraints within 10 degrees and 0.3 m of the truth, and rejects the worst.
+    # PCM and GNC keep mostly constraints within 10 degrees and 0.3 m of the truth, and reject the worst.
     assert s["constraints_kept_right"] >= 0.5 * s["constraints_kept"]
     assert max(c["translation_error_m"] for c in kept) < max(
         c["translation_error_m"] for c in closures if c["status"] == "aligned"

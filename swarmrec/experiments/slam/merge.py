@@ -11,7 +11,10 @@ Issue 14's one pipeline, on the place-recognition swarm's own office world::
                               points gives the relative pose of the two cameras
     robot graphs              each robot's keyframes (every ``keyframe_every``-th frame of its
                               share, and every frame of a kept closure) chained by odometry
-    outliers                  PCM per pair of robots (:func:`~swarmrec.slam.robust.pcm`)
+    outliers                  PCM per pair of robots (:func:`~swarmrec.slam.robust.pcm`), then gtsam's
+                              GNC on the team's graph (:func:`~swarmrec.slam.robust.gnc`): the
+                              world's look-alike desks give wrong closures that agree with each
+                              other, which PCM alone keeps
     merged map                the distributed two-stage Gauss-Seidel: live, one slam service
                               per robot (:mod:`.pipeline`), or in one process (``live=False``)
     error                     against the synthetic world's camera poses: ATE of the merged
@@ -48,7 +51,7 @@ from swarmrec.datasets.labels import label_names
 from swarmrec.datasets.tum import read_trajectory
 from swarmrec.errors import ConfigError, DatasetError
 from swarmrec.experiments.slam.pipeline import main as live_main
-from swarmrec.experiments.slam.report import LiveSlamSummary
+from swarmrec.experiments.slam.report import LiveSlamSummary, plot_maps
 from swarmrec.experiments.slam.settings import SUMMARY_NAME, LiveSlamSettings
 from swarmrec.slam.alignment import ransac_rigid
 from swarmrec.slam.centralized import METHODS, Method, solve_centralized
@@ -59,12 +62,14 @@ from swarmrec.slam.graph import Edge, PoseGraph
 from swarmrec.slam.keys import pose_key
 from swarmrec.slam.lie import Pose, so3_exp, so3_log
 from swarmrec.slam.ordering import Ordering
-from swarmrec.slam.robust import pcm
+from swarmrec.slam.robust import gnc, pcm
 from swarmrec.wire.codec import constellation_from_proto, constellation_to_proto
 
 __all__ = ["ClosureRecord", "MergeSettings", "MergeSummary", "build_team_graph", "format_merge", "merge_run"]
 
 Security = Literal["mtls", "insecure"]
+Reject = Literal["none", "pcm", "pcm+gnc"]
+REJECTIONS: tuple[Reject, ...] = ("none", "pcm", "pcm+gnc")
 #: A closure's relative pose is right when it is within these of the truth (for the report only).
 RIGHT_ROTATION_DEG = 10.0
 RIGHT_TRANSLATION_M = 0.3
@@ -80,7 +85,11 @@ class MergeSettings:
     - ``odometry_sigma_deg``, ``odometry_sigma_m``, ``noise_seed``: the simulated odometry (noise
       per step between consecutive keyframes, whatever its length).
     - ``ransac_threshold_m``, ``min_inliers``: the rigid alignment of matched objects.
-    - ``pcm``: reject inconsistent inter-robot constraints first.
+    - ``reject``: how wrong inter-robot constraints are rejected before the solve: ``pcm`` (per
+      pair of robots), ``pcm+gnc`` (then gtsam's GNC on the team's graph, the odometry known
+      inliers), or ``none``. Both are centralized checks of the front end's output, done here
+      before the robots' graphs are written. ``pair_support``: keep a pair of robots'
+      constraints only when at least this many survive (a lone one is never contradicted).
     - ``live``: solve as slam services (else :func:`~swarmrec.slam.dgs.run_dgs` in one process).
     """
 
@@ -92,7 +101,8 @@ class MergeSettings:
     noise_seed: int = 0
     ransac_threshold_m: float = 0.15
     min_inliers: int = 4
-    pcm: bool = True
+    reject: Reject = "pcm+gnc"
+    pair_support: int = 1
     live: bool = True
     security: Security = "mtls"
     mode: Mode = "gauss-seidel"
@@ -116,14 +126,16 @@ class MergeSettings:
             )
         if (self.out / SUMMARY_NAME).exists() and not self.overwrite:
             raise ConfigError(f"{self.out / SUMMARY_NAME} exists; pass overwrite (--overwrite) to replace it")
-        if self.keyframe_every < 1 or self.min_inliers < 3:
-            raise ConfigError("keyframe_every must be >= 1 and min_inliers >= 3")
+        if self.keyframe_every < 1 or self.min_inliers < 3 or self.pair_support < 1:
+            raise ConfigError("keyframe_every and pair_support must be >= 1, min_inliers >= 3")
         for name in ("odometry_sigma_deg", "odometry_sigma_m", "ransac_threshold_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"{name} must be > 0, got {value}")
         if self.centralized not in METHODS:
             raise ConfigError(f"centralized must be one of {METHODS}, got {self.centralized!r}")
+        if self.reject not in REJECTIONS:
+            raise ConfigError(f"reject must be one of {REJECTIONS}, got {self.reject!r}")
         object.__setattr__(
             self,
             "dgs",
@@ -173,6 +185,7 @@ class MergeSummary:
     closures_inter_robot: int
     constraints_aligned: int
     constraints_right: int
+    reject: str
     constraints_kept: int
     constraints_kept_right: int
     separators: int
@@ -319,7 +332,9 @@ def align_closures(data: RunData, settings: MergeSettings) -> list[tuple[Closure
             continue
         inliers = query.positions[pairs[fit.inliers, 0]]
         spread = float(np.sqrt(np.mean(np.sum((inliers - inliers.mean(axis=0)) ** 2, axis=1))))
-        sigma_t = max(fit.rms, 0.05)
+        # The fit's own residual underestimates the noise (6 parameters fitted to 3n coordinates).
+        n = fit.inlier_count
+        sigma_t = max(fit.rms * math.sqrt(3 * n / (3 * n - 6)), 0.05)
         sigma_r = min(max(sigma_t / max(spread, 1e-3), math.radians(0.5)), math.radians(20.0))
         truth = data.poses[m].inverse().compose(data.poses[q])
         rot_err, trans_err = _relative_error(fit.pose, truth)
@@ -411,10 +426,23 @@ def merge_run(settings: MergeSettings) -> MergeSummary:
     graph, truth, frames = build_team_graph(data, settings, constraints)
     timings = {"prepare_s": time.perf_counter() - t_start}
     kept_ids = {id(e) for e in constraints}
-    if settings.pcm and constraints:
+    if settings.reject != "none" and constraints:
         t0 = time.perf_counter()
         kept_ids = {id(e) for e in pcm(graph).kept}
         timings["pcm_s"] = time.perf_counter() - t0
+        if settings.reject == "pcm+gnc":
+            t0 = time.perf_counter()
+            kept_graph = graph.with_edges(
+                e for e in graph.edges if not graph.is_separator(e) or id(e) in kept_ids
+            )
+            kept_ids -= {id(e) for e in gnc(kept_graph).rejected}
+            timings["gnc_s"] = time.perf_counter() - t0
+    by_pair: dict[tuple[int, int], list[int]] = {}
+    for e in constraints:
+        if id(e) in kept_ids:
+            pair = tuple(sorted(graph.robot_of(k) for k in e.keys))
+            by_pair.setdefault((pair[0], pair[1]), []).append(id(e))
+    kept_ids = {i for ids in by_pair.values() if len(ids) >= settings.pair_support for i in ids}
     kept = [e for e in constraints if id(e) in kept_ids]
     records = [replace(r, kept=e is not None and id(e) in kept_ids) for r, e in aligned]
     graph, truth, frames = build_team_graph(data, settings, kept)
@@ -471,6 +499,13 @@ def merge_run(settings: MergeSettings) -> MergeSummary:
     keys = list(solved_graph.keys)
     odometry0 = list(graph.robot_keys(0))
     rms, n_points = _object_points(data, frames, estimate, truth)
+    figure = out / "merged.png"
+    plot_maps(
+        figure,
+        solved_graph,
+        {"the world's camera poses": truth, f"merged ({summary_solver(settings)})": estimate},
+    )
+    files.append(str(figure))
     summary = MergeSummary(
         run=str(settings.run),
         robots=len(data.blocks),
@@ -479,10 +514,11 @@ def merge_run(settings: MergeSettings) -> MergeSummary:
         closures_inter_robot=sum(1 for c in data.closures if c[0] != c[2]),
         constraints_aligned=len(constraints),
         constraints_right=sum(r.right for r in records if r.status == "aligned"),
+        reject=settings.reject,
         constraints_kept=len(kept),
         constraints_kept_right=sum(r.right for r in records if r.kept),
         separators=len(solved_graph.separators()),
-        solver="live slam services" if settings.live else "run_dgs in one process",
+        solver=summary_solver(settings),
         outcome=outcome,
         ate_distributed_m=_ate(estimate, truth, keys),
         ate_centralized_m=_ate(centralized, truth, keys),
@@ -498,6 +534,10 @@ def merge_run(settings: MergeSettings) -> MergeSummary:
     )
     (out / SUMMARY_NAME).write_text(json.dumps(summary.to_dict(), indent=2) + "\n", encoding="utf-8")
     return summary
+
+
+def summary_solver(settings: MergeSettings) -> str:
+    return "live slam services" if settings.live else "run_dgs in one process"
 
 
 def _unlinked(graph: PoseGraph) -> list[int]:
@@ -541,7 +581,7 @@ def format_merge(summary: MergeSummary) -> str:
     constraints = (
         f"  {s.closures_inter_robot} verified loop closures between robots -> "
         f"{s.constraints_aligned} aligned ({s.constraints_right} right) -> "
-        f"{s.constraints_kept} kept by PCM ({s.constraints_kept_right} right)"
+        f"{s.constraints_kept} kept by {s.reject} ({s.constraints_kept_right} right)"
     )
     truth = (
         f"  against the world's truth: ATE {s.ate_distributed_m:.3g} m, ARE {s.are_distributed_deg:.3g} deg"

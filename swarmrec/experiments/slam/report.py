@@ -47,6 +47,8 @@ __all__ = [
     "LiveSlamSummary",
     "RobotOutcome",
     "RobotResult",
+    "format_summary",
+    "plot_maps",
     "write_report",
 ]
 
@@ -324,12 +326,19 @@ def _per_stage(links: Sequence[LinkBytes]) -> dict[str, dict[str, float]]:
 # --- the report -----------------------------------------------------------------------
 
 
-_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f")
+# matplotlib's tab10, then tab20's lighter shades: 20 robots before a colour repeats.
+_COLOURS = (
+    "#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22",
+    "#17becf", "#aec7e8", "#ffbb78", "#98df8a", "#ff9896", "#c5b0d5", "#c49c94", "#f7b6d2", "#c7c7c7",
+    "#dbdb8d", "#9edae5",
+)  # fmt: skip
 
 
-def _plot(
-    path: Path, graph: PoseGraph, maps: Mapping[str, Mapping[int, Pose]], scenario: Scenario | None
+def plot_maps(
+    path: Path, graph: PoseGraph, maps: Mapping[str, Mapping[int, Pose]], scenario: Scenario | None = None
 ) -> None:
+    """Fig. 4-style: one panel per map, each robot's trajectory and objects in its colour
+    (a simulated world's true objects as grey crosses)."""
     import matplotlib
 
     matplotlib.use("Agg")  # files only: never needs a display
@@ -407,7 +416,7 @@ def write_report(record: LiveRecord, t_start: float) -> LiveSlamSummary:
     if s.plots:
         figure = out / "map.png"
         title = f"live distributed ({outcome})"
-        _plot(
+        plot_maps(
             figure,
             graph,
             {"centralized Gauss-Newton (gtsam)": centralized.poses, title: merged},
