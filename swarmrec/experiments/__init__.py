@@ -1,9 +1,11 @@
 """Experiments: pipelines that take a deployment and wire the stages of one method.
 
 * :mod:`.places`: place recognition with constellations (``swarmrec run``);
-* :mod:`.landmarks`: cooperative landmark recognition (``swarmrec landmarks``).
+* :mod:`.landmarks`: cooperative landmark recognition (``swarmrec landmarks``);
+* :mod:`.slam`: the distributed Gauss-Seidel as one slam service per robot
+  (``swarmrec slam run``) and the maps of a place-recognition run merged
+  (``swarmrec slam merge``).
 
 Each is a package with ``main(settings, deployment)``; a new method (full-image
-descriptors routed to cluster owners, object-based multi-robot SLAM) is a new
-package beside them.
+descriptors routed to cluster owners) is a new package beside them.
 """
