@@ -600,7 +600,7 @@ def test_liveliness_tokens_get_through_an_acl_only_where_it_allows_them(
 
 def test_the_generated_acl_of_a_ten_robot_swarm_is_accepted_by_zenoh(pki: Path) -> None:
     acl = access_control(SWARM, 10, clients=["cli", "viewer"], operators=["job"])
-    assert len(acl["subjects"]) == 10 * 5 + 3
+    assert len(acl["subjects"]) == 10 * 6 + 3  # detector, descriptor, index-shard, verifier, fusion, slam
     assert {s["id"] for s in acl["subjects"]} >= {
         "r9.index-shard.sec",
         "client.viewer.sec",
