@@ -25,6 +25,7 @@ stage, and floats by the 9/6 model, are counted when sent
 
 from __future__ import annotations
 
+import queue
 import threading
 import time
 from collections.abc import Sequence
@@ -90,7 +91,8 @@ class SlamService(ServiceBase):
         self.started = False
         self.rejected = 0
         self.last_heard = time.monotonic()
-        self.gone: list[int] = []
+        # Robots whose liveliness token went away during a solve (zenoh's thread puts, the solver takes).
+        self.gone: queue.SimpleQueue[int] = queue.SimpleQueue()
         self.thread: threading.Thread | None = None
         self.closing = threading.Event()
         self.alive_sub = ctx.session.liveliness().declare_subscriber(
@@ -165,6 +167,8 @@ class SlamService(ServiceBase):
                 raise FailedPrecondition(f"solve {req.solve_id} was started already")
             self.started = True
             self.last_heard = time.monotonic()
+            while not self.gone.empty():  # departures before this solve are not this solve's
+                self.gone.get_nowait()
             hellos = team.start()
         for hello in hellos:
             self._send_control(hello)
@@ -214,6 +218,7 @@ class SlamService(ServiceBase):
             if team is None:
                 raise NotFound("no solve loaded")
             messages = list(team.sent)
+            reports = {(r.linearisation, r.iteration): r for r in team.reports}
         if req.offset > len(messages):
             raise InvalidArgument(f"offset {req.offset} is past the {len(messages)} messages sent")
         page = pb.SlamSentPage(
@@ -222,9 +227,11 @@ class SlamService(ServiceBase):
         budget = int(_PAGE_SHARE * self.bus.max_message_bytes)
         size = 0
         for m in messages[req.offset :]:
-            step = turn_to_proto(
-                Turn(team.solve_id, m.sender, m.receiver, m.linearisation, m.iteration, True, 0.0, m)
+            report = reports[(m.linearisation, m.iteration)]
+            turn = Turn(
+                team.solve_id, m.sender, m.receiver, m.linearisation, m.iteration, True, report.change, m
             )
+            step = turn_to_proto(turn)
             size += step.ByteSize() + 8
             if size > budget and len(page.steps) > 0:
                 break
@@ -286,10 +293,10 @@ class SlamService(ServiceBase):
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         # zenoh's thread: note who went away, let the solver thread act on it.
-        if sample.kind == zenoh.SampleKind.DELETE:
+        if sample.kind == zenoh.SampleKind.DELETE and self.thread is not None and self.thread.is_alive():
             parsed = keys.parse_alive(str(sample.key_expr))
             if parsed is not None:
-                self.gone.append(parsed[1])
+                self.gone.put(parsed[1])
                 self.wake.set()
 
     def _send_control(self, item: Hello | Abort) -> None:
@@ -323,7 +330,9 @@ class SlamService(ServiceBase):
                 with self.lock:
                     if self.team is not team:
                         return  # another solve was loaded
-                    gone, self.gone = self.gone, []
+                    gone = []
+                    while not self.gone.empty():
+                        gone.append(self.gone.get_nowait())
                     if gone:
                         aborts = team.vanish(gone, f"robots {sorted(set(gone))}' liveliness tokens went away")
                     while team.advance():

@@ -106,6 +106,7 @@ def assert_is_reference(
     for r, res in results.items():
         assert res.status.state == pb.SlamState.SLAM_STATE_DONE and res.status.converged
         mine = [m for m in reference.messages if m.sender == r]
+        changes = {(x.linearisation, x.iteration): x.change for x in reference.reports if x.robot == r}
         assert len(res.sent) == len(mine)
         for step, m in zip(res.sent, mine, strict=True):
             head = (
@@ -117,6 +118,10 @@ def assert_is_reference(
             )
             assert head == (m.sender, m.receiver, STAGE[m.stage], m.linearisation, m.iteration)
             assert floats(step) == reference_floats(m)
+            assert step.solved
+            assert struct.pack("<d", step.change) == struct.pack(
+                "<d", changes[(m.linearisation, m.iteration)]
+            )
         reports = [x for x in reference.reports if x.robot == r]
         assert [(x.stage, x.linearisation, x.iteration, x.solved) for x in res.status.reports] == [
             (STAGE[x.stage], x.linearisation, x.iteration, x.solved) for x in reports
