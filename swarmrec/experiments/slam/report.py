@@ -492,7 +492,7 @@ def write_report(record: LiveRecord, t_start: float) -> LiveSlamSummary:
 def format_summary(summary: LiveSlamSummary) -> str:
     """A few lines for a terminal."""
     lines = [
-        f"live distributed Gauss-Seidel on {summary.source}: {summary.robots} robots "
+        f"live distributed {summary.solver['mode']} on {summary.source}: {summary.robots} robots "
         "(one slam service each), "
         f"{summary.vertices} vertices, {summary.separators} separators, order {summary.order}",
         f"  outcome: {summary.outcome}; iterations "
