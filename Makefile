@@ -113,6 +113,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/bench_scale.py --out bench/results/scale.json
 	$(BIN)/python bench/bench_vpr.py --out bench/results/vpr.json
 	$(BIN)/python bench/bench_slam.py --out bench/results/slam.json
+	$(BIN)/python bench/bench_slam_live.py --out bench/results/slam_live.json
 
 images: $(STAMP)
 	PYTHON=$(BIN)/python deploy/build.sh

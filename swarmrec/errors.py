@@ -44,6 +44,7 @@ so a caller can catch the whole family in one place::
     ├── slam.SlamError             a pose graph or message the SLAM back end cannot use
     │   ├── GraphError             a graph that cannot be solved as given (disconnected, no anchor)
     │   ├── MessageError           a distributed Gauss-Seidel message that does not fit its receiver
+    │   │   └── TurnRejected       a live team member's message refused (reason), nothing changed
     │   └── AlignmentError         points that cannot be rigidly aligned
     ├── vpr.errors.VprError        place recognition cannot use this input
     │   ├── DescriptorError        a descriptor of the wrong shape or dtype, or with NaN/inf

@@ -12,7 +12,7 @@ of a higher one, and no two modules may import each other, even through others
     services     the registry and each service kind; the client library and the
                  two-step query it shares with the descriptor service
     deployments  where a swarm runs (local processes, compose) and its PKI
-    experiments  pipelines that take a deployment (places, landmarks)
+    experiments  pipelines that take a deployment (places, landmarks, slam)
     cli          the ``swarmrec`` command line
 
 ``python -m swarmrec.layers`` prints the graph's counts between layers and any

@@ -29,6 +29,7 @@ COMMANDS: dict[str, str] = {
     "run": "swarmrec.cli.run",
     "compose": "swarmrec.cli.compose",
     "landmarks": "swarmrec.cli.landmarks",
+    "slam": "swarmrec.cli.slam",
     "serve": "swarmrec.cli.serve",
     "host": "swarmrec.cli.host",
     "query": "swarmrec.cli.clients",

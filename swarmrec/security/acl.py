@@ -96,6 +96,7 @@ _QUERIES: dict[str, tuple[tuple[str, str, str], ...]] = {
         ("verifier", "self", "store"),
     ),
     "fusion": (),
+    "slam": (),
 }
 
 # Read-only endpoints every client may query (shards' are added per call).
@@ -108,9 +109,19 @@ _CLIENT_QUERIES = (
     ("place-owner", "assignment"),
     ("place-owner", "loop_closures"),
     ("fusion", "posterior"),
+    ("slam", "status"),
+    ("slam", "estimate"),
+    ("slam", "sent"),
 )
-# What an operator adds: driving the replay (lock-step steps, free replay, classifier views).
-_OPERATOR_QUERIES = (("detector", "step"), ("detector", "replay"), ("detector", "classify"))
+# What an operator adds: driving the replay (lock-step steps, free replay, classifier views)
+# and the distributed SLAM solves.
+_OPERATOR_QUERIES = (
+    ("detector", "step"),
+    ("detector", "replay"),
+    ("detector", "classify"),
+    ("slam", "load"),
+    ("slam", "solve"),
+)
 
 
 @dataclass(frozen=True)
@@ -181,6 +192,27 @@ def grants(
             out.append(Grant("ingress", ("declare_subscriber",), (keys.endpoint(s, "fusion", r, "inbox"),)))
             if inboxes:
                 out.append(Grant("ingress", ("put",), inboxes))
+        if kind == "slam":
+            # A robot puts on every team member's inbox/<self> and control/<self> only, so the
+            # key's last segment names the sender and no robot can speak for another.
+            own_boxes = tuple(keys.endpoint(s, "slam", r, f"{box}/*") for box in ("inbox", "control"))
+            boxes = tuple(
+                keys.endpoint(s, "slam", j, f"{box}/{r}")
+                for j in robots
+                if j != r
+                for box in ("inbox", "control")
+            )
+            out.append(Grant("ingress", ("declare_subscriber",), own_boxes))
+            if boxes:
+                out.append(Grant("ingress", ("put",), boxes))
+            # Team members that vanish mid-solve: their liveliness tokens.
+            out.append(
+                Grant(
+                    "ingress",
+                    ("declare_liveliness_subscriber", "liveliness_query"),
+                    (keys.alive(s, "slam", "*"),),
+                )
+            )
     elif identity.role in ("client", "operator"):
         plugins = [(e.kind, ep) for e in registry.REGISTRY.values() for ep in e.client_endpoints]
         ends = [*_CLIENT_QUERIES, *plugins, ("index-shard", shard_read_endpoint)]

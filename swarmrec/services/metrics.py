@@ -28,6 +28,7 @@ __all__ = [
     "GatewayMetrics",
     "PlaceOwnerMetrics",
     "ShardMetrics",
+    "SlamMetrics",
     "VerifierMetrics",
 ]
 
@@ -336,6 +337,69 @@ class GatewayMetrics(MetricSet):
                 "swarmrec_gateway_events_sent",
                 "Events sent on streams, by stream",
                 ["stream"],
+                registry=registry,
+            ),
+        )
+
+
+@dataclass
+class SlamMetrics(MetricSet):
+    title: ClassVar[str] = "distributed SLAM"
+
+    steps: Counter
+    sent_bytes: Counter
+    sent_messages: Counter
+    sent_floats: Counter
+    rejected: Counter
+    solves: Counter
+    step_seconds: Histogram
+
+    @classmethod
+    def create(cls, registry: CollectorRegistry) -> SlamMetrics:
+        return cls(
+            steps=Counter(
+                "swarmrec_slam_steps",
+                "Gauss-Seidel steps this robot took, by stage",
+                ("stage",),
+                registry=registry,
+            ),
+            sent_bytes=Counter(
+                "swarmrec_slam_sent_bytes",
+                "Payload bytes of the SlamStep messages this robot sent, by receiving robot (peer), "
+                "stage, and whether they carried separator estimates (estimates) or only the report (report)",
+                ("peer", "stage", "carries"),
+                registry=registry,
+            ),
+            sent_messages=Counter(
+                "swarmrec_slam_sent_messages",
+                "SlamStep messages this robot sent, by peer, stage and carries (one per peer and iteration)",
+                ("peer", "stage", "carries"),
+                registry=registry,
+            ),
+            sent_floats=Counter(
+                "swarmrec_slam_sent_floats",
+                "Separator estimate floats this robot sent (9 per key in the rotation stage, 6 in a pose "
+                "stage: the communication model), by peer and stage",
+                ("peer", "stage"),
+                registry=registry,
+            ),
+            rejected=Counter(
+                "swarmrec_slam_rejected",
+                "Team members' messages this robot refused (nothing changed), by reason",
+                ("reason",),
+                registry=registry,
+            ),
+            solves=Counter(
+                "swarmrec_slam_solves",
+                "Solves this robot ended, by outcome (converged, unconverged, aborted, failed)",
+                ("outcome",),
+                registry=registry,
+            ),
+            step_seconds=Histogram(
+                "swarmrec_slam_step_seconds",
+                "Time of one local solve (a Gauss-Seidel step), by stage",
+                ("stage",),
+                buckets=_STAGE_BUCKETS,
                 registry=registry,
             ),
         )

@@ -37,6 +37,7 @@ from swarmrec.services.metrics import (
     GatewayMetrics,
     PlaceOwnerMetrics,
     ShardMetrics,
+    SlamMetrics,
     VerifierMetrics,
 )
 from swarmrec.services.settings import (
@@ -49,6 +50,7 @@ from swarmrec.services.settings import (
     LandmarkSettings,
     PlaceSettings,
     RgbdSettings,
+    SlamServiceSettings,
     VprSettings,
 )
 from swarmrec.wire import messages as pb
@@ -210,6 +212,15 @@ for _entry in (
         metrics=FusionMetrics,
     ),
     ServiceSpec(
+        "slam",
+        pb.ServiceKind.SERVICE_KIND_SLAM,
+        "swarmrec.services.slam:SlamService",
+        "its robot's part of the distributed two-stage Gauss-Seidel: takes turns, exchanges separator "
+        "estimates only",
+        components=(SlamServiceSettings,),
+        metrics=SlamMetrics,
+    ),
+    ServiceSpec(
         "gateway",
         pb.ServiceKind.SERVICE_KIND_GATEWAY,
         "swarmrec.services.gateway:Gateway",
@@ -251,6 +262,7 @@ WORKLOADS: Mapping[str, tuple[str, ...]] = {
     # Full-image place recognition (docs/vpr.md): the verifiers check what the owners match.
     "dvpr": ("verifier", "place-owner", "detector"),
     "landmarks": ("fusion", "detector"),
+    "slam": ("slam",),
 }
 
 

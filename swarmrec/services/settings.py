@@ -40,6 +40,7 @@ __all__ = [
     "LandmarkSettings",
     "PlaceSettings",
     "RgbdSettings",
+    "SlamServiceSettings",
     "VprSettings",
 ]
 
@@ -483,4 +484,31 @@ class GatewaySettings(Component):
             )
         if self.grpc_stream_buffer < 1:
             problems.append(f"grpc_stream_buffer must be >= 1, got {self.grpc_stream_buffer}")
+        return problems
+
+
+@dataclass(frozen=True)
+class SlamServiceSettings(Component):
+    """The live distributed Gauss-Seidel: where a robot's pose graph is, how long it waits (docs/slam.md)."""
+
+    title: ClassVar[str] = "distributed SLAM"
+
+    slam_folder: Path | None = setting(
+        None, "folder of the robots' g2o files; this robot reads <folder>/<robot>.g2o (its own only)"
+    )
+    slam_peer_timeout_s: float = setting(
+        10.0,
+        "a team member silent this long while this robot waits for it is declared gone and the solve "
+        "ends at the last consistent estimate",
+    )
+    slam_max_iterations: int = setting(
+        10000, "a solve whose max_iterations is larger is refused (INVALID_ARGUMENT)"
+    )
+
+    def problems(self) -> list[str]:
+        problems = []
+        if not (math.isfinite(self.slam_peer_timeout_s) and self.slam_peer_timeout_s > 0):
+            problems.append(f"slam_peer_timeout_s must be > 0, got {self.slam_peer_timeout_s}")
+        if self.slam_max_iterations < 1:
+            problems.append(f"slam_max_iterations must be >= 1, got {self.slam_max_iterations}")
         return problems

@@ -35,11 +35,13 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from types import MappingProxyType
 
 import numpy as np
 
 from swarmrec.slam.errors import GraphError, MessageError
+from swarmrec.slam.g2o import read_robot_file
 from swarmrec.slam.graph import Edge, PoseGraph
 from swarmrec.slam.keys import describe_key, robot_of_key
 from swarmrec.slam.lie import FloatArray, Pose, project_to_so3
@@ -57,6 +59,10 @@ from swarmrec.slam.two_stage import (
 __all__ = ["DgsAgent", "LocalProblem"]
 
 
+def _canonical(edges: Iterable[Edge]) -> tuple[Edge, ...]:
+    return tuple(sorted(edges, key=lambda e: e.keys))
+
+
 def _owner(key: int) -> int:
     robot = robot_of_key(key)
     if robot is None:
@@ -70,6 +76,12 @@ class LocalProblem:
 
     ``anchor`` is one of the robot's own keys, held at its initial pose, when
     this robot fixes the team's gauge (robot 0's first pose by default).
+
+    Vertices are kept by key and edges in a canonical order (by their keys,
+    ties in the given order): the normal equations are sums over edges, and a
+    robot that reads its own g2o file (:meth:`from_robot_file`, where its
+    separators come in its file's order) must build bit for bit the system that
+    a driver partitioning the team's graph (:meth:`from_graph`) builds.
     """
 
     robot: int
@@ -81,7 +93,9 @@ class LocalProblem:
     neighbour_keys: Mapping[int, tuple[int, ...]] = field(init=False)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "poses", MappingProxyType(dict(self.poses)))
+        object.__setattr__(self, "poses", MappingProxyType(dict(sorted(self.poses.items()))))
+        object.__setattr__(self, "edges", _canonical(self.edges))
+        object.__setattr__(self, "separators", _canonical(self.separators))
         for key in self.poses:
             if _owner(key) != self.robot:
                 raise GraphError(
@@ -126,6 +140,19 @@ class LocalProblem:
         return LocalProblem(
             robot, {k: graph.poses[k] for k in keys}, edges, separators, anchor if anchor in keys else None
         )
+
+    @staticmethod
+    def from_robot_file(path: str | Path, robot: int, *, anchor_robot: int = 0) -> LocalProblem:
+        """Robot ``robot``'s problem from its own g2o file alone (:func:`~swarmrec.slam.g2o.read_robot_file`).
+
+        The robot ``anchor_robot`` holds the anchor, its first pose (as
+        :meth:`PoseGraph.anchor_key` picks it on the team's graph); the others none.
+        """
+        own = read_robot_file(path, robot)
+        anchor = None
+        if robot == anchor_robot:
+            anchor = PoseGraph(own.poses, own.edges).anchor_key()
+        return LocalProblem(robot, own.poses, own.edges, own.separators, anchor)
 
     @property
     def neighbours(self) -> tuple[int, ...]:

@@ -23,6 +23,7 @@ __all__ = [
     "GraphError",
     "MessageError",
     "SlamError",
+    "TurnRejected",
 ]
 
 
@@ -60,6 +61,17 @@ class GraphError(SlamError, ValueError):
 
 class MessageError(SlamError, ValueError):
     """A distributed Gauss-Seidel message that does not fit the agent receiving it."""
+
+
+class TurnRejected(MessageError):
+    """A live team member's message refused by :class:`~swarmrec.slam.live.TeamRobot`; nothing changed.
+
+    ``reason`` is one of :data:`~swarmrec.slam.live.REJECT_REASONS` (a metric label).
+    """
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
 
 
 class AlignmentError(SlamError, ValueError):

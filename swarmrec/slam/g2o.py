@@ -45,9 +45,11 @@ __all__ = [
     "QUATERNION_TOLERANCE",
     "VERTEX_TAG",
     "G2oFile",
+    "RobotFile",
     "RobotFolder",
     "parse_g2o",
     "read_g2o",
+    "read_robot_file",
     "read_robot_folder",
     "robot_file_name",
     "write_g2o",
@@ -305,6 +307,75 @@ def _same_edge(a: Edge, b: Edge) -> bool:
     )
 
 
+def _check_own_vertices(one: G2oFile, robot: int) -> None:
+    for key in one.poses:
+        if robot_of_key(key) != robot:
+            raise G2oKeyError(
+                one.path,
+                f"vertex {describe_key(key)} is not a key of robot {robot} "
+                f"(robot {robot}'s keys are Symbols '{chr(ord('a') + robot)}' or "
+                f"'{chr(ord('A') + robot)}')",
+                one.vertex_lines[key],
+                key=key,
+            )
+
+
+@dataclass(frozen=True)
+class RobotFile:
+    """One robot's own g2o file: its vertices, its own edges and its separators.
+
+    What a robot of a live team holds (the neighbours' vertices are not in it:
+    a separator names a key the neighbour estimates).
+    """
+
+    path: Path
+    robot: int
+    poses: dict[int, Pose]
+    edges: tuple[Edge, ...]
+    separators: tuple[Edge, ...]
+
+
+def read_robot_file(path: str | Path, robot: int) -> RobotFile:
+    """Robot ``robot``'s file (``<r>.g2o`` of a robot folder) on its own.
+
+    Every vertex must be one of the robot's keys; an edge between two of them
+    must join declared vertices; every other edge must be a separator, from one
+    of the robot's declared keys to a key of another robot.
+    """
+    one = parse_g2o(path)
+    if not one.poses:
+        raise G2oError(one.path, f"declares no vertex of robot {robot}")
+    _check_own_vertices(one, robot)
+    edges: list[Edge] = []
+    separators: list[Edge] = []
+    for edge, line in zip(one.edges, one.edge_lines, strict=True):
+        owners = (robot_of_key(edge.source), robot_of_key(edge.target))
+        if owners == (robot, robot):
+            _check_edge_keys(G2oFile(one.path, {}, {}, (edge,), (line,)), one.poses)
+            edges.append(edge)
+            continue
+        mine = [k for k, o in zip(edge.keys, owners, strict=True) if o == robot]
+        other = [o for o in owners if o != robot]
+        if len(mine) != 1 or other[0] is None:
+            raise G2oKeyError(
+                one.path,
+                f"edge {describe_key(edge.source)}-{describe_key(edge.target)} is neither robot "
+                f"{robot}'s own nor a separator from one of its keys to another robot's",
+                line,
+                key=edge.source,
+            )
+        if mine[0] not in one.poses:
+            raise G2oKeyError(
+                one.path,
+                f"separator {describe_key(edge.source)}-{describe_key(edge.target)} uses "
+                f"{describe_key(mine[0])}, which this file does not declare",
+                line,
+                key=mine[0],
+            )
+        separators.append(edge)
+    return RobotFile(one.path, robot, one.poses, tuple(edges), tuple(separators))
+
+
 def read_robot_folder(folder: str | Path) -> RobotFolder:
     """Read ``0.g2o``, ``1.g2o``, ... (and check ``fullGraph.g2o`` when present) into one graph."""
     folder = Path(folder)
@@ -315,16 +386,8 @@ def read_robot_folder(folder: str | Path) -> RobotFolder:
     declared: dict[int, Pose] = {}
     where: dict[int, tuple[Path, int]] = {}
     for robot, one in enumerate(parsed):
+        _check_own_vertices(one, robot)
         for key, pose in one.poses.items():
-            if robot_of_key(key) != robot:
-                raise G2oKeyError(
-                    one.path,
-                    f"vertex {describe_key(key)} is not a key of robot {robot} "
-                    f"(robot {robot}'s keys are Symbols '{chr(ord('a') + robot)}' or "
-                    f"'{chr(ord('A') + robot)}')",
-                    one.vertex_lines[key],
-                    key=key,
-                )
             if key in declared:
                 first, line = where[key]
                 raise G2oKeyError(

@@ -601,7 +601,7 @@ def test_liveliness_tokens_get_through_an_acl_only_where_it_allows_them(
 def test_the_generated_acl_of_a_ten_robot_swarm_is_accepted_by_zenoh(pki: Path) -> None:
     acl = access_control(SWARM, 10, clients=["cli", "viewer"], operators=["job"])
     # One subject per robot service (the kinds a robot runs) and one per named client/operator.
-    robot_kinds = ("detector", "descriptor", "index-shard", "verifier", "fusion", "place-owner")
+    robot_kinds = ("detector", "descriptor", "index-shard", "verifier", "fusion", "place-owner", "slam")
     assert sorted(s["id"] for s in acl["subjects"]) == sorted(
         [f"r{r}.{kind}.sec" for r in range(10) for kind in robot_kinds]
         + ["client.cli.sec", "client.viewer.sec", "operator.job.sec"]

@@ -18,6 +18,7 @@ class ServiceKind(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     SERVICE_KIND_ROUTER: _ClassVar[ServiceKind]
     SERVICE_KIND_GATEWAY: _ClassVar[ServiceKind]
     SERVICE_KIND_PLACE_OWNER: _ClassVar[ServiceKind]
+    SERVICE_KIND_SLAM: _ClassVar[ServiceKind]
 SERVICE_KIND_UNSPECIFIED: ServiceKind
 SERVICE_KIND_DETECTOR: ServiceKind
 SERVICE_KIND_DESCRIPTOR: ServiceKind
@@ -27,6 +28,7 @@ SERVICE_KIND_FUSION: ServiceKind
 SERVICE_KIND_ROUTER: ServiceKind
 SERVICE_KIND_GATEWAY: ServiceKind
 SERVICE_KIND_PLACE_OWNER: ServiceKind
+SERVICE_KIND_SLAM: ServiceKind
 
 class MemberInfo(_message.Message):
     __slots__ = ("kind", "robot_id", "label_lo", "label_hi", "version", "n_labels", "metrics_url", "swarm", "stored_items", "pending_items", "label_ranges")
