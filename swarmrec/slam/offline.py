@@ -81,19 +81,7 @@ class SlamSettings:
             raise ConfigError(f"centralized must be one of {METHODS}, got {self.centralized!r}")
         if self.bytes_per_float not in (4, 8):
             raise ConfigError(f"bytes_per_float must be 4 or 8, got {self.bytes_per_float}")
-        object.__setattr__(
-            self,
-            "dgs",
-            DgsSettings(
-                self.mode,
-                self.order,
-                self.gamma,
-                self.eta_rotation,
-                self.eta_pose,
-                self.max_iterations,
-                self.pose_linearisations,
-            ),
-        )
+        object.__setattr__(self, "dgs", DgsSettings.of(self))
 
     @staticmethod
     def paper(folder: Path, out: Path, *, eta: float = 1e-1, overwrite: bool = False) -> SlamSettings:
@@ -164,17 +152,18 @@ class SolveSummary:
 
     def to_json(self) -> dict[str, Any]:
         """A JSON-ready dict (NaN, e.g. ATE* of objects when there are none, becomes null)."""
-        out: dict[str, Any] = _finite(asdict(self))
+        out: dict[str, Any] = finite_json(asdict(self))
         return out
 
 
-def _finite(value: Any) -> Any:
+def finite_json(value: Any) -> Any:
+    """``value`` (dicts, lists, floats) with every NaN or infinity as None: JSON has neither."""
     if isinstance(value, float):
         return value if math.isfinite(value) else None
     if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
+        return {k: finite_json(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [_finite(v) for v in value]
+        return [finite_json(v) for v in value]
     return value
 
 

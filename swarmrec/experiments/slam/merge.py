@@ -61,6 +61,7 @@ from swarmrec.slam.g2o import parse_g2o, read_g2o, read_robot_folder, robot_file
 from swarmrec.slam.graph import Edge, PoseGraph
 from swarmrec.slam.keys import pose_key
 from swarmrec.slam.lie import Pose, so3_exp, so3_log
+from swarmrec.slam.offline import finite_json
 from swarmrec.slam.ordering import Ordering
 from swarmrec.slam.robust import gnc, pcm
 from swarmrec.wire.codec import constellation_from_proto, constellation_to_proto
@@ -136,19 +137,7 @@ class MergeSettings:
             raise ConfigError(f"centralized must be one of {METHODS}, got {self.centralized!r}")
         if self.reject not in REJECTIONS:
             raise ConfigError(f"reject must be one of {REJECTIONS}, got {self.reject!r}")
-        object.__setattr__(
-            self,
-            "dgs",
-            DgsSettings(
-                self.mode,
-                self.order,
-                self.gamma,
-                self.eta_rotation,
-                self.eta_pose,
-                self.max_iterations,
-                self.pose_linearisations,
-            ),
-        )
+        object.__setattr__(self, "dgs", DgsSettings.of(self))
 
 
 @dataclass(frozen=True)
@@ -211,18 +200,8 @@ class MergeSummary:
         return self.outcome in ("converged", "unconverged")
 
     def to_dict(self) -> dict[str, Any]:
-        out: dict[str, Any] = _finite(asdict(self))
+        out: dict[str, Any] = finite_json(asdict(self))
         return out
-
-
-def _finite(value: Any) -> Any:
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_finite(v) for v in value]
-    return value
 
 
 # --- reading the run ------------------------------------------------------------------

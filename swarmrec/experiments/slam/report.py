@@ -35,6 +35,7 @@ from swarmrec.slam.graph import PoseGraph, is_landmark_key
 from swarmrec.slam.lie import Pose
 from swarmrec.slam.messages import FLOATS_PER_ESTIMATE, DgsMessage, StepReport
 from swarmrec.slam.metrics import are_star, ate_star
+from swarmrec.slam.offline import finite_json
 from swarmrec.slam.scenarios import Scenario
 from swarmrec.wire import messages as pb
 from swarmrec.wire.slam import estimate_from_proto, report_from_proto, turn_from_proto
@@ -173,20 +174,10 @@ class LiveSlamSummary:
         return self.outcome in ("converged", "unconverged")
 
     def to_dict(self) -> dict[str, Any]:
-        out: dict[str, Any] = _finite(asdict(self))
+        out: dict[str, Any] = finite_json(asdict(self))
         if self.check is not None:
             out["check"]["identical"] = self.check.identical
         return out
-
-
-def _finite(value: Any) -> Any:
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_finite(v) for v in value]
-    return value
 
 
 # --- the check ------------------------------------------------------------------------

@@ -81,19 +81,7 @@ class LiveSlamSettings:
         if self.security not in ("mtls", "insecure"):
             raise ConfigError(f"security must be mtls or insecure, got {self.security!r}")
         validate_swarm_name(self.swarm)
-        object.__setattr__(
-            self,
-            "dgs",
-            DgsSettings(
-                self.mode,
-                self.order,
-                self.gamma,
-                self.eta_rotation,
-                self.eta_pose,
-                self.max_iterations,
-                self.pose_linearisations,
-            ),
-        )
+        object.__setattr__(self, "dgs", DgsSettings.of(self))
 
     def scenario(self) -> ScenarioSettings:
         """The simulated world (when no folder is given)."""
