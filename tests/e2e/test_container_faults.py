@@ -79,12 +79,15 @@ def test_a_stopped_robot_is_reported_missing_its_volumes_keep_its_data_and_the_r
             assert stored_at_stop["verifier"] == STOP_AFTER + 1
             assert stored_at_stop["index-shard"] > 0
 
-            # 2. Restarted, the shard and verifier load what they stored from their volumes.
+            # 2. Restarted, the verifier loads what it stored from its volume.
             for kind in ("index-shard", "verifier"):
                 container(kind, DEAD).start()
             client.wait_for({("index-shard", DEAD), ("verifier", DEAD)}, timeout_s=120)
             after = {m.kind: m.stored_items for m in client.members() if m.robot == DEAD}
-            assert after == stored_at_stop
+            assert after["verifier"] == stored_at_stop["verifier"]
+            # The shard handed its groups on when it was stopped (SIGTERM drains it); back, it
+            # takes groups again and copies them from their owners: never less than it held.
+            assert after["index-shard"] >= stored_at_stop["index-shard"]
 
             # 3. A router restart: the services reconnect by themselves.
             services = [
