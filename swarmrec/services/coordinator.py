@@ -13,7 +13,7 @@ tick (``placement_tick_s``) the acting coordinator:
    its groups (:func:`~swarmrec.core.placement.promote`);
 5. otherwise follows membership (:func:`~swarmrec.core.placement.follow_members`:
    a gone shard's groups stay answered by their other replicas and get new
-   ones) and, once ``rebalance_min_queries`` partial queries were served since
+   ones) and, once ``rebalance_min_queries`` (and 20 a member shard) partial queries were served since
    the last look, the observed load (:func:`~swarmrec.core.placement.rebalance`,
    to ``rebalance_target``), and starts the handoff
    (:func:`~swarmrec.core.placement.transition`).
@@ -37,6 +37,10 @@ from swarmrec.services.routing import LiveShards
 from swarmrec.services.settings import IndexSettings, PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.placement import placement_from_proto, placement_to_proto
+
+#: Partial queries a rebalancing looks at, at least, per member shard (beside
+#: ``rebalance_min_queries``): 200 for 10 shards, 2000 for 100.
+QUERIES_PER_SHARD = 20
 
 
 class Shard(Protocol):
@@ -277,7 +281,11 @@ class Coordinator:
                 totals[g] = totals.get(g, 0) + int(n)
         # A shard that restarted counts from 0 again: never a negative load.
         window = {g: max(0, n - self._load_mark.get(g, 0)) for g, n in totals.items()}
-        if sum(window.values()) < self.settings.rebalance_min_queries:
+        # A window of a few queries a shard is noise: it would move groups back and forth
+        # (and every move is a handoff and a placement every querier must learn). So at
+        # least QUERIES_PER_SHARD a member as well: a large swarm looks at a longer window.
+        needed = max(self.settings.rebalance_min_queries, QUERIES_PER_SHARD * len(current.members))
+        if sum(window.values()) < needed:
             return None
         self._load_mark = totals
         loads = shard_loads(current, {g: float(n) for g, n in window.items()})

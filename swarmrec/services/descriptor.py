@@ -146,24 +146,24 @@ class Descriptor(ServiceBase):
                 )
                 for shard in placement.store_targets(g)
             ]
-            sent.append((desc, asked))
-        stale = False
-        for desc, asked in sent:
+            sent.append((desc, list(zip(placement.store_targets(g), asked, strict=True))))
+        stale: set[int] = set()  # the shards that refused as routed with another placement
+        for desc, asked_shards in sent:
             acked = True
-            for pending in asked:
+            for shard, pending in asked_shards:
                 self.metrics.store_retries.inc()
                 try:
                     pending.result(pb.StoreReply)
                 except RemoteError as e:
                     if e.code == ErrorCode.FAILED_PRECONDITION:
-                        stale = True
+                        stale.add(shard)
                     acked = acked and e.code == ErrorCode.ALREADY_EXISTS
                 except CallError:
                     acked = False
             if acked:
                 self.pending.done(desc)
         if stale:
-            self.routing.refresh(caller)
+            self.routing.refresh(caller, from_shards=stale)
         self.metrics.pending_stores.set(len(self.pending))
 
     def process(self, msg: pb.Constellation, _ctx: RequestContext) -> pb.QueryReport:

@@ -133,7 +133,7 @@ def ask_shards(
     answered: dict[int, int] = {}
     for attempt in range(ROUTE_ATTEMPTS):
         retry: list[_GroupAsk] = []
-        stale = False
+        stale: set[int] = set()  # the shards that refused as routed with another placement
         for ask in asks:
             if ask.pending is None:
                 continue
@@ -143,7 +143,7 @@ def ask_shards(
             except RemoteError as e:
                 if e.code != ErrorCode.FAILED_PRECONDITION:
                     continue  # a refusal of the request itself: another owner would refuse it too
-                stale = True  # routed with another placement than the shard's
+                stale.add(ask.shard)  # routed with another placement than the shard's
                 retry.append(ask)
                 continue
             except CallError:
@@ -157,7 +157,7 @@ def ask_shards(
         moved = False
         if stale:
             before = placement.version
-            placement = routing.refresh(caller)
+            placement = routing.refresh(caller, from_shards=stale)
             moved = placement.version != before
         for ask in retry:
             owners = routing.owners_in_order(placement, ask.group, wire.robot_id, wire.frame_index)
@@ -341,12 +341,14 @@ def finish_replica_stores(
     missed: set[int] = {g for g, (lo, hi) in enumerate(groups) if desc[lo:hi].any() and g not in answered}
     for attempt in range(ROUTE_ATTEMPTS):
         stale: set[int] = set()
+        refused_by: set[int] = set()
         for st in stores:
             try:
                 st.pending.result(pb.StoreReply)
             except RemoteError as e:
                 if e.code == ErrorCode.FAILED_PRECONDITION:
                     stale.add(st.group)
+                    refused_by.add(st.shard)
                 elif e.code != ErrorCode.ALREADY_EXISTS:  # stored there with other content: not ours to fix
                     missed.add(st.group)
             except CallError:
@@ -357,7 +359,7 @@ def finish_replica_stores(
         if attempt == ROUTE_ATTEMPTS - 1:
             missed |= stale
             break
-        placement = plan.routing.refresh(caller)
+        placement = plan.routing.refresh(caller, from_shards=refused_by)
         stores = []
         for g in sorted(stale):
             lo, hi = groups[g]

@@ -14,7 +14,7 @@ from __future__ import annotations
 import contextlib
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 import zenoh
 
@@ -118,8 +118,32 @@ class Routing:
             self._placement = placement
             return True
 
-    def refresh(self, caller: Caller, timeout_s: float | None = None) -> Placement:
-        """Ask every shard for its placement; route with the newest a confirmed shard follows."""
+    def refresh(
+        self, caller: Caller, timeout_s: float | None = None, *, from_shards: Iterable[int] = ()
+    ) -> Placement:
+        """Route with the newest placement a confirmed shard follows. ``from_shards`` (the
+        shards that just refused a request as routed with another placement) are asked
+        first, alone: a refusal usually means the refusing shard follows a newer one, and
+        asking every shard of a large swarm each time a placement changes costs each querier
+        a request per shard. Every shard is asked when they give nothing newer."""
+        before = self.placement.version
+        asked = sorted(set(from_shards))
+        if asked:
+            pendings = [
+                caller.start(
+                    keys.endpoint(self.swarm, "index-shard", shard, "placement"),
+                    pb.PlacementRequest(),
+                    target_robot=shard,
+                    endpoint="placement",
+                    timeout_s=timeout_s,
+                )
+                for shard in asked
+            ]
+            states = [o.reply for p in pendings for o in p.gather(pb.ShardState) if o.reply is not None]
+            newest = newest_placement(states, self.groups)
+            if newest is not None and newest.version > before:
+                self._refreshed(newest)
+                return self.placement
         pending = caller.start(
             keys.endpoint(self.swarm, "index-shard", "*", "placement"),
             pb.PlacementRequest(),
@@ -129,13 +153,15 @@ class Routing:
             timeout_s=timeout_s,
         )
         states = [o.reply for o in pending.gather(pb.ShardState) if o.reply is not None]
-        newest = newest_placement(states, self.groups)
+        self._refreshed(newest_placement(states, self.groups))
+        return self.placement
+
+    def _refreshed(self, newest: Placement | None) -> None:
         self.refreshes += 1
         if self._on_refresh is not None:
             self._on_refresh()
         if newest is not None:
             self.update(newest)
-        return self.placement
 
     def suspect(self, shard: int) -> None:
         """``shard`` did not answer in time: ask it last for a while."""
