@@ -95,6 +95,11 @@ def run(robots: int, hosting: str, work: Path) -> dict[str, Any]:
     }
 
 
+def write(path: Path, result: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result, indent=2) + "\n")
+
+
 def plot(results: list[dict[str, Any]], path: Path) -> None:
     import matplotlib
 
@@ -139,12 +144,18 @@ def main_bench() -> None:
         print("baseline: 10 robots, one process per service ...", flush=True)
         base = run(10, "service", work)
         result["baseline_process_per_service"] = base
-        runs = []
+        runs: list[dict[str, Any]] = []
+        result["hosted"] = runs
         for n in sizes:
             per = max(1, -(-n // args.processes))
+            # Written before and after each size: a size that never finishes (stopped by
+            # hand, the machine out of memory) leaves the sizes before it on disk, and says so.
+            result["unfinished"] = n
+            write(args.out, result)
             print(f"{n} robots, {per} robots a process ...", flush=True)
             runs.append(run(n, f"robots:{per}", work))
-        result["hosted"] = runs
+            del result["unfinished"]
+            write(args.out, result)
     ten = next((r for r in runs if r["robots"] == 10), None)
     if ten is not None:
         result["ratios_10_robots"] = {
@@ -152,8 +163,7 @@ def main_bench() -> None:
             / base["memory_per_robot_mb"],
             "wall_hosted_over_process_per_service": ten["wall_s"] / base["wall_s"],
         }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write(args.out, result)
     plot(runs, args.plot)
     for r in [base, *runs]:
         print(

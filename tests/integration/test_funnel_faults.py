@@ -3,8 +3,12 @@
 Three robots replay 300 synthetic frames in lock-step. After step 20 robot 2's
 verifier is frozen (SIGSTOP) for four steps, then thawed (SIGCONT); after step 60
 robot 1's verifier is killed (SIGKILL). Robot 2's candidates in the other robots'
-queries of the frozen steps must end at the verification stage as
-``verifier_timeout``; robot 1's after the kill as ``verifier_unreachable``; no
+queries of the frozen steps must end at the verification stage, never scored, as
+``verifier_timeout`` or, once the router has given up on the frozen process (its
+lease expired, or its queue to the process filled: CI saw this at the first frozen
+step), as ``verifier_unreachable``; a caller cannot tell such a process from a dead
+one, and the funnel reports what the caller saw. Robot 1's candidates after the
+kill must be ``verifier_unreachable``; no
 candidate anywhere else fails verification, and the funnel still adds up. Robot 2's
 own frames of the frozen steps wait in its detector's outbox (its descriptor cannot
 store them in its own verifier) and are queried once the verifier is back.
@@ -77,24 +81,25 @@ def test_candidates_of_a_frozen_verifier_time_out_and_of_a_dead_one_are_unreacha
 
     rows = _rows(out / "funnel.csv")
     queries = {(int(q["robot"]), int(q["frame"])): q for q in _rows(out / "funnel_queries.csv")}
-    timeouts = unreachable = 0
+    frozen_failures = unreachable = 0
     for r in rows:
         qr, step, cand = int(r["query_robot"]), int(r["query_frame"]), int(r["candidate_robot"])
         q = queries[(qr, step)]
         verified = cand in {int(v) for v in q["verified_robots"].split()}
         failed = {int(v) for v in q["failed_verifiers"].split()}
         if FROZEN < step <= THAWED and cand == STOPPED and qr != STOPPED and verified:
-            assert r["reason"] == "verifier_timeout" and r["stage"] == "verification", r
+            assert r["reason"] in ("verifier_timeout", "verifier_unreachable"), r
+            assert r["stage"] == "verification", r
             assert STOPPED in failed
             assert r["score"] == ""  # never scored
-            timeouts += 1
+            frozen_failures += 1
         elif step > SETTLED and cand == DEAD and verified:
             assert r["reason"] == "verifier_unreachable" and r["stage"] == "verification", r
             assert DEAD in failed
             unreachable += 1
         elif step <= FROZEN or THAWED < step <= KILLED or (step > SETTLED and cand != DEAD):
             assert not r["reason"].startswith("verifier_"), r
-    assert timeouts > 0 and unreachable > 0
+    assert frozen_failures > 0 and unreachable > 0
     assert summary.queries.late_frames > 0  # robot 2's frames of the frozen steps, delivered later
     # The dead verifier's robot missed every step after the kill (its frames wait in its
     # detector's outbox for good); the frozen robot's frames came late; the others none.
@@ -106,7 +111,10 @@ def test_candidates_of_a_frozen_verifier_time_out_and_of_a_dead_one_are_unreacha
     funnel = summary.funnel
     assert funnel is not None
     assert funnel.inconsistent_queries == 0 and funnel.accepted_equals_loop_closures
-    assert funnel.by_reason.get("verifier_timeout", 0) >= timeouts
+    assert (
+        funnel.by_reason.get("verifier_timeout", 0) + funnel.by_reason["verifier_unreachable"]
+        >= frozen_failures + unreachable
+    )
     assert funnel.by_reason["verifier_unreachable"] >= unreachable
     # The descriptors counted the same (a robot's counters are read before its services stop).
     scraped = funnel.scraped_by_reason
