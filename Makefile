@@ -110,11 +110,12 @@ bench: $(STAMP)
 	$(BIN)/python bench/bench_landmarks.py --out bench/results/landmarks.json
 	$(BIN)/python bench/bench_compose.py --rebuild-base --out bench/results/compose.json
 	$(BIN)/python bench/bench_gateway.py --out bench/results/gateway.json
+	$(BIN)/python bench/bench_tls.py --out bench/results/tls.json
 	$(BIN)/python bench/bench_scale.py --out bench/results/scale.json --plot docs/figures/scale.png
 	$(BIN)/python bench/bench_links.py --out bench/results/links.json
 	$(BIN)/python bench/bench_elastic.py --out bench/results/elastic.json
 	$(BIN)/python bench/bench_vpr.py --out bench/results/vpr.json
-	$(BIN)/python bench/bench_slam.py --out bench/results/slam.json
+	$(BIN)/python bench/bench_slam.py --out bench/results/slam.json --plots docs/figures
 	$(BIN)/python bench/bench_slam_live.py --out bench/results/slam_live.json
 
 images: $(STAMP)

@@ -13,6 +13,13 @@ the wire, the worst shard balance and whether the scores are identical.
 Baseline, in the same run: the 10-robot swarm with one process per service (41
 processes), the deployment the project started from: the ratio of its memory per
 robot and wall time to the hosted swarm's of the same size.
+
+Rebalancing is off by default here (``--rebalance-target 0`` turns it on at the
+swarm's default): this benchmark measures what hosting many robots costs. With it
+on, a 100-robot swarm moved label groups again and again (placement version 34 after
+25 minutes, every move refusing the stores routed with the old placement until their
+senders refreshed) and had replayed under half its frames when stopped;
+docs/elastic-index.md has the figures.
 """
 
 from __future__ import annotations
@@ -30,6 +37,7 @@ from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.experiments.places import PlacesSettings, main
+from swarmrec.services.settings import IndexSettings
 
 REPO = Path(__file__).resolve().parents[1]
 FRAMES_PER_ROBOT = 50
@@ -45,7 +53,7 @@ def rss_mb(pid: int) -> float:
     return 0.0
 
 
-def run(robots: int, hosting: str, work: Path) -> dict[str, Any]:
+def run(robots: int, hosting: str, work: Path, rebalance_target: float) -> dict[str, Any]:
     held: list[LocalDeployment] = []
     memory: dict[str, float] = {}
     steps = FRAMES_PER_ROBOT
@@ -70,6 +78,7 @@ def run(robots: int, hosting: str, work: Path) -> dict[str, Any]:
         swarm=f"scale-{name}",
         hosting=hosting,
         request_timeout_s=30.0,
+        index=IndexSettings(rebalance_target=rebalance_target),
         progress=False,
         plots=False,
     )
@@ -80,6 +89,7 @@ def run(robots: int, hosting: str, work: Path) -> dict[str, Any]:
     return {
         "robots": robots,
         "hosting": hosting,
+        "rebalance_target": rebalance_target,
         "frames": s.dataset.frames,
         "processes": memory.get("processes"),
         "wall_s": wall,
@@ -120,7 +130,8 @@ def plot(results: list[dict[str, Any]], path: Path) -> None:
         ax.set_title(title, fontsize=10)
         ax.grid(alpha=0.3)
     fig.suptitle(
-        f"synthetic world, {FRAMES_PER_ROBOT} frames per robot, lock-step, robots hosted many to a process"
+        f"synthetic world, {FRAMES_PER_ROBOT} frames per robot, lock-step, robots hosted many to a process, "
+        "two replicas a group, rebalancing off"
     )
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -136,13 +147,20 @@ def main_bench() -> None:
     ap.add_argument(
         "--processes", type=int, default=2, help="host processes per swarm (default 2: the cores)"
     )
+    ap.add_argument(
+        "--rebalance-target",
+        type=float,
+        default=1000.0,
+        help="busiest / mean that triggers a rebalancing (default 1000: never; 0: the swarm's default)",
+    )
     args = ap.parse_args()
+    target = args.rebalance_target or IndexSettings.rebalance_target
     sizes = [int(x) for x in args.robots.split(",")]
     result: dict[str, Any] = {"machine": {"python": platform.python_version(), "cpus": os.cpu_count()}}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         print("baseline: 10 robots, one process per service ...", flush=True)
-        base = run(10, "service", work)
+        base = run(10, "service", work, target)
         result["baseline_process_per_service"] = base
         runs: list[dict[str, Any]] = []
         result["hosted"] = runs
@@ -153,7 +171,7 @@ def main_bench() -> None:
             result["unfinished"] = n
             write(args.out, result)
             print(f"{n} robots, {per} robots a process ...", flush=True)
-            runs.append(run(n, f"robots:{per}", work))
+            runs.append(run(n, f"robots:{per}", work, target))
             del result["unfinished"]
             write(args.out, result)
     ten = next((r for r in runs if r["robots"] == 10), None)

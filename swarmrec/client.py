@@ -371,13 +371,21 @@ class ZenohClient(SwarmClient):
         versions = {st.shard_id: (st.placement.version if st.confirmed else -1) for st in states}
         return IndexState(newest_placement(states), versions, pending)
 
-    def wait_index_settled(self, timeout_s: float = 30.0, poll_s: float = 0.2) -> IndexState:
+    def wait_index_settled(
+        self, timeout_s: float = 30.0, poll_s: float = 0.2, *, shards: int | None = None
+    ) -> IndexState:
         """Poll :meth:`index_state` until it is settled (handoffs done, every store
-        acknowledged) or ``timeout_s`` passed; the last state either way."""
+        acknowledged) or ``timeout_s`` passed; the last state either way. With ``shards``,
+        settled also means that many shards answer and the placement lists them all."""
         deadline = time.monotonic() + timeout_s
         while True:
             state = self.index_state()
-            if state.settled or time.monotonic() >= deadline:
+            everyone = shards is None or (
+                len(state.versions) >= shards
+                and state.placement is not None
+                and len(state.placement.members) >= shards
+            )
+            if (state.settled and everyone) or time.monotonic() >= deadline:
                 return state
             time.sleep(poll_s)
 

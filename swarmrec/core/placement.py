@@ -418,8 +418,12 @@ def serving_owner(
 
 
 def groups_from_bounds(bounds: Sequence[int]) -> tuple[tuple[int, int], ...]:
-    """Groups from range boundaries ``[0, b1, ..., n_labels]``."""
-    return tuple((int(bounds[i]), int(bounds[i + 1])) for i in range(len(bounds) - 1))
+    """Groups from range boundaries ``[0, b1, ..., n_labels]``; an empty range is no group.
+
+    With more robots than labels the paper's split leaves some ranges empty: a group
+    holds at least one label, so group ``g`` is the ``g``-th non-empty range."""
+    pairs = ((int(bounds[i]), int(bounds[i + 1])) for i in range(len(bounds) - 1))
+    return tuple((lo, hi) for lo, hi in pairs if hi > lo)
 
 
 def _check_finite(values: Iterable[float]) -> None:

@@ -20,6 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from swarmrec.core.index import IndexCandidate, RangeIndex
+from swarmrec.core.placement import groups_from_bounds
 
 __all__ = ["ShardCut", "shard_cuts"]
 
@@ -90,8 +91,8 @@ def shard_cuts(
     step = query[1]
     out = []
     returned: tuple[IndexCandidate, ...] | None
-    for k in range(edges.shape[0] - 1):
-        lo, hi = int(edges[k]), int(edges[k + 1])
+    # Group k is the k-th non-empty range, as the live index numbers them.
+    for k, (lo, hi) in enumerate(groups_from_bounds(edges.tolist())):
         if not q[lo:hi].any() or not np.minimum(q[lo:hi], x[lo:hi]).any():
             continue  # not asked, or the frame has no label of this range in common
         if lockstep:

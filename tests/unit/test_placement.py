@@ -216,3 +216,11 @@ def test_a_draining_owner_is_leaving_not_gone_so_it_is_copied_from_until_the_lea
     assert step.learners == ((), (0,), ())
     done = promote(step, {0: [1]}, alive=(0,))
     assert done is not None and done.owners == ((0,), (0,), (0,))
+
+
+def test_an_empty_label_range_is_no_group_so_groups_always_hold_a_label() -> None:
+    # 5 robots over 3 labels: the paper's split [0, 0, 1, 1, 2, 3] leaves two empty ranges.
+    assert groups_from_bounds([0, 0, 1, 1, 2, 3]) == ((0, 1), (1, 2), (2, 3))
+    # And the placement of 5 shards over those 3 groups is a valid one.
+    p = ring(groups_from_bounds([0, 0, 1, 1, 2, 3]), range(5), replicas=2)
+    assert p.owners == ((0, 1), (1, 2), (2, 3))

@@ -4,6 +4,7 @@ from one declaration, and the errors a user sees."""
 from __future__ import annotations
 
 import argparse
+import itertools
 from dataclasses import fields
 from pathlib import Path
 
@@ -243,18 +244,31 @@ def test_index_shards_may_have_ids_beyond_the_robots_up_to_max_shards() -> None:
         (0, 40),  # one boundary short for 2 robots
         (0, 40, 79),  # does not end at n_labels
         (1, 40, 80),  # does not start at 0
-        (0, 40, 40, 80),  # too many, and an empty range
+        (0, 40, 40, 80),  # too many
         (0, 50, 40),  # decreasing
     ],
 )
 def test_label_bounds_that_are_not_n_robots_ranges_are_refused(bounds: tuple[int, ...]) -> None:
-    with pytest.raises(ConfigError, match=r"label_bounds must be 3 increasing values from 0 to 80"):
+    with pytest.raises(ConfigError, match=r"label_bounds must be 3 non-decreasing values from 0 to 80"):
         Config.of(BusSettings(n_robots=2), PlaceSettings(label_bounds=bounds))
 
 
 def test_label_bounds_of_n_robots_ranges_are_accepted() -> None:
     c = Config.of(BusSettings(n_robots=3), PlaceSettings(label_bounds=(0, 1, 79, 80)))
     assert c.get(PlaceSettings).bounds(c.bus).tolist() == [0, 1, 79, 80]
+    # An empty range is a robot that owns no label of its own.
+    c = Config.of(BusSettings(n_robots=3), PlaceSettings(label_bounds=(0, 40, 40, 80)))
+    assert c.get(PlaceSettings).bounds(c.bus).tolist() == [0, 40, 40, 80]
+
+
+def test_more_robots_than_labels_get_the_papers_split_with_empty_ranges() -> None:
+    # 100 robots over 80 labels: integer linspace(0, 80, 101), as the published scripts;
+    # e.g. robots 0 and 1 get [0, 0) and [0, 1).
+    c = Config.of(BusSettings(n_robots=100), PlaceSettings())
+    b = c.get(PlaceSettings).bounds(c.bus).tolist()
+    assert len(b) == 101 and b[0] == 0 and b[-1] == 80
+    assert b[:6] == [0, 0, 1, 2, 3, 4]
+    assert sum(1 for x, y in itertools.pairwise(b) if x == y) == 20
 
 
 def test_the_balanced_preset_needs_explicit_label_bounds() -> None:
