@@ -1,6 +1,6 @@
 """Multi-robot object-based SLAM benchmark: the paper's Tables 1-2 on simulated worlds, and beyond.
 
-    python bench/bench_slam.py --out bench/results/slam.json --plots docs/figures/slam
+    python bench/bench_slam.py --out bench/results/slam.json --plots docs/figures
 
 On the simulated "25 chairs" and "house" worlds (:mod:`swarmrec.slam.scenarios`),
 averaged over ``--runs`` seeds (the paper: 10 Monte Carlo runs):
