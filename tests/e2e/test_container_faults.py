@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 import docker
@@ -59,6 +60,8 @@ def test_a_stopped_robot_is_reported_missing_its_volumes_keep_its_data_and_the_r
             for m in client.members():
                 if m.robot == DEAD and m.kind in ("index-shard", "verifier"):
                     stored_at_stop[m.kind] = m.stored_items
+                if m.kind == "index-shard":
+                    stored_at_stop["all shards"] = stored_at_stop.get("all shards", 0) + m.stored_items
             for kind in KINDS:
                 container(kind, DEAD).stop(timeout=15)
 
@@ -83,11 +86,16 @@ def test_a_stopped_robot_is_reported_missing_its_volumes_keep_its_data_and_the_r
             for kind in ("index-shard", "verifier"):
                 container(kind, DEAD).start()
             client.wait_for({("index-shard", DEAD), ("verifier", DEAD)}, timeout_s=120)
-            after = {m.kind: m.stored_items for m in client.members() if m.robot == DEAD}
+            # Alive is not done: the shard copies its groups back before the index settles.
+            assert client.wait_index_settled(timeout_s=60).settled
+            members = client.members()
+            after = {m.kind: m.stored_items for m in members if m.robot == DEAD}
             assert after["verifier"] == stored_at_stop["verifier"]
-            # The shard handed its groups on when it was stopped (SIGTERM drains it); back, it
-            # takes groups again and copies them from their owners: never less than it held.
-            assert after["index-shard"] >= stored_at_stop["index-shard"]
+            # The shard handed its groups on when it was stopped (SIGTERM drains it), so the
+            # index as a whole still holds every slice it held then, on two replicas each
+            # (the restarted shard owns groups again only when a rebalancing gives it some).
+            held = sum(m.stored_items for m in members if m.kind == "index-shard")
+            assert held >= stored_at_stop["all shards"], (held, stored_at_stop)
 
             # 3. A router restart: the services reconnect by themselves.
             services = [
@@ -105,7 +113,14 @@ def test_a_stopped_robot_is_reported_missing_its_volumes_keep_its_data_and_the_r
                     assert c.attrs["State"]["StartedAt"] == started[c.name], f"{c.name} was restarted"
                     assert c.attrs["RestartCount"] == 0
             seq = read_constellations(Path(info.compose_file).parent / "dataset")
+            # Liveliness comes back a moment before every route to the services'
+            # queryables does: a query right then can find shards unreachable, and says
+            # so (failed_shards, as CI saw twice). The swarm must heal by itself, in bounded time.
+            healed_by = time.monotonic() + 30.0
             result = client.query(seq.constellations[FRAMES // 2])
+            while not result.complete and time.monotonic() < healed_by:
+                time.sleep(1.0)
+                result = client.query(seq.constellations[FRAMES // 2])
             assert result.complete, result
             assert result.matches, "a frame of the replayed data must be found again"
             router = container("router")
