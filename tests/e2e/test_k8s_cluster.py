@@ -62,6 +62,7 @@ from swarmrec.services.settings import IndexSettings, PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.gen.swarmrec.v1 import gateway_pb2, gateway_pb2_grpc
 from tests.conftest import REPO
+from tests.integration.support import group_rows
 from tests.unit.test_k8s_manifests import ROBOT_KINDS, cluster_env
 
 ROBOTS, FRAMES = 3, 300
@@ -359,23 +360,6 @@ def expected_holdings(
     """Per label group, the (robot, frame) of every frame with a non-empty slice in it."""
     descs = frame_descriptors(seq, robots)
     return {g: {rf for rf, d in descs.items() if d[lo:hi].any()} for g, (lo, hi) in enumerate(groups)}
-
-
-def group_rows(caller: Caller, swarm: str, shard: int, group: int) -> Rows:
-    """Every (robot, frame) ``shard`` holds for ``group``, paged through its ``transfer``."""
-    rows: Rows = set()
-    start = 0
-    while True:
-        reply = caller.call(
-            keys.endpoint(swarm, "index-shard", shard, "transfer"),
-            pb.TransferRequest(group=group, start_row=start),
-            pb.TransferReply,
-            target_robot=shard,
-        )
-        rows |= {(r.robot_id, r.frame_index) for r in reply.records}
-        start = reply.next_row
-        if reply.done:
-            return rows
 
 
 def settled_on(deployment: KubernetesDeployment, live: set[int], timeout_s: float = 240.0) -> Placement:

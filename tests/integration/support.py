@@ -21,6 +21,7 @@ from swarmrec.deployments.local import LocalDeployment, ServiceProcess
 from swarmrec.deployments.metrics import read_metrics
 from swarmrec.errors import NoReply
 from swarmrec.runtime import keys
+from swarmrec.runtime.rpc import Caller
 from swarmrec.synthetic import OfficeConfig, generate_office, write_dataset
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import schema_name
@@ -138,3 +139,20 @@ def write_office(folder: Path, n_frames: int = 200) -> Path:
     """The synthetic office world as constellation files (what ``swarmrec synth`` writes)."""
     write_dataset(generate_office(OfficeConfig(n_frames=n_frames)), folder)
     return folder
+
+
+def group_rows(caller: Caller, swarm: str, shard: int, group: int) -> set[tuple[int, int]]:
+    """Every (robot, frame) ``shard`` holds for ``group``, paged through its ``transfer``."""
+    rows: set[tuple[int, int]] = set()
+    start = 0
+    while True:
+        reply = caller.call(
+            keys.endpoint(swarm, "index-shard", shard, "transfer"),
+            pb.TransferRequest(group=group, start_row=start),
+            pb.TransferReply,
+            target_robot=shard,
+        )
+        rows |= {(r.robot_id, r.frame_index) for r in reply.records}
+        start = reply.next_row
+        if reply.done:
+            return rows

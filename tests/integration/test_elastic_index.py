@@ -47,7 +47,7 @@ from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import partial_descriptor_to_proto
 from swarmrec.wire.placement import placement_from_proto
 from tests.integration.conftest import running_swarm
-from tests.integration.support import wait_until
+from tests.integration.support import group_rows, wait_until
 
 ROBOTS, FRAMES = 4, 400
 STEPS = FRAMES // ROBOTS
@@ -60,23 +60,6 @@ def _as_shard(swarm: LocalDeployment, shard: int) -> ZenohClient:
     return ZenohClient(
         [swarm.endpoint], swarm.spec_swarm, timeout_s=5.0, tls=TlsFiles.in_dir(swarm.pki_dir, cn)
     )
-
-
-def group_rows(caller: Caller, swarm: str, shard: int, group: int) -> set[tuple[int, int]]:
-    """Every (robot, frame) ``shard`` holds for ``group``, paged through its ``transfer``."""
-    rows: set[tuple[int, int]] = set()
-    start = 0
-    while True:
-        reply = caller.call(
-            keys.endpoint(swarm, "index-shard", shard, "transfer"),
-            pb.TransferRequest(group=group, start_row=start),
-            pb.TransferReply,
-            target_robot=shard,
-        )
-        rows |= {(r.robot_id, r.frame_index) for r in reply.records}
-        start = reply.next_row
-        if reply.done:
-            return rows
 
 
 def expected_rows(dataset: Path, placement: Placement) -> dict[int, set[tuple[int, int]]]:
@@ -118,6 +101,13 @@ def check_holdings(swarm: LocalDeployment, dataset: Path) -> Placement:
     return placement
 
 
+def members(swarm: LocalDeployment) -> tuple[int, ...] | None:
+    """The members of the placement the live shards follow (None: no shard answered)."""
+    with swarm.client(5.0) as c:
+        placement = c.index_state().placement
+    return None if placement is None else placement.members
+
+
 def _settings(tmp_path: Path, swarm: str, **index: object) -> PlacesSettings:
     return PlacesSettings(
         source=DatasetSource(frames=FRAMES),
@@ -145,19 +135,32 @@ def test_a_shard_killed_and_a_new_one_added_mid_run_lose_nothing_and_scores_stay
         assert isinstance(d, LocalDeployment)
         held.append(d)
 
+    victim: list[int] = []
+
     def on_step(t: int) -> None:
         swarm = held[0]
         if t == 25:
-            sp = swarm.find("index-shard", 2)
+            # A shard that owns groups, and not the coordinator (the lowest): shard 2 unless
+            # the placement the swarm settled on at start gave it none (rendezvous can).
+            with swarm.client(5.0) as c:
+                placement = c.index_state().placement
+            assert placement is not None
+            owning = [m for m in placement.members if m != min(placement.members) and placement.groups_of(m)]
+            victim.append(2 if 2 in owning else owning[0])
+            sp = swarm.find("index-shard", victim[0])
             sp.proc.send_signal(signal.SIGKILL)
             sp.proc.wait(timeout=10)
+            # The coordinator drops it after the grace (1 s); a fast replay could reach step
+            # 60 first, and the test would then restart a shard the swarm never lost.
+            wait_until(lambda: members(swarm) is not None and victim[0] not in members(swarm), 30, "removal")
             events.append("killed")
         if t == 60:
-            # A brand-new shard 2: nothing on its disk.
-            shutil.rmtree(swarm.data_dir / "robot2" / "index-shard", ignore_errors=True)
-            started = swarm.start_robot(2, ["index-shard"])
+            # A brand-new shard of the same robot: nothing on its disk.
+            shutil.rmtree(swarm.data_dir / f"robot{victim[0]}" / "index-shard", ignore_errors=True)
+            started = swarm.start_robot(victim[0], ["index-shard"])
             assert started
             swarm.wait_ready(60.0)
+            wait_until(lambda: victim[0] in (members(swarm) or ()), 30, "the new shard a member")
             events.append("added")
 
     def after(d: Deployment) -> None:
@@ -173,7 +176,7 @@ def test_a_shard_killed_and_a_new_one_added_mid_run_lose_nothing_and_scores_stay
     assert summary.index.version >= 4  # removal and re-replication, then the new shard's handoff
     assert summary.index.handoff_records > 0
     final = seen["final"]
-    assert 2 in final.members and final.groups_of(2), "the new shard took groups"
+    assert victim[0] in final.members and final.groups_of(victim[0]), "the new shard took groups"
 
 
 @pytest.mark.slow
