@@ -126,6 +126,12 @@ class ServiceProcess:
             return ""
 
 
+def _for_robots(timeout_s: float, robots: int) -> float:
+    """A start-up wait grown by 3 s a robot beyond 40: on two cores a 100-robot swarm
+    (50 robots a process) once took over 120 s to start."""
+    return timeout_s + 3.0 * max(0, robots - 40)
+
+
 class LocalDeployment:
     """A swarm as processes on this machine (see the module docstring)."""
 
@@ -198,10 +204,9 @@ class LocalDeployment:
     def start(self, spec: SwarmSpec, *, progress: bool = False, timeout_s: float | None = None) -> None:
         """Router first, the per-swarm kinds, then every robot's services; returns when all are ready.
 
-        ``timeout_s`` defaults to 120 s, and 3 s a robot beyond 40: on two cores a
-        100-robot swarm (50 robots a process) took over 120 s to start once."""
+        ``timeout_s`` defaults to 120 s, longer for big swarms (:func:`_for_robots`)."""
         if timeout_s is None:
-            timeout_s = 120.0 + 3.0 * max(0, spec.robots - 40)
+            timeout_s = _for_robots(120.0, spec.robots)
         self.start_router(spec)
         started: list[ServiceProcess] = self.start_swarm_kinds()
         if self.robots_per_process is None:
@@ -214,9 +219,9 @@ class LocalDeployment:
 
     def wait_ready(self, timeout_s: float | None = None) -> None:
         """Every started service printed its readiness line and has been routed to
-        (``timeout_s``: 60 s, and 3 s a robot beyond 40, as :meth:`start`)."""
+        (``timeout_s``: 60 s, longer for big swarms, :func:`_for_robots`)."""
         if timeout_s is None:
-            timeout_s = 60.0 + 3.0 * max(0, (self.spec.robots if self.spec else 0) - 40)
+            timeout_s = _for_robots(60.0, self.spec.robots if self.spec else 0)
         self._wait(self.procs, timeout_s)
         with self.client(5.0) as client:
             running = {s for sp in self.procs if sp.proc.poll() is None for s in sp.services}
