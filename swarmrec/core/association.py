@@ -39,7 +39,16 @@ import numpy.typing as npt
 from swarmrec.core.descriptor import semantic_descriptors
 from swarmrec.core.types import Constellation
 
-__all__ = ["FrameTable", "PairScore", "associate", "build_table", "full_score", "score_pairs", "warm_up"]
+__all__ = [
+    "FrameTable",
+    "PairScore",
+    "associate",
+    "build_table",
+    "full_score",
+    "score_pairs",
+    "score_tables",
+    "warm_up",
+]
 
 IntArray = npt.NDArray[np.int64]
 FloatArray = npt.NDArray[np.float64]
@@ -65,6 +74,9 @@ class FrameTable:
     @property
     def n_frames(self) -> int:
         return int(self.offsets.shape[0] - 1)
+
+    def n_objects(self, frame: int) -> int:
+        return int(self.offsets[frame + 1] - self.offsets[frame])
 
 
 @numba.njit(cache=True)
@@ -283,8 +295,28 @@ def full_score(
     same_label_only: bool = False,
 ) -> PairScore:
     """Compare two constellations: Eq. 2-7 with the matched object pairs."""
-    ta = build_table([a], n_labels)
-    tb = build_table([b], n_labels)
+    return score_tables(
+        build_table([a], n_labels),
+        build_table([b], n_labels),
+        d=d,
+        min_common=min_common,
+        same_label_only=same_label_only,
+    )
+
+
+def score_tables(
+    ta: FrameTable,
+    tb: FrameTable,
+    *,
+    d: float = 0.25,
+    min_common: int = 3,
+    same_label_only: bool = False,
+) -> PairScore:
+    """:func:`full_score` of the first frame of ``ta`` against the first frame of ``tb``.
+
+    A service that compares one frame with many keeps each frame's one-frame table
+    (:func:`build_table` of it alone) instead of packing both frames again per pair."""
+    n_labels = ta.desc.shape[1]
     k = max(ta.max_objects, tb.max_objects, 1)
     matches = np.zeros((k, 2), np.int64)
     score, sem, count = _pair(

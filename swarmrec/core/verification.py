@@ -16,11 +16,11 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from swarmrec.core.association import full_score
+from swarmrec.core.association import FrameTable, build_table, score_tables
 from swarmrec.core.presets import Preset
 from swarmrec.core.types import Constellation
 
-__all__ = ["FrameMatch", "verify"]
+__all__ = ["FrameMatch", "verify", "verify_tables"]
 
 IntArray = npt.NDArray[np.int64]
 
@@ -50,17 +50,37 @@ def verify(
 ) -> list[FrameMatch]:
     """Score ``query`` against each ``(frame index, constellation)`` of ``own_robot``;
     every result, best first (ties by frame index)."""
+    return verify_tables(
+        build_table([query], n_labels),
+        query_key,
+        own_robot,
+        ((f, build_table([c], n_labels)) for f, c in frames),
+        preset,
+    )
+
+
+def verify_tables(
+    query: FrameTable,
+    query_key: tuple[int, int],
+    own_robot: int,
+    frames: Iterable[tuple[int, FrameTable]],
+    preset: Preset,
+) -> list[FrameMatch]:
+    """:func:`verify` with the query and each stored frame already packed as a one-frame
+    :class:`~swarmrec.core.association.FrameTable` (the verifier packs a frame once,
+    when it stores it, not once per query it is compared with)."""
     out = []
-    q_counts = np.bincount(query.labels, minlength=n_labels)
+    q_counts = query.desc[0]
+    n_query = query.n_objects(0)
     for frame, stored in frames:
         first_is_query = query_key < (own_robot, frame)
         a, b = (query, stored) if first_is_query else (stored, query)
-        s = full_score(
-            a, b, n_labels, d=preset.d, min_common=preset.min_common, same_label_only=preset.same_label_only
+        s = score_tables(
+            a, b, d=preset.d, min_common=preset.min_common, same_label_only=preset.same_label_only
         )
         pairs = s.matches if first_is_query else s.matches[:, ::-1]
-        common = int(np.minimum(q_counts, np.bincount(stored.labels, minlength=n_labels)).sum())
-        union = len(query) + len(stored) - common
+        common = int(np.minimum(q_counts, stored.desc[0]).sum())
+        union = n_query + stored.n_objects(0) - common
         out.append(FrameMatch(frame, s.score, s.semantic, np.ascontiguousarray(pairs), common, union))
     out.sort(key=lambda m: (-m.score, m.frame))
     return out

@@ -7,6 +7,13 @@ carrying a ``swarmrec.v1.ErrorReply``. The caller's robot id rides in the
 query's attachment so the answering service can tell radio traffic between
 robots from traffic inside one robot when it counts bytes.
 
+A call from a service to another service of its own robot hosted in the same process
+(``--hosting robot``) skips zenoh: the caller finds the endpoint in the process's
+:class:`LocalEndpoints` and runs its dispatcher in its own thread, on the same bytes,
+through the same checks, counters and error replies as a call over the bus. Only calls
+within one robot go so: between robots, even in one process, every byte goes through
+the router, the links and the access control the swarm is measured on.
+
 Per ../shared/ZENOH.md, zero replies is never success: a missing peer, a
 crashed peer and a peer not yet discovered all look alike, so
 :meth:`Pending.result` raises :class:`NoReply` for them, and a zenoh timeout
@@ -15,7 +22,9 @@ crashed peer and a peer not yet discovered all look alike, so
 
 from __future__ import annotations
 
+import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
@@ -32,6 +41,8 @@ from swarmrec.wire.codec import decode, encode, schema_name
 
 __all__ = [
     "Caller",
+    "LocalEndpoints",
+    "LocalServe",
     "Outcome",
     "Pending",
     "caller_robot",
@@ -66,6 +77,32 @@ def _short(schema: str) -> str:
     return schema.rsplit(".", 1)[-1] or "unknown"
 
 
+#: Serves one request in this process: (payload, request schema, caller's robot, key) ->
+#: (reply payload, reply schema, True for a reply or False for an ErrorReply).
+LocalServe = Callable[[bytes, str, "int | None", str], tuple[bytes, str, bool]]
+
+
+class LocalEndpoints:
+    """The endpoints this process serves, by key, for calls within one robot."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._serve: dict[str, tuple[int, LocalServe]] = {}
+
+    def add(self, key: str, robot: int, serve: LocalServe) -> None:
+        with self._lock:
+            self._serve[key] = (robot, serve)
+
+    def remove(self, key: str) -> None:
+        with self._lock:
+            self._serve.pop(key, None)
+
+    def find(self, key: str, robot: int) -> LocalServe | None:
+        """The endpoint at ``key`` when it belongs to ``robot``; None otherwise."""
+        found = self._serve.get(key)
+        return found[1] if found is not None and found[0] == robot else None
+
+
 @dataclass
 class Outcome(Generic[M]):
     """One reply of a scatter/gather request: the message or the error."""
@@ -88,9 +125,15 @@ class Pending:
     def _decode(self, rep: zenoh.Reply, reply_cls: type[M]) -> Outcome[M]:
         ok = rep.ok
         if ok is not None:
-            data = ok.payload.to_bytes()
-            self.caller.count_received(_short(schema_of(ok.encoding)), self.target_robot, len(data))
-            schema = schema_of(ok.encoding)
+            return self._outcome(True, ok.payload.to_bytes(), schema_of(ok.encoding), reply_cls)
+        err = rep.err
+        assert err is not None  # a zenoh Reply holds exactly one of ok / err
+        return self._outcome(False, err.payload.to_bytes(), schema_of(err.encoding), reply_cls)
+
+    def _outcome(self, ok: bool, data: bytes, schema: str, reply_cls: type[M]) -> Outcome[M]:
+        """One reply (``ok``) or error reply as the caller sees it."""
+        if ok:
+            self.caller.count_received(_short(schema), self.target_robot, len(data))
             if schema and schema != schema_name(reply_cls):
                 return Outcome(
                     None,
@@ -104,10 +147,7 @@ class Pending:
                 return Outcome(decode(data, reply_cls, max_size=self.caller.max_size), None)
             except WireError as e:
                 return Outcome(None, RemoteError(self.key, ErrorCode.MALFORMED, str(e)))
-        err = rep.err
-        assert err is not None  # a zenoh Reply holds exactly one of ok / err
-        data = err.payload.to_bytes()
-        if schema_of(err.encoding) == _ERROR_SCHEMA:
+        if schema == _ERROR_SCHEMA:
             self.caller.count_received("ErrorReply", self.target_robot, len(data))
             try:
                 msg = decode(data, pb.ErrorReply, max_size=self.caller.max_size)
@@ -140,6 +180,25 @@ class Pending:
 
 
 @dataclass
+class LocalPending(Pending):
+    """A request to an endpoint of the caller's own robot in this process: served in the
+    caller's thread when its result is first asked for, so the requests started after
+    it (to other robots) are already on their way meanwhile."""
+
+    serve: LocalServe | None = None
+    payload: bytes = b""
+    schema: str = ""
+    _answer: tuple[bytes, str, bool] | None = field(default=None, repr=False)
+
+    def gather(self, reply_cls: type[M]) -> list[Outcome[M]]:
+        if self._answer is None:
+            assert self.serve is not None
+            self._answer = self.serve(self.payload, self.schema, self.caller.robot, self.key)
+        data, schema, ok = self._answer
+        return [self._outcome(ok, data, schema, reply_cls)]
+
+
+@dataclass
 class Caller:
     """Sends requests from one process; counts their bytes in ``metrics``."""
 
@@ -148,6 +207,9 @@ class Caller:
     timeout_s: float = 2.0
     metrics: ServiceMetrics | None = None
     max_size: int = 1 << 20
+    #: This process's endpoints (a robot's services hosted together): calls to the
+    #: caller's own robot go to them directly.
+    local: LocalEndpoints | None = None
 
     def count_sent(self, message: str, target_robot: int | None, size: int) -> None:
         if self.metrics is not None:
@@ -177,7 +239,15 @@ class Caller:
         consolidation: the default would keep one reply per key).
         """
         payload = encode(request)
-        self.count_sent(_short(schema_name(request)), target_robot, len(payload))
+        schema = schema_name(request)
+        self.count_sent(_short(schema), target_robot, len(payload))
+        endpoint = endpoint or key.rsplit("/", 1)[-1]
+        if self.local is not None and not scatter and target_robot is not None and target_robot == self.robot:
+            serve = self.local.find(key, target_robot)
+            if serve is not None:
+                return LocalPending(
+                    key, self, target_robot, endpoint, None, serve=serve, payload=payload, schema=schema
+                )
         kwargs: dict[str, Any] = {}
         if scatter:
             kwargs = {"target": zenoh.QueryTarget.ALL, "consolidation": zenoh.ConsolidationMode.NONE}
@@ -191,7 +261,7 @@ class Caller:
             congestion_control=zenoh.CongestionControl.BLOCK,
             **kwargs,
         )
-        return Pending(key, self, target_robot, endpoint or key.rsplit("/", 1)[-1], replies)
+        return Pending(key, self, target_robot, endpoint, replies)
 
     def call(
         self,

@@ -65,7 +65,7 @@ from swarmrec.errors import (
 )
 from swarmrec.runtime import keys
 from swarmrec.runtime.metrics import MetricSet, MetricsServer, ServiceMetrics, scope_between
-from swarmrec.runtime.rpc import Caller, caller_robot, encoding_for, schema_of
+from swarmrec.runtime.rpc import Caller, LocalEndpoints, caller_robot, encoding_for, schema_of
 from swarmrec.runtime.settings import BusSettings, Component, Config, SecuritySettings, StorageSettings
 from swarmrec.runtime.storage import RecordLog
 from swarmrec.runtime.tls import apply_security
@@ -334,35 +334,53 @@ class _EndpointDispatcher(_Dispatcher):
         # detector/*/step): a router's access control allows a robot to reply on its own keys only.
         self.key = keys.endpoint(ctx.bus.swarm, ctx.kind, ctx.bus.robot, endpoint.name)
 
+    def answer(self, data: bytes, schema: str, robot: int | None, key: str) -> tuple[Message, bytes, bool]:
+        """The reply to one request, or the ErrorReply to answer instead, encoded: (message,
+        payload, True for a reply). Never raises: every refusal is counted and logged."""
+        scope = scope_between(self.ctx.bus.robot, robot)
+        try:
+            request = self.parse(data, schema, scope)
+            reply = self.endpoint.handler(self.service, request, RequestContext(robot, key))
+            return reply, encode(reply), True
+        except Exception as e:
+            code = self.refuse(e, robot)
+            message = e.message if isinstance(e, RequestError) else str(e)
+            if code == ErrorCode.INTERNAL and not isinstance(e, RequestError):
+                message = f"{type(e).__name__}: {e}"
+            err = error_reply(code, message)
+            return err, encode(err), False
+
     def serve(self, query: zenoh.Query) -> None:
         t0 = time.perf_counter()
         robot = caller_robot(query.attachment)
-        scope = scope_between(self.ctx.bus.robot, robot)
         try:
             data = query.payload.to_bytes() if query.payload is not None else b""
-            request = self.parse(data, schema_of(query.encoding), scope)
-            reply = self.endpoint.handler(self.service, request, RequestContext(robot, str(query.key_expr)))
-            payload = encode(reply)
-            query.reply(self.key, payload, encoding=encoding_for(reply))
-            self.ctx.metrics.count_sent(type(reply).__name__, scope, len(payload))
-        except Exception as e:
-            self._reply_error(query, scope, e, robot)
+            msg, payload, ok = self.answer(data, schema_of(query.encoding), robot, str(query.key_expr))
+            try:
+                if ok:
+                    query.reply(self.key, payload, encoding=encoding_for(msg))
+                else:
+                    query.reply_err(payload, encoding=encoding_for(msg))
+            except zenoh.ZError:
+                return  # the caller is gone; nothing left to tell
+            self.ctx.metrics.count_sent(
+                type(msg).__name__, scope_between(self.ctx.bus.robot, robot), len(payload)
+            )
         finally:
             query.drop()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub  # finish the query so the caller does not wait for its timeout
             self.latency.observe(time.perf_counter() - t0)
 
-    def _reply_error(self, query: zenoh.Query, scope: str, e: Exception, robot: int | None) -> None:
-        code = self.refuse(e, robot)
-        message = e.message if isinstance(e, RequestError) else str(e)
-        if code == ErrorCode.INTERNAL and not isinstance(e, RequestError):
-            message = f"{type(e).__name__}: {e}"
-        err = error_reply(code, message)
-        payload = encode(err)
+    def serve_local(self, data: bytes, schema: str, robot: int | None, key: str) -> tuple[bytes, str, bool]:
+        """A call from a service of the same robot in this process (:class:`LocalEndpoints`)."""
+        t0 = time.perf_counter()
         try:
-            query.reply_err(payload, encoding=encoding_for(err))
-            self.ctx.metrics.count_sent("ErrorReply", scope, len(payload))
-        except zenoh.ZError:
-            pass  # the caller is gone; nothing left to tell
+            msg, payload, ok = self.answer(data, schema, robot, key)
+            self.ctx.metrics.count_sent(
+                type(msg).__name__, scope_between(self.ctx.bus.robot, robot), len(payload)
+            )
+            return payload, schema_name(msg), ok
+        finally:
+            self.latency.observe(time.perf_counter() - t0)
 
 
 @dataclass(frozen=True)
@@ -493,6 +511,8 @@ class _Running:
     threads: list[threading.Thread] = field(default_factory=list)
     subscriptions: list[tuple[_SubscriptionDispatcher, int]] = field(default_factory=list)
     token: Any = None
+    #: Its endpoints' keys in the process's LocalEndpoints.
+    local_keys: list[str] = field(default_factory=list)
 
 
 def _start(r: _Running) -> None:
@@ -501,13 +521,19 @@ def _start(r: _Running) -> None:
     bus, session = ctx.bus, ctx.session
     r.service = service = h.factory(ctx)
     for ep in service.ENDPOINTS:
-        q = session.declare_queryable(keys.endpoint(bus.swarm, h.kind, bus.robot, ep.name))
+        key = keys.endpoint(bus.swarm, h.kind, bus.robot, ep.name)
+        q = session.declare_queryable(key)
         r.declared.append(q)
-        serve = _EndpointDispatcher(ctx, service, ep).serve
+        endpoint = _EndpointDispatcher(ctx, service, ep)
         for i in range(bus.workers):
-            t = threading.Thread(target=_work, args=(q, serve), name=f"{h.name}-{ep.name}-{i}", daemon=True)
+            t = threading.Thread(
+                target=_work, args=(q, endpoint.serve), name=f"{h.name}-{ep.name}-{i}", daemon=True
+            )
             t.start()
             r.threads.append(t)
+        if ctx.caller.local is not None:
+            ctx.caller.local.add(key, bus.robot, endpoint.serve_local)
+            r.local_keys.append(key)
     for sub in service.SUBSCRIPTIONS:
         dispatcher = _SubscriptionDispatcher(ctx, service, sub)
         for i in range(sub.workers):
@@ -543,6 +569,10 @@ def _stop(r: _Running) -> None:
     service was told it stops before: :func:`_tell_stopping`)."""
     if r.token is not None:
         r.token.undeclare()
+    local = r.ctx.caller.local
+    for key in r.local_keys:
+        if local is not None:
+            local.remove(key)
     for d in r.declared:
         d.undeclare()
     for dispatcher, workers in r.subscriptions:
@@ -564,9 +594,9 @@ def run_services(
     """Run several services in this process over one zenoh session until ``stop`` is set
     (or SIGTERM/SIGINT); returns an exit code.
 
-    A robot's services in one process talk to each other through the session without
-    a network hop (zenoh delivers a query to a queryable of the same session locally);
-    many robots can share a process the same way (a simulation). Each service keeps its
+    A robot's services in one process call each other directly (the caller's thread runs
+    the endpoint's dispatcher: :class:`~swarmrec.runtime.rpc.LocalEndpoints`); many robots
+    can share a process (a simulation), and talk to each other through the router. Each service keeps its
     own endpoints, worker threads, logs, metrics registry and liveliness token, so peers
     cannot tell it from a service alone in its process. Metrics: one HTTP endpoint for
     the process (:class:`~swarmrec.runtime.metrics.MetricsServer`).
@@ -592,6 +622,8 @@ def run_services(
             host_ready.set(0)
             server.add("/metrics", host_registry)
     running: list[_Running] = []
+    # Calls between services of one robot in this process skip zenoh (rpc.LocalEndpoints).
+    local = LocalEndpoints()
     conf = zenoh_config(bus, hosted[0].security, identity=_session_identity(hosted), log=host_log)
     with zenoh.open(conf) as session:
         try:
@@ -602,7 +634,7 @@ def run_services(
                     metrics.url = server.add(
                         "/metrics" if single else f"/metrics/{h.kind}/{b.robot}", metrics.registry
                     )
-                caller = Caller(session, b.robot, b.request_timeout_s, metrics, b.max_message_bytes)
+                caller = Caller(session, b.robot, b.request_timeout_s, metrics, b.max_message_bytes, local)
                 own = h.metric_set.create(metrics.registry) if h.metric_set is not None else None
                 log = host_log if single else service_logger(h.kind, b.robot, b.log_level)
                 cn = h.security.identity or h.identity
