@@ -16,7 +16,11 @@ tick (``placement_tick_s``) the acting coordinator:
    ones) and, once ``rebalance_min_queries`` (and 20 a member shard) partial queries were served since
    the last look, the observed load (:func:`~swarmrec.core.placement.rebalance`,
    to ``rebalance_target``), and starts the handoff
-   (:func:`~swarmrec.core.placement.transition`).
+   (:func:`~swarmrec.core.placement.transition`). The load is every query the
+   shards served since they started, not the last window's: a robot crossing
+   a room shifts the window's load from label to label, and a placement that
+   chases the window moves groups at every look. A rebalancing that would
+   lower the busiest shard's load by less than ``MIN_GAIN`` moves nothing.
 
 Every shard, coordinator or not, first checks on start that the swarm is not
 further along than the placement it loaded (:meth:`Coordinator.confirm_on_start`).
@@ -41,6 +45,11 @@ from swarmrec.wire.placement import placement_from_proto, placement_to_proto
 #: Partial queries a rebalancing looks at, at least, per member shard (beside
 #: ``rebalance_min_queries``): 200 for 10 shards, 2000 for 100.
 QUERIES_PER_SHARD = 20
+
+#: A rebalancing must lower the busiest shard's share of the load by at least this
+#: fraction, or nothing moves: every move is a handoff, and a placement every querier
+#: must learn (stores routed with the old one are refused until their sender refreshes).
+MIN_GAIN = 0.1
 
 
 class Shard(Protocol):
@@ -273,8 +282,9 @@ class Coordinator:
             self.publish(step, live)
 
     def _rebalanced(self, current: Placement, states: dict[int, pb.ShardState]) -> Placement | None:
-        """A placement with a better balance, from the partial queries served since the last
-        look, once there are ``rebalance_min_queries`` of them; None otherwise."""
+        """A placement with a better balance under every partial query the shards served,
+        looked for once ``rebalance_min_queries`` more were served since the last look, and
+        taken when it lowers the busiest shard's load by ``MIN_GAIN`` at least; None otherwise."""
         totals: dict[int, int] = {}
         for st in states.values():
             for g, n in enumerate(st.group_queries):
@@ -288,21 +298,15 @@ class Coordinator:
         if sum(window.values()) < needed:
             return None
         self._load_mark = totals
-        loads = shard_loads(current, {g: float(n) for g, n in window.items()})
-        balanced = rebalance(
-            current, {g: float(n) for g, n in window.items()}, target=self.settings.rebalance_target
-        )
+        load = {g: float(n) for g, n in totals.items()}
+        balanced = rebalance(current, load, target=self.settings.rebalance_target)
         if balanced.owners == current.owners:
             return None
-        after = shard_loads(balanced, {g: float(n) for g, n in window.items()})
-        self.log.info(
-            "rebalancing",
-            extra={
-                "fields": {
-                    "queries": sum(window.values()),
-                    "busiest_before": max(loads.values()),
-                    "busiest_after": max(after.values()),
-                }
-            },
-        )
+        before = max(shard_loads(current, load).values())
+        after = max(shard_loads(balanced, load).values())
+        fields = {"queries": sum(totals.values()), "busiest_before": before, "busiest_after": after}
+        if after > (1.0 - MIN_GAIN) * before:
+            self.log.info("rebalancing skipped: too small a gain", extra={"fields": fields})
+            return None
+        self.log.info("rebalancing", extra={"fields": fields})
         return balanced
