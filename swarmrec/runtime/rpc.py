@@ -10,7 +10,8 @@ robots from traffic inside one robot when it counts bytes.
 A call from a service to another service of its own robot hosted in the same process
 (``--hosting robot``) skips zenoh: the caller finds the endpoint in the process's
 :class:`LocalEndpoints` and runs its dispatcher in its own thread, on the same bytes,
-through the same checks, counters and error replies as a call over the bus. Only calls
+through the same checks, counters and error replies as a call over the bus (it has no
+timeout: its handler runs in the caller's own thread, in the same process). Only calls
 within one robot go so: between robots, even in one process, every byte goes through
 the router, the links and the access control the swarm is measured on.
 
