@@ -343,19 +343,28 @@ class _EndpointDispatcher(_Dispatcher):
             reply = self.endpoint.handler(self.service, request, RequestContext(robot, key))
             return reply, encode(reply), True
         except Exception as e:
-            code = self.refuse(e, robot)
-            message = e.message if isinstance(e, RequestError) else str(e)
-            if code == ErrorCode.INTERNAL and not isinstance(e, RequestError):
-                message = f"{type(e).__name__}: {e}"
-            err = error_reply(code, message)
-            return err, encode(err), False
+            return self._error(e, robot)
+
+    def _error(self, e: Exception, robot: int | None) -> tuple[Message, bytes, bool]:
+        """The ErrorReply for ``e`` (counted and logged), as :meth:`answer` returns it."""
+        code = self.refuse(e, robot)
+        message = e.message if isinstance(e, RequestError) else str(e)
+        if code == ErrorCode.INTERNAL and not isinstance(e, RequestError):
+            message = f"{type(e).__name__}: {e}"
+        err = error_reply(code, message)
+        return err, encode(err), False
 
     def serve(self, query: zenoh.Query) -> None:
         t0 = time.perf_counter()
         robot = caller_robot(query.attachment)
         try:
-            data = query.payload.to_bytes() if query.payload is not None else b""
-            msg, payload, ok = self.answer(data, schema_of(query.encoding), robot, str(query.key_expr))
+            try:
+                data = query.payload.to_bytes() if query.payload is not None else b""
+                schema, key = schema_of(query.encoding), str(query.key_expr)
+            except Exception as e:  # a query that cannot be read is answered too, never fatal
+                msg, payload, ok = self._error(e, robot)
+            else:
+                msg, payload, ok = self.answer(data, schema, robot, key)
             try:
                 if ok:
                     query.reply(self.key, payload, encoding=encoding_for(msg))
@@ -570,8 +579,8 @@ def _stop(r: _Running) -> None:
     if r.token is not None:
         r.token.undeclare()
     local = r.ctx.caller.local
-    for key in r.local_keys:
-        if local is not None:
+    if local is not None:
+        for key in r.local_keys:
             local.remove(key)
     for d in r.declared:
         d.undeclare()
