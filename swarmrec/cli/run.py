@@ -271,10 +271,11 @@ def print_summary(s: PlacesSummary, out: Path) -> None:
     if s.index is not None:
         ix = s.index
         state = "settled" if ix.settled else f"NOT settled, {ix.pending_stores} stores pending"
+        weight = "" if ix.store_weight is None else f"; a store costs {ix.store_weight:.2f} of a query (CPU)"
         print(
             f"  index: {ix.replicas} replicas a group, placement version {ix.version} "
             f"({ix.placements_published:.0f} published, {ix.handoff_records:.0f} descriptors handed off), "
-            f"{state}"
+            f"{state}{weight}"
         )
     if s.positions_effect is not None:
         pe = s.positions_effect

@@ -17,7 +17,10 @@ decides *where* groups live; nothing here touches a score.
   for hot groups and moves from the busiest shard, until the worst balance ratio
   is at most ``target`` (or no move helps). A query is spread over a group's
   replicas by :func:`serving_owner`, so a group of load ``L`` on ``r`` replicas puts
-  ``L / r`` on each.
+  ``L / r`` queries on each; but every replica also stores every slice of the group,
+  the ``r - 1`` it was not asked for as a ``ShardStore`` of relative cost
+  ``store_weight`` (:func:`owner_load`). A replica only lightens its owners when a
+  store costs less than a query (``store_weight < 1``), and less so the more there are.
 * :func:`serving_owner`: the replica of a group that answers a given query, chosen
   by a stable hash of (robot, frame, group) among the live owners.
 
@@ -55,6 +58,7 @@ __all__ = [
     "follow_members",
     "group_of_label",
     "groups_from_bounds",
+    "owner_load",
     "place",
     "promote",
     "rebalance",
@@ -326,11 +330,25 @@ def follow_members(current: Placement, members: Iterable[int]) -> Placement:
     return Placement(version, current.groups, tuple(owners), ids, current.replicas)
 
 
-def shard_loads(placement: Placement, group_load: Mapping[int, float]) -> dict[int, float]:
-    """Expected load of each member when a group's queries are spread evenly over its owners."""
+def owner_load(queries: float, owners: int, store_weight: float = 0.0) -> float:
+    """The load one of ``owners`` replicas of a group bears when the group is queried
+    ``queries`` times: ``queries / owners`` partial queries (each a search and a store),
+    and the ``queries * (owners - 1) / owners`` slices the others were asked for, each a
+    ``ShardStore`` costing ``store_weight`` of a query. So one more replica changes every
+    owner's load by ``queries * (store_weight - 1) / (owners * (owners + 1))``: it helps
+    only while a store is cheaper than a query."""
+    return queries / owners * (1.0 + store_weight * (owners - 1))
+
+
+def shard_loads(
+    placement: Placement, group_load: Mapping[int, float], store_weight: float = 0.0
+) -> dict[int, float]:
+    """Expected load of each member when a group's queries are spread evenly over its owners
+    and each owner stores the slices the others were asked for (:func:`owner_load`)."""
+    _check_weight(store_weight)
     out = dict.fromkeys(placement.members, 0.0)
     for g, own in enumerate(placement.owners):
-        share = float(group_load.get(g, 0.0)) / len(own)
+        share = owner_load(float(group_load.get(g, 0.0)), len(own), store_weight)
         for m in own:
             out[m] += share
     return out
@@ -349,24 +367,44 @@ def rebalance(
     *,
     target: float = 1.5,
     max_changes: int = 64,
+    store_weight: float = 0.0,
+    min_replica_gain: float = 0.0,
 ) -> Placement:
     """A placement whose worst balance ratio under ``group_load`` is at most ``target``
     where moves can get it there: the busiest shard's hottest group gets one more
-    replica on the least loaded shard (which spreads its queries), or, when it is
-    already everywhere it can be, a group moves off the busiest shard. At most
-    ``max_changes`` steps; every group keeps at least its ``replicas`` owners.
+    replica on the least loaded shard (which spreads its queries), or, when that does
+    not help (a store costs as much as a query: ``store_weight``, :func:`owner_load`)
+    or it is already everywhere it can be, a group moves off the busiest shard. A step
+    is taken only when it lowers the busiest shard's load and lifts no shard to it; a
+    replica only when it also lowers each owner's share of its group by
+    ``min_replica_gain`` at least (with stores counted, each replica helps less than
+    the last: this bounds a hot group's replicas, each a ShardStore more a query). At
+    most ``max_changes`` steps; every group keeps at least its ``replicas`` owners.
     Deterministic: the same placement and loads give the same result."""
     _check_finite(group_load.values())
+    _check_weight(store_weight)
     owners = [list(o) for o in current.owners]
     members = list(current.members)
+
+    def share(g: int, n_owners: int) -> float:
+        return owner_load(float(group_load.get(g, 0.0)), n_owners, store_weight)
 
     def loads() -> dict[int, float]:
         out = dict.fromkeys(members, 0.0)
         for g, own in enumerate(owners):
-            share = float(group_load.get(g, 0.0)) / len(own)
             for m in own:
-                out[m] += share
+                out[m] += share(g, len(own))
         return out
+
+    def helps(now: dict[int, float], busiest: int, g: int, trial: list[int]) -> bool:
+        """Whether ``g`` on ``trial`` instead lowers the busiest load and lifts none to it."""
+        after = dict(now)
+        for m in owners[g]:
+            after[m] -= share(g, len(owners[g]))
+        for m in trial:
+            after[m] += share(g, len(trial))
+        top = now[busiest]
+        return after[busiest] < top and all(after[m] < top for m in set(trial) | set(owners[g]))
 
     for _ in range(max_changes):
         now = loads()
@@ -376,26 +414,27 @@ def rebalance(
         idle = min(members, key=lambda m: (now[m], m))
         held = sorted(
             (g for g, own in enumerate(owners) if busiest in own),
-            key=lambda g: (-float(group_load.get(g, 0.0)) / len(owners[g]), g),
+            key=lambda g: (-share(g, len(owners[g])), g),
         )
         step = None
         for g in held:
-            if idle not in owners[g]:
+            k = len(owners[g])
+            if idle not in owners[g] and share(g, k + 1) <= (1.0 - min_replica_gain) * share(g, k):
                 trial = owners[g] + [idle]
-                share = float(group_load.get(g, 0.0)) / len(trial)
-                if now[idle] + share < now[busiest]:
+                if helps(now, busiest, g, trial):
                     step = (g, trial)
                     break
         if step is None:
-            # Every hot group is already on the idle shard: move one replica off the busiest.
+            # No replica helps (every hot group is on the idle shard already, or stores cost
+            # as much as the queries they would spread): move one replica off the busiest.
             for g in held:
                 others = [m for m in members if m not in owners[g]]
                 if not others:
                     continue
                 dest = min(others, key=lambda m: (now[m], m))
-                share = float(group_load.get(g, 0.0)) / len(owners[g])
-                if now[dest] + share < now[busiest]:
-                    step = (g, [dest if m == busiest else m for m in owners[g]])
+                trial = [dest if m == busiest else m for m in owners[g]]
+                if helps(now, busiest, g, trial):
+                    step = (g, trial)
                     break
         if step is None:
             break
@@ -424,6 +463,11 @@ def groups_from_bounds(bounds: Sequence[int]) -> tuple[tuple[int, int], ...]:
     holds at least one label, so group ``g`` is the ``g``-th non-empty range."""
     pairs = ((int(bounds[i]), int(bounds[i + 1])) for i in range(len(bounds) - 1))
     return tuple((lo, hi) for lo, hi in pairs if hi > lo)
+
+
+def _check_weight(store_weight: float) -> None:
+    if not (math.isfinite(store_weight) and store_weight >= 0.0):
+        raise ConfigError(f"a store's weight must be finite and at least 0, got {store_weight}")
 
 
 def _check_finite(values: Iterable[float]) -> None:

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import socket
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import ClassVar, TypeVar
 
@@ -107,6 +107,28 @@ def _families(registry: CollectorRegistry) -> list[MetricInfo]:
 
 
 @dataclass
+class EndpointCost:
+    """The requests a service served on one endpoint and the CPU time they took (of the
+    serving thread: reading, decoding, the handler, encoding and replying), which a
+    service can read back (an index shard reports its queries' and stores' costs to
+    the coordinator, which rebalances on them)."""
+
+    calls: int = 0
+    cpu_s: float = 0.0
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+
+    def add(self, cpu_s: float) -> None:
+        with self._lock:
+            self.calls += 1
+            self.cpu_s += cpu_s
+
+    def snapshot(self) -> tuple[int, float]:
+        """(calls, CPU seconds), read together."""
+        with self._lock:
+            return self.calls, self.cpu_s
+
+
+@dataclass
 class ServiceMetrics:
     """The families every service exports, in a registry of its own."""
 
@@ -116,10 +138,16 @@ class ServiceMetrics:
     messages_sent: Counter
     messages_received: Counter
     request_seconds: Histogram
+    request_cpu_seconds: Counter
     rejected: Counter
     peer_failures: Counter
     ready: Gauge
     url: str = ""
+    costs: dict[str, EndpointCost] = field(default_factory=dict)
+
+    def cost(self, endpoint: str) -> EndpointCost:
+        """The running cost of ``endpoint`` (made on first use; one per endpoint name)."""
+        return self.costs.setdefault(endpoint, EndpointCost())
 
     @classmethod
     def create(cls, kind: str, robot: int, swarm: str) -> ServiceMetrics:
@@ -159,6 +187,12 @@ class ServiceMetrics:
                 ("endpoint",),
                 buckets=LATENCY_BUCKETS,
                 registry=reg,
+            ),
+            request_cpu_seconds=counter(
+                "swarmrec_request_cpu_seconds",
+                "CPU time of the serving thread to serve requests (or handle subscribed messages), "
+                "by endpoint",
+                ("endpoint",),
             ),
             rejected=counter(
                 "swarmrec_rejected_requests",

@@ -21,6 +21,12 @@ tick (``placement_tick_s``) the acting coordinator:
    a room shifts the window's load from label to label, and a placement that
    chases the window moves groups at every look. A rebalancing that would
    lower the busiest shard's load by less than ``MIN_GAIN`` moves nothing.
+   A group's every replica stores every slice of it, so the load model weighs
+   those stores with the CPU time the shards measured for a store against a
+   query (:func:`store_weight`): where a store costs as much as a query, a
+   replica spreads nothing and a rebalancing moves groups instead of copying them;
+   a replica is added only if it lowers its group's share on each owner by
+   ``MIN_GAIN``, which bounds a hot group's replicas (2 or 3 at the measured weight).
 
 Every shard, coordinator or not, first checks on start that the swarm is not
 further along than the placement it loaded (:meth:`Coordinator.confirm_on_start`).
@@ -28,8 +34,10 @@ further along than the placement it loaded (:meth:`Coordinator.confirm_on_start`
 
 from __future__ import annotations
 
+import math
 import threading
 import time
+from collections.abc import Iterable
 from typing import Protocol
 
 from swarmrec.core.placement import Placement, follow_members, promote, rebalance, shard_loads, transition
@@ -50,6 +58,32 @@ QUERIES_PER_SHARD = 20
 #: fraction, or nothing moves: every move is a handoff, and a placement every querier
 #: must learn (stores routed with the old one are refused until their sender refreshes).
 MIN_GAIN = 0.1
+
+#: A store's cost relative to a partial query's until the shards have measured both
+#: (``MIN_COST_SAMPLES`` of each): as costly, so that no replica is added on a guess
+#: (every replica is a ShardStore more on every query of its group). Measured in a
+#: 10-robot TUM swarm on the 2-core machine: a store costs about half a query (both
+#: are mostly the cost of a message; the search is the rest).
+DEFAULT_STORE_WEIGHT = 1.0
+MIN_COST_SAMPLES = 100
+#: The measured weight is kept within this (a shard's report is not trusted further).
+MAX_STORE_WEIGHT = 4.0
+
+
+def store_weight(states: Iterable[pb.ShardState]) -> float:
+    """A ShardStore's CPU cost over a partial query's, from what the shards measured since
+    they started (their sums); ``DEFAULT_STORE_WEIGHT`` until each was measured
+    ``MIN_COST_SAMPLES`` times. A report that is not finite or is negative is left out."""
+    q_n = s_n = 0
+    q_s = s_s = 0.0
+    for st in states:
+        if not all(math.isfinite(v) and v >= 0.0 for v in (st.query_cpu_s, st.store_cpu_s)):
+            continue
+        q_n, q_s = q_n + st.query_calls, q_s + st.query_cpu_s
+        s_n, s_s = s_n + st.store_calls, s_s + st.store_cpu_s
+    if q_n < MIN_COST_SAMPLES or s_n < MIN_COST_SAMPLES or q_s <= 0.0:
+        return DEFAULT_STORE_WEIGHT
+    return min(MAX_STORE_WEIGHT, (s_s / s_n) / (q_s / q_n))
 
 
 class Shard(Protocol):
@@ -299,12 +333,24 @@ class Coordinator:
             return None
         self._load_mark = totals
         load = {g: float(n) for g, n in totals.items()}
-        balanced = rebalance(current, load, target=self.settings.rebalance_target)
+        weight = store_weight(states.values())
+        balanced = rebalance(
+            current,
+            load,
+            target=self.settings.rebalance_target,
+            store_weight=weight,
+            min_replica_gain=MIN_GAIN,
+        )
         if balanced.owners == current.owners:
             return None
-        before = max(shard_loads(current, load).values())
-        after = max(shard_loads(balanced, load).values())
-        fields = {"queries": sum(totals.values()), "busiest_before": before, "busiest_after": after}
+        before = max(shard_loads(current, load, weight).values())
+        after = max(shard_loads(balanced, load, weight).values())
+        fields = {
+            "queries": sum(totals.values()),
+            "store_weight": round(weight, 3),
+            "busiest_before": before,
+            "busiest_after": after,
+        }
         if after > (1.0 - MIN_GAIN) * before:
             self.log.info("rebalancing skipped: too small a gain", extra={"fields": fields})
             return None

@@ -199,8 +199,14 @@ class IndexShard(ServiceBase):
         self.metrics.groups.labels("learner").set(len(self.placement.learning(self.shard)))
 
     def state(self) -> pb.ShardState:
+        query_calls, query_cpu_s = self.ctx.metrics.cost("query").snapshot()
+        store_calls, store_cpu_s = self.ctx.metrics.cost("store").snapshot()
         with self.lock:
             return pb.ShardState(
+                query_calls=query_calls,
+                query_cpu_s=query_cpu_s,
+                store_calls=store_calls,
+                store_cpu_s=store_cpu_s,
                 placement=placement_to_proto(self.placement),
                 shard_id=self.shard,
                 ready_groups=sorted(self.ready),

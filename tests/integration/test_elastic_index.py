@@ -42,6 +42,7 @@ from swarmrec.experiments.places import PlacesSettings, main
 from swarmrec.runtime import keys
 from swarmrec.runtime.rpc import Caller
 from swarmrec.runtime.tls import TlsFiles
+from swarmrec.services.coordinator import MAX_STORE_WEIGHT
 from swarmrec.services.settings import IndexSettings, PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import partial_descriptor_to_proto
@@ -176,6 +177,8 @@ def test_a_shard_killed_and_a_new_one_added_mid_run_lose_nothing_and_scores_stay
     assert summary.index is not None and summary.index.settled
     assert summary.index.version >= 4  # removal and re-replication, then the new shard's handoff
     assert summary.index.handoff_records > 0
+    # The shards measured what a query and a store cost them (the rebalancing's weight).
+    assert summary.index.store_weight is not None and 0.0 < summary.index.store_weight < MAX_STORE_WEIGHT
     final = seen["final"]
     assert victim[0] in final.members and final.groups_of(victim[0]), "the new shard took groups"
 

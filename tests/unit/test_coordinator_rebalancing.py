@@ -9,10 +9,20 @@ started)."""
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
+import pytest
+
 from swarmrec.core.placement import Placement, shard_loads
-from swarmrec.services.coordinator import MIN_GAIN, Coordinator
+from swarmrec.services.coordinator import (
+    DEFAULT_STORE_WEIGHT,
+    MAX_STORE_WEIGHT,
+    MIN_COST_SAMPLES,
+    MIN_GAIN,
+    Coordinator,
+    store_weight,
+)
 from swarmrec.services.settings import IndexSettings
 from swarmrec.wire import messages as pb
 
@@ -50,8 +60,8 @@ def test_a_move_that_lowers_the_busiest_load_by_less_than_the_gain_moves_nothing
 
 
 def test_a_move_that_lowers_the_busiest_load_by_the_gain_is_taken() -> None:
-    # Shard 0 holds groups 0 and 1 (60 + 60); the others 10 each: a replica of each hot
-    # group elsewhere halves the busiest load, far more than MIN_GAIN.
+    # Shard 0 holds groups 0 and 1 (60 + 60); the others 10 each: moving a hot group
+    # elsewhere halves the busiest load, far more than MIN_GAIN.
     current = Placement(1, GROUPS, ((0,), (0,), (1,), (2,)), (0, 1, 2), replicas=1)
     seen = states([60, 60, 0, 0], [0, 0, 10, 0], [0, 0, 0, 10])
     balanced = coordinator()._rebalanced(current, seen)
@@ -79,3 +89,59 @@ def test_no_look_before_enough_new_queries() -> None:
     seen = states([60, 60, 0, 0], [0, 0, 10, 0], [0, 0, 0, 10])
     # 140 queries served; 200 needed (and 20 a member shard: 60).
     assert coordinator(min_queries=200)._rebalanced(current, seen) is None
+
+
+def costed(queries: int, query_s: float, stores: int, store_s: float) -> pb.ShardState:
+    return pb.ShardState(query_calls=queries, query_cpu_s=query_s, store_calls=stores, store_cpu_s=store_s)
+
+
+def test_the_store_weight_is_the_measured_cost_of_a_store_over_a_query() -> None:
+    # Two shards: 300 queries in 0.6 s (2 ms each), 200 stores in 0.1 s (0.5 ms each).
+    seen = [costed(100, 0.2, 150, 0.05), costed(200, 0.4, 50, 0.05)]
+    assert store_weight(seen) == pytest.approx(0.25)
+
+
+def test_the_store_weight_is_assumed_until_both_costs_were_measured() -> None:
+    few = MIN_COST_SAMPLES - 1
+    assert store_weight([costed(1000, 1.0, few, 0.001)]) == DEFAULT_STORE_WEIGHT
+    assert store_weight([costed(few, 1.0, 1000, 0.001)]) == DEFAULT_STORE_WEIGHT
+    assert store_weight([]) == DEFAULT_STORE_WEIGHT
+
+
+def test_a_shard_reporting_nonsense_costs_is_left_out_and_the_weight_bounded() -> None:
+    good = costed(200, 0.2, 200, 0.1)
+    assert store_weight([good, costed(10**9, math.nan, 10**9, 1.0)]) == 0.5
+    assert store_weight([good, costed(10**9, -1.0, 10**9, 1.0)]) == 0.5
+    assert store_weight([costed(200, 0.001, 200, 1000.0)]) == MAX_STORE_WEIGHT
+
+
+def test_where_a_store_costs_as_much_as_a_query_the_coordinator_moves_rather_than_copies() -> None:
+    # Shard 0 holds the hot group 0 (120 queries) with shard 1, and group 1 (60) with
+    # shard 2; shard 3 is idle. With stores nearly free a third replica spreads group 0;
+    # with stores measured as costly as queries a replica spreads nothing (each owner
+    # stores every slice), so a group moves off shard 0 instead.
+    groups = ((0, 1), (1, 2))
+    current = Placement(1, groups, ((0, 1), (0, 2)), (0, 1, 2, 3), replicas=2)
+    per_shard = [[60, 30], [60, 0], [0, 30], [0, 0]]
+
+    def seen(store_s: float) -> dict[int, pb.ShardState]:
+        return {
+            m: pb.ShardState(
+                shard_id=m,
+                group_queries=q,
+                query_calls=300,
+                query_cpu_s=0.3,
+                store_calls=300,
+                store_cpu_s=store_s,
+            )
+            for m, q in enumerate(per_shard)
+        }
+
+    load = {0: 120.0, 1: 60.0}
+    costly = coordinator()._rebalanced(current, seen(0.3))
+    assert costly is not None
+    assert [len(o) for o in costly.owners] == [2, 2]
+    assert max(shard_loads(costly, load, 1.0).values()) < max(shard_loads(current, load, 1.0).values())
+    cheap = coordinator()._rebalanced(current, seen(0.003))
+    assert cheap is not None
+    assert len(cheap.owners[0]) > 2

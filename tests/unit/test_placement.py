@@ -10,6 +10,7 @@ from swarmrec.core.placement import (
     balance_ratio,
     follow_members,
     groups_from_bounds,
+    owner_load,
     place,
     promote,
     rebalance,
@@ -224,3 +225,50 @@ def test_an_empty_label_range_is_no_group_so_groups_always_hold_a_label() -> Non
     # And the placement of 5 shards over those 3 groups is a valid one.
     p = ring(groups_from_bounds([0, 0, 1, 1, 2, 3]), range(5), replicas=2)
     assert p.owners == ((0, 1), (1, 2), (2, 3))
+
+
+def test_owner_load_by_hand() -> None:
+    # 12 queries on 3 owners: 4 each, and each stores the 8 the others were asked for.
+    assert owner_load(12.0, 3, 0.0) == 4.0
+    assert owner_load(12.0, 3, 0.5) == 4.0 + 0.5 * 8.0
+    assert owner_load(12.0, 3, 1.0) == 12.0  # a store as costly as a query: no spreading
+    assert owner_load(12.0, 1, 0.7) == 12.0
+
+
+def test_shard_loads_count_the_stores_of_the_slices_others_were_asked_for() -> None:
+    p = Placement(0, ((0, 2), (2, 4)), ((0, 1), (1,)), (0, 1))
+    # Group 0 (10 queries) on both: 5 queries and 5 stores of weight 0.5 each; group 1 on 1.
+    assert shard_loads(p, {0: 10.0, 1: 4.0}, 0.5) == {0: 7.5, 1: 11.5}
+
+
+HOT = {0: 1000.0, 1: 10.0, 2: 10.0, 3: 10.0, 4: 10.0, 5: 10.0, 6: 10.0, 7: 10.0, 8: 10.0, 9: 10.0}
+
+
+def test_with_free_stores_a_hot_group_is_copied_widely() -> None:
+    b = rebalance(place(GROUPS, MEMBERS, replicas=2), HOT, target=1.5)
+    assert len(b.owners[0]) > 3  # what the store-aware tests below bound
+
+
+def test_stores_as_costly_as_queries_add_no_replica() -> None:
+    a = place(GROUPS, MEMBERS, replicas=2)
+    b = rebalance(a, HOT, target=1.5, store_weight=1.0)
+    assert [len(o) for o in b.owners] == [len(o) for o in a.owners]
+    # It still helps where it can: the hot group's owners keep nothing else.
+    before = max(shard_loads(a, HOT, 1.0).values())
+    assert max(shard_loads(b, HOT, 1.0).values()) < before
+    hot_owners = set(b.owners[0])
+    assert all(not (set(own) & hot_owners) for own in b.owners[1:])
+
+
+def test_a_replica_must_lower_its_groups_share_by_the_minimum_gain() -> None:
+    b = rebalance(place(GROUPS, MEMBERS, replicas=2), HOT, target=1.5, store_weight=0.5, min_replica_gain=0.1)
+    # At weight 0.5 a third replica lowers each owner's share by 11 %, a fourth by 6 %.
+    assert len(b.owners[0]) == 3
+
+
+@pytest.mark.parametrize("weight", [float("nan"), -0.1, float("inf")])
+def test_a_store_weight_must_be_finite_and_not_negative(weight: float) -> None:
+    with pytest.raises(ConfigError):
+        rebalance(place(GROUPS, MEMBERS), TUM_LOAD, store_weight=weight)
+    with pytest.raises(ConfigError):
+        shard_loads(place(GROUPS, MEMBERS), TUM_LOAD, weight)

@@ -10,6 +10,7 @@ import zenoh
 from prometheus_client import generate_latest
 
 from swarmrec.deployments.metrics import Scrape, parse_metrics
+from swarmrec.experiments.places.report import measured_store_weight
 from swarmrec.runtime.metrics import ServiceMetrics, scope_between
 from swarmrec.runtime.rpc import caller_robot, encoding_for, schema_of
 from swarmrec.services.metrics import ShardMetrics
@@ -187,3 +188,25 @@ def test_parse_metrics_keys_labels_sorted_by_name() -> None:
 
 def test_parse_metrics_of_an_empty_page_is_empty() -> None:
     assert parse_metrics("") == {}
+
+
+def test_the_reports_store_weight_is_the_shards_cpu_a_store_over_a_query() -> None:
+    def series(endpoint: str, n: float, cpu: float) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+        lab = (("endpoint", endpoint),)
+        return {
+            ("swarmrec_request_duration_seconds_count", lab): n,
+            ("swarmrec_request_cpu_seconds_total", lab): cpu,
+        }
+
+    s = Scrape(
+        samples={
+            # Shard 0: 100 queries in 0.3 s, 50 stores in 0.05 s; shard 1: 100 and 0.1 s, 150 and 0.15 s.
+            ("index-shard", 0): series("query", 100, 0.3) | series("store", 50, 0.05),
+            ("index-shard", 1): series("query", 100, 0.1) | series("store", 150, 0.15),
+            # A verifier's store endpoint is another thing altogether: left out.
+            ("verifier", 0): series("store", 1000, 100.0),
+        }
+    )
+    # Queries: 0.4 s / 200 = 2 ms; stores: 0.2 s / 200 = 1 ms.
+    assert measured_store_weight(s) == pytest.approx(0.5)
+    assert measured_store_weight(Scrape(samples={("index-shard", 0): series("query", 10, 0.1)})) is None

@@ -156,6 +156,10 @@ class IndexSummary:
     placements_published: float
     handoff_records: float
     refused: dict[str, float]
+    #: A ShardStore's CPU time over a partial query's, as the shards measured them (the
+    #: coordinator weighs a replica's stores with it when it rebalances); None when the
+    #: run had no stores or no queries.
+    store_weight: float | None = None
 
 
 @dataclass
@@ -446,6 +450,29 @@ class RunRecord:
     labels_file: Path | None = None
 
 
+def _shard_endpoint(metrics: Scrape, name: str, endpoint: str) -> float:
+    """``name`` summed over the index shards' samples of ``endpoint``."""
+    return sum(
+        v
+        for (service, _robot), series in metrics.samples.items()
+        if service == "index-shard"
+        for (n, labels), v in series.items()
+        if n == name and dict(labels).get("endpoint") == endpoint
+    )
+
+
+def measured_store_weight(metrics: Scrape) -> float | None:
+    """The shards' mean CPU time a ShardStore over their mean a partial query."""
+    mean: dict[str, float] = {}
+    for endpoint in ("query", "store"):
+        n = _shard_endpoint(metrics, "swarmrec_request_duration_seconds_count", endpoint)
+        cpu = _shard_endpoint(metrics, "swarmrec_request_cpu_seconds_total", endpoint)
+        if n <= 0 or cpu <= 0:
+            return None
+        mean[endpoint] = cpu / n
+    return mean["store"] / mean["query"]
+
+
 def _index_summary(state: IndexState, metrics: Scrape, replicas: int) -> IndexSummary:
     p = state.placement
     return IndexSummary(
@@ -457,6 +484,7 @@ def _index_summary(state: IndexState, metrics: Scrape, replicas: int) -> IndexSu
         placements_published=metrics.total("swarmrec_shard_placements_published_total"),
         handoff_records=metrics.total("swarmrec_shard_handoff_records_total"),
         refused=metrics.by_label("swarmrec_shard_refused_total", "reason"),
+        store_weight=measured_store_weight(metrics),
     )
 
 
