@@ -105,7 +105,31 @@ class Shard(Protocol):
     def follow(self, placement: Placement, *, confirm: bool = True) -> bool: ...
 
 
-__all__ = ["Coordinator", "Shard"]
+__all__ = ["Coordinator", "Shard", "present_members"]
+
+
+def present_members(
+    members: Iterable[int],
+    live: set[int],
+    seen: dict[int, float],
+    *,
+    started: float,
+    now: float,
+    grace_s: float,
+    start_grace_s: float,
+) -> set[int]:
+    """The members that keep their groups: the live ones, those gone for less than
+    ``grace_s`` (a restart keeps its groups), and those never seen alive while the
+    coordinator has run for less than ``start_grace_s`` (a swarm still starting)."""
+    present = set(live)
+    for m in members:
+        last = seen.get(m)
+        if last is None:
+            if now - started < start_grace_s:
+                present.add(m)
+        elif now - last < grace_s:
+            present.add(m)
+    return present
 
 
 class Coordinator:
@@ -121,7 +145,7 @@ class Coordinator:
         self._stop = threading.Event()
         # The group loads summed over the shards at the last rebalancing look.
         self._load_mark: dict[int, int] = {}
-        # When each shard was last seen alive (a member not seen yet counts from the start).
+        # When each shard was last seen alive (a member never seen: see present_members).
         self._seen: dict[int, float] = {}
         self._started = time.monotonic()
 
@@ -281,8 +305,15 @@ class Coordinator:
         # Members gone for less than the grace (or not started yet) still count: a shard
         # restarting, or a swarm still starting, moves no group. Queries do not wait for
         # this: they go to a group's other owners as soon as one does not answer.
-        grace = self.settings.member_grace_s
-        present = live | {m for m in current.members if now - self._seen.get(m, self._started) < grace}
+        present = present_members(
+            current.members,
+            live,
+            self._seen,
+            started=self._started,
+            now=now,
+            grace_s=self.settings.member_grace_s,
+            start_grace_s=self.settings.member_start_grace_s,
+        )
         # Draining shards are stopping: their groups go elsewhere while they still answer.
         draining = {m for m, st in states.items() if st.draining}
         present -= draining

@@ -9,7 +9,6 @@ Every field becomes a flag (``--name``), an environment variable
 
 from __future__ import annotations
 
-import itertools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,7 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from swarmrec.core.presets import get_preset
-from swarmrec.core.ranges import label_bounds
+from swarmrec.core.ranges import label_bounds, validate_bounds
 from swarmrec.datasets.tum import DEFAULT_MAX_DT, TUM_DEPTH_SCALE
 from swarmrec.errors import ConfigError
 from swarmrec.fusion.robot import DEFAULT_MAX_ROUND_JUMP
@@ -122,12 +121,13 @@ class PlaceSettings(Component):
         n = config.bus.n_robots
         b = self.label_bounds
         if b:
-            if (
-                len(b) != n + 1
-                or b[0] != 0
-                or b[-1] != self.n_labels
-                or any(x > y for x, y in itertools.pairwise(b))
-            ):
+            # The check of a split given offline (core.ranges), and one range a robot.
+            try:
+                validate_bounds(b, self.n_labels)
+                fits = len(b) == n + 1
+            except ConfigError:
+                fits = False
+            if not fits:
                 return [
                     f"label_bounds must be {n + 1} non-decreasing values from 0 to {self.n_labels}, "
                     f"got {list(b)}"
@@ -182,8 +182,14 @@ class IndexSettings(Component):
     )
     member_grace_s: float = setting(
         5.0,
-        "a shard gone (or not yet started) this long loses its groups to the others' new replicas; "
+        "a shard gone this long loses its groups to the others' new replicas; "
         "queries go to a group's other owners at once",
+    )
+    member_start_grace_s: float = setting(
+        60.0,
+        "a member never seen alive since the coordinator started counts as starting this long "
+        "before it loses its groups (a large swarm takes a while to start; moving the groups of "
+        "shards still starting and back is churn)",
     )
     rebalance_target: float = setting(
         1.5, "the coordinator moves and adds replicas while the busiest shard's load is above this x the mean"
@@ -225,7 +231,7 @@ class IndexSettings(Component):
                 problems.append(f"{name} must be 0.01 to 3600 s, got {value}")
         if self.max_shards < 0:
             problems.append(f"max_shards must be >= 0, got {self.max_shards}")
-        for name in ("suspect_s", "member_grace_s", "drain_timeout_s"):
+        for name in ("suspect_s", "member_grace_s", "member_start_grace_s", "drain_timeout_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and 0 <= value <= 3600):
                 problems.append(f"{name} must be 0 to 3600 s, got {value}")

@@ -21,6 +21,7 @@ from swarmrec.services.coordinator import (
     MIN_COST_SAMPLES,
     MIN_GAIN,
     Coordinator,
+    present_members,
     store_weight,
 )
 from swarmrec.services.settings import IndexSettings
@@ -145,3 +146,16 @@ def test_where_a_store_costs_as_much_as_a_query_the_coordinator_moves_rather_tha
     cheap = coordinator()._rebalanced(current, seen(0.003))
     assert cheap is not None
     assert len(cheap.owners[0]) > 2
+
+
+def test_members_keep_their_groups_while_gone_briefly_or_still_starting() -> None:
+    def present(now: float) -> set[int]:
+        # Shard 0 live; 1 seen at t=100; 2 seen at t=104; 3 never seen (the coordinator
+        # started at t=90).
+        seen = {0: now, 1: 100.0, 2: 104.0}
+        return present_members(range(4), {0}, seen, started=90.0, now=now, grace_s=5.0, start_grace_s=60.0)
+
+    assert present(104.9) == {0, 1, 2, 3}
+    assert present(105.0) == {0, 2, 3}  # 1 gone for the grace: its groups move
+    assert present(149.9) == {0, 3}  # 3 never started: it keeps its groups for the start grace
+    assert present(150.0) == {0}
