@@ -61,7 +61,7 @@ from swarmrec.runtime.rpc import Caller
 from swarmrec.runtime.tls import TlsFiles, configure_client_tls, configure_insecure
 from swarmrec.services.protocol import QueryPlan, two_step_query
 from swarmrec.services.registry import kind_of_wire
-from swarmrec.services.routing import Routing, newest_placement
+from swarmrec.services.routing import Routing, newest_placement, version_of
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import constellation_to_proto
 from swarmrec.wire.gen.swarmrec.v1 import gateway_pb2, gateway_pb2_grpc
@@ -368,7 +368,7 @@ class ZenohClient(SwarmClient):
         """The placement the shards follow and the stores the descriptors still owe."""
         states = self.shard_states(timeout_s)
         pending = sum(m.pending_items for m in self.members(timeout_s) if m.kind == "descriptor")
-        versions = {st.shard_id: (st.placement.version if st.confirmed else -1) for st in states}
+        versions = {st.shard_id: (version_of(st) if st.confirmed else -1) for st in states}
         return IndexState(newest_placement(states), versions, pending)
 
     def wait_index_settled(

@@ -45,7 +45,7 @@ from swarmrec.errors import CallError, WireError
 from swarmrec.runtime import ServiceContext, keys
 from swarmrec.runtime.settings import BusSettings
 from swarmrec.services.metrics import ShardMetrics
-from swarmrec.services.routing import LiveShards
+from swarmrec.services.routing import LiveShards, version_of
 from swarmrec.services.settings import IndexSettings, PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.placement import placement_from_proto, placement_to_proto
@@ -188,14 +188,15 @@ class Coordinator:
 
     # --- talking to the shards ------------------------------------------------------------
 
-    def states(self) -> dict[int, pb.ShardState]:
+    def states(self, known_version: int | None = None) -> dict[int, pb.ShardState]:
         """Every live shard's state, by shard id (one scatter request; this shard's own
-        state is read directly)."""
+        state is read directly). With ``known_version``, a shard following that version
+        sends its version without the placement (:func:`version_of`)."""
         s = self.shard
         out = {s.shard: s.state()}
         pending = s.ctx.caller.start(
             keys.endpoint(s.bus.swarm, "index-shard", "*", "placement"),
-            pb.PlacementRequest(),
+            pb.PlacementRequest(known_version=known_version),
             target_robot=None,
             endpoint="placement",
             scatter=True,
@@ -282,12 +283,16 @@ class Coordinator:
         assert self.live is not None
         live = self.live.ids() | {s.shard}
         now = time.monotonic()
+        for m, t in self.live.gone_at().items():
+            self._seen[m] = max(self._seen.get(m, t), t)
         for m in live:
             self._seen[m] = now
         if s.shard != min(live):
             self.acting = False
             return
-        states = {m: st for m, st in self.states().items() if m in live}
+        # Acting, it knows the placement: the shards following it need not send it back.
+        known = s.placement.version if self.acting else None
+        states = {m: st for m, st in self.states(known).items() if m in live}
         if not self.acting:
             # Taking over: the newest placement any live shard follows is the swarm's.
             newest = max(
@@ -320,7 +325,7 @@ class Coordinator:
         behind = sorted(
             m
             for m, st in states.items()
-            if m != s.shard and (not st.confirmed or st.placement.version != current.version)
+            if m != s.shard and (not st.confirmed or version_of(st) != current.version)
         )
         if behind:
             self._adopt(behind, current)
@@ -328,9 +333,7 @@ class Coordinator:
             return  # every shard is stopping: nowhere to move anything
         if not current.settled:
             ready = {
-                m: list(st.ready_groups)
-                for m, st in states.items()
-                if st.placement.version == current.version
+                m: list(st.ready_groups) for m, st in states.items() if version_of(st) == current.version
             }
             ready[s.shard] = sorted(s.ready)
             done = promote(current, ready, present)

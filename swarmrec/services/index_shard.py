@@ -198,16 +198,21 @@ class IndexShard(ServiceBase):
         self.metrics.groups.labels("owner").set(len(self.placement.groups_of(self.shard)))
         self.metrics.groups.labels("learner").set(len(self.placement.learning(self.shard)))
 
-    def state(self) -> pb.ShardState:
+    def state(self, known_version: int | None = None) -> pb.ShardState:
+        """What this shard follows and holds; the placement itself is left out when it is
+        the confirmed ``known_version`` (the asker has it: a hundred shards' placements at
+        every coordinator tick would be most of the index's traffic)."""
         query_calls, query_cpu_s = self.ctx.metrics.cost("query").snapshot()
         store_calls, store_cpu_s = self.ctx.metrics.cost("store").snapshot()
         with self.lock:
+            known = self.confirmed and known_version == self.placement.version
             return pb.ShardState(
+                placement=None if known else placement_to_proto(self.placement),
+                placement_version=self.placement.version,
                 query_calls=query_calls,
                 query_cpu_s=query_cpu_s,
                 store_calls=store_calls,
                 store_cpu_s=store_cpu_s,
-                placement=placement_to_proto(self.placement),
                 shard_id=self.shard,
                 ready_groups=sorted(self.ready),
                 group_queries=self.served,
@@ -490,7 +495,7 @@ class IndexShard(ServiceBase):
 
     def placement_state(self, req: pb.PlacementRequest, _ctx: RequestContext) -> pb.ShardState:
         check_fields(req)
-        return self.state()
+        return self.state(req.known_version if req.HasField("known_version") else None)
 
     def adopt(self, req: pb.AdoptRequest, ctx: RequestContext) -> pb.ShardState:
         check_fields(req, "placement")
@@ -507,7 +512,7 @@ class IndexShard(ServiceBase):
             raise FailedPrecondition(
                 f"placement version {placement.version} is older than the {self.placement.version} followed"
             )
-        return self.state()
+        return self.state(known_version=placement.version)  # the coordinator sent it: not back
 
     def transfer(self, req: pb.TransferRequest, _ctx: RequestContext) -> pb.TransferReply:
         check_fields(req)

@@ -25,7 +25,7 @@ from swarmrec.runtime.rpc import Caller
 from swarmrec.wire import messages as pb
 from swarmrec.wire.placement import placement_from_proto
 
-__all__ = ["LiveShards", "Routing", "newest_placement"]
+__all__ = ["LiveShards", "Routing", "newest_placement", "version_of"]
 
 
 class LiveShards:
@@ -35,6 +35,9 @@ class LiveShards:
     def __init__(self, session: zenoh.Session, swarm: str) -> None:
         self._lock = threading.Lock()
         self._alive: set[int] = set()
+        # When each shard's token went away (monotonic): a shard seen only briefly, between
+        # two looks of the coordinator, still counts as seen (not as one never started).
+        self._gone_at: dict[int, float] = {}
         self._sub = session.liveliness().declare_subscriber(
             keys.alive(swarm, "index-shard", "*"), self._on_token, history=True
         )
@@ -49,14 +52,26 @@ class LiveShards:
                 self._alive.add(shard)
             else:
                 self._alive.discard(shard)
+                self._gone_at[shard] = time.monotonic()
 
     def ids(self) -> set[int]:
         with self._lock:
             return set(self._alive)
 
+    def gone_at(self) -> dict[int, float]:
+        """When each shard not alive now was last seen going (monotonic time)."""
+        with self._lock:
+            return {m: t for m, t in self._gone_at.items() if m not in self._alive}
+
     def close(self) -> None:
         with contextlib.suppress(zenoh.ZError):  # the session closed first
             self._sub.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
+
+
+def version_of(state: pb.ShardState) -> int:
+    """The version of the placement a shard follows, sent with the placement or alone
+    (``PlacementRequest.known_version``)."""
+    return state.placement.version if state.HasField("placement") else state.placement_version
 
 
 def newest_placement(

@@ -278,6 +278,30 @@ def test_stale_and_far_ahead_placement_versions_are_refused_and_placements_come_
     assert after == {0: version, 1: version}
 
 
+def test_a_shard_leaves_out_the_placement_the_asker_says_it_knows(shards: LocalDeployment) -> None:
+    """The coordinator asks every shard for its state at every tick; a shard that follows
+    the version it already holds answers with the version alone (a hundred shards'
+    placements a second were most of a large swarm's index traffic)."""
+    s = shards.spec_swarm
+    with shards.client(5.0) as client:
+        caller = client.caller
+        assert caller is not None
+        current = client.wait_index_settled(30.0).placement
+        assert current is not None
+        key = keys.endpoint(s, "index-shard", 1, "placement")
+
+        def ask(**known: int) -> pb.ShardState:
+            return caller.call(key, pb.PlacementRequest(**known), pb.ShardState, target_robot=1)
+
+        known = ask(known_version=current.version)
+        assert not known.HasField("placement") and known.placement_version == current.version
+        assert known.confirmed and list(known.group_queries)  # the rest of the state is there
+        for full in (ask(), ask(known_version=current.version + 1)):
+            assert full.HasField("placement") and full.placement.version == current.version
+            assert full.placement_version == current.version
+        assert known.ByteSize() < full.ByteSize() / 2
+
+
 @pytest.mark.slow
 def test_shards_scaled_from_3_to_6_to_2_mid_run_lose_nothing_and_scores_stay_identical(
     tmp_path: Path,

@@ -32,11 +32,13 @@ class GroupOwners(_message.Message):
     def __init__(self, owners: _Optional[_Iterable[int]] = ..., learners: _Optional[_Iterable[int]] = ..., leaving: _Optional[_Iterable[int]] = ...) -> None: ...
 
 class PlacementRequest(_message.Message):
-    __slots__ = ()
-    def __init__(self) -> None: ...
+    __slots__ = ("known_version",)
+    KNOWN_VERSION_FIELD_NUMBER: _ClassVar[int]
+    known_version: int
+    def __init__(self, known_version: _Optional[int] = ...) -> None: ...
 
 class ShardState(_message.Message):
-    __slots__ = ("placement", "shard_id", "ready_groups", "group_queries", "confirmed", "draining", "query_calls", "query_cpu_s", "store_calls", "store_cpu_s")
+    __slots__ = ("placement", "shard_id", "ready_groups", "group_queries", "confirmed", "draining", "query_calls", "query_cpu_s", "store_calls", "store_cpu_s", "placement_version")
     PLACEMENT_FIELD_NUMBER: _ClassVar[int]
     SHARD_ID_FIELD_NUMBER: _ClassVar[int]
     READY_GROUPS_FIELD_NUMBER: _ClassVar[int]
@@ -47,6 +49,7 @@ class ShardState(_message.Message):
     QUERY_CPU_S_FIELD_NUMBER: _ClassVar[int]
     STORE_CALLS_FIELD_NUMBER: _ClassVar[int]
     STORE_CPU_S_FIELD_NUMBER: _ClassVar[int]
+    PLACEMENT_VERSION_FIELD_NUMBER: _ClassVar[int]
     placement: Placement
     shard_id: int
     ready_groups: _containers.RepeatedScalarFieldContainer[int]
@@ -57,7 +60,8 @@ class ShardState(_message.Message):
     query_cpu_s: float
     store_calls: int
     store_cpu_s: float
-    def __init__(self, placement: _Optional[_Union[Placement, _Mapping]] = ..., shard_id: _Optional[int] = ..., ready_groups: _Optional[_Iterable[int]] = ..., group_queries: _Optional[_Iterable[int]] = ..., confirmed: _Optional[bool] = ..., draining: _Optional[bool] = ..., query_calls: _Optional[int] = ..., query_cpu_s: _Optional[float] = ..., store_calls: _Optional[int] = ..., store_cpu_s: _Optional[float] = ...) -> None: ...
+    placement_version: int
+    def __init__(self, placement: _Optional[_Union[Placement, _Mapping]] = ..., shard_id: _Optional[int] = ..., ready_groups: _Optional[_Iterable[int]] = ..., group_queries: _Optional[_Iterable[int]] = ..., confirmed: _Optional[bool] = ..., draining: _Optional[bool] = ..., query_calls: _Optional[int] = ..., query_cpu_s: _Optional[float] = ..., store_calls: _Optional[int] = ..., store_cpu_s: _Optional[float] = ..., placement_version: _Optional[int] = ...) -> None: ...
 
 class AdoptRequest(_message.Message):
     __slots__ = ("placement",)
