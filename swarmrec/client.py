@@ -352,11 +352,14 @@ class ZenohClient(SwarmClient):
         """Every live service with what it says about itself, by kind and robot."""
         return [member_of(info) for info in self.member_infos(timeout_s)]
 
-    def shard_states(self, timeout_s: float | None = None) -> list[pb.ShardState]:
-        """Every live index shard's placement, groups held and load (``placement`` endpoint)."""
+    def shard_states(
+        self, timeout_s: float | None = None, *, known_version: int | None = None
+    ) -> list[pb.ShardState]:
+        """Every live index shard's placement, groups held and load (``placement`` endpoint);
+        a shard following ``known_version`` sends that version without the placement."""
         pending = self._caller().start(
             keys.endpoint(self.swarm, "index-shard", "*", "placement"),
-            pb.PlacementRequest(),
+            pb.PlacementRequest(known_version=known_version),
             target_robot=None,
             endpoint="placement",
             scatter=True,
@@ -364,12 +367,19 @@ class ZenohClient(SwarmClient):
         )
         return [o.reply for o in pending.gather(pb.ShardState) if o.reply is not None]
 
-    def index_state(self, timeout_s: float | None = None) -> IndexState:
-        """The placement the shards follow and the stores the descriptors still owe."""
-        states = self.shard_states(timeout_s)
+    def index_state(self, timeout_s: float | None = None, *, known: Placement | None = None) -> IndexState:
+        """The placement the shards follow and the stores the descriptors still owe. With
+        ``known`` (a placement read before), the shards that still follow it do not send it
+        again (a poll of a hundred shards would otherwise carry a hundred placements)."""
+        states = self.shard_states(timeout_s, known_version=None if known is None else known.version)
         pending = sum(m.pending_items for m in self.members(timeout_s) if m.kind == "descriptor")
         versions = {st.shard_id: (version_of(st) if st.confirmed else -1) for st in states}
-        return IndexState(newest_placement(states), versions, pending)
+        newest = newest_placement(states)
+        # A shard leaves the placement out only when it is confirmed on ``known``'s version.
+        omitted = any(not st.HasField("placement") and st.confirmed for st in states)
+        if known is not None and omitted and (newest is None or newest.version < known.version):
+            newest = known
+        return IndexState(newest, versions, pending)
 
     def wait_index_settled(
         self, timeout_s: float = 30.0, poll_s: float = 0.2, *, shards: int | None = None
@@ -378,8 +388,10 @@ class ZenohClient(SwarmClient):
         acknowledged) or ``timeout_s`` passed; the last state either way. With ``shards``,
         settled also means that many shards answer and the placement lists them all."""
         deadline = time.monotonic() + timeout_s
+        known: Placement | None = None
         while True:
-            state = self.index_state()
+            state = self.index_state(known=known)
+            known = state.placement
             everyone = shards is None or (
                 len(state.versions) >= shards
                 and state.placement is not None

@@ -220,14 +220,16 @@ class Coordinator:
         for the coordinator to send it; otherwise the one loaded (or version 0) is it."""
         s = self.shard
         try:
-            states = self.states()
+            # Only a newer placement matters here: the shards on this one need not send it
+            # (every shard of a starting swarm asks every other).
+            states = self.states(s.placement.version)
         except CallError:
             states = {}
         newest = max(
             (
                 p.version
                 for st in states.values()
-                if st.confirmed and (p := self._placement_of(st)) is not None
+                if st.confirmed and st.HasField("placement") and (p := self._placement_of(st)) is not None
             ),
             default=-1,
         )

@@ -140,14 +140,15 @@ class Routing:
         shards that just refused a request as routed with another placement) are asked
         first, alone: a refusal usually means the refusing shard follows a newer one, and
         asking every shard of a large swarm each time a placement changes costs each querier
-        a request per shard. Every shard is asked when they give nothing newer."""
+        a request per shard. Every shard is asked when they give nothing newer. The shards
+        still on this querier's version answer without the placement."""
         before = self.placement.version
         asked = sorted(set(from_shards))
         if asked:
             pendings = [
                 caller.start(
                     keys.endpoint(self.swarm, "index-shard", shard, "placement"),
-                    pb.PlacementRequest(),
+                    pb.PlacementRequest(known_version=before),
                     target_robot=shard,
                     endpoint="placement",
                     timeout_s=timeout_s,
@@ -161,7 +162,7 @@ class Routing:
                 return self.placement
         pending = caller.start(
             keys.endpoint(self.swarm, "index-shard", "*", "placement"),
-            pb.PlacementRequest(),
+            pb.PlacementRequest(known_version=before),  # only newer ones come back whole
             target_robot=None,
             endpoint="placement",
             scatter=True,
