@@ -323,7 +323,8 @@ assert {
 WRONG_SCHEMA: dict[type[Message], Message] = {
     pb.PartialQuery: pb.VerifyRequest(query=constellation(1)),
     pb.ShardStore: pb.PartialQuery(descriptor=pb.PartialDescriptor(label_lo=40, label_hi=80)),
-    pb.PlacementRequest: pb.StepRequest(step=1),
+    # Not a StepRequest: its step=1 is, byte for byte, a PlacementRequest's known_version=1.
+    pb.PlacementRequest: pb.LoopClosuresRequest(min_score=0.5),
     pb.AdoptRequest: pb.StepRequest(step=1),
     pb.TransferRequest: pb.LoopClosuresRequest(min_score=0.5),
     pb.Constellation: pb.PartialQuery(descriptor=pb.PartialDescriptor(label_lo=40, label_hi=80)),
@@ -344,7 +345,8 @@ WRONG_SCHEMA: dict[type[Message], Message] = {
 NO_ENCODING_CODE: dict[type[Message], str] = {
     pb.PartialQuery: "ERROR_CODE_MALFORMED",
     # Field 3 (a PartialQuery's descriptor), field 1 as a varint where a Placement is a
-    # message, field 1 as a fixed32 where a group is a varint: fields the schemas do not have.
+    # message, field 1 as a fixed32 where a version or a group is a varint: fields the
+    # schemas do not have.
     pb.ShardStore: "ERROR_CODE_MALFORMED",
     pb.PlacementRequest: "ERROR_CODE_MALFORMED",
     pb.AdoptRequest: "ERROR_CODE_MALFORMED",
