@@ -55,6 +55,10 @@ class Scrape:
             out.samples[target] = {k: v - old.get(k, 0.0) for k, v in series.items()}
         return out
 
+    def of_kind(self, kind: str) -> Scrape:
+        """The samples of the services of ``kind`` only."""
+        return Scrape({t: series for t, series in self.samples.items() if t[0] == kind}, list(self.failed))
+
     def per_service(self, name: str, kind: str) -> dict[int, float]:
         """``name`` summed per robot, over the services of ``kind``."""
         out: dict[int, float] = defaultdict(float)

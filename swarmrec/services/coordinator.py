@@ -229,7 +229,7 @@ class Coordinator:
             (
                 p.version
                 for st in states.values()
-                if st.confirmed and st.HasField("placement") and (p := self._placement_of(st)) is not None
+                if st.confirmed and (p := self._placement_of(st)) is not None
             ),
             default=-1,
         )

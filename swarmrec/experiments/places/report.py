@@ -450,23 +450,13 @@ class RunRecord:
     labels_file: Path | None = None
 
 
-def _shard_endpoint(metrics: Scrape, name: str, endpoint: str) -> float:
-    """``name`` summed over the index shards' samples of ``endpoint``."""
-    return sum(
-        v
-        for (service, _robot), series in metrics.samples.items()
-        if service == "index-shard"
-        for (n, labels), v in series.items()
-        if n == name and dict(labels).get("endpoint") == endpoint
-    )
-
-
 def measured_store_weight(metrics: Scrape) -> float | None:
     """The shards' mean CPU time a ShardStore over their mean a partial query."""
+    shards = metrics.of_kind("index-shard")
     mean: dict[str, float] = {}
     for endpoint in ("query", "store"):
-        n = _shard_endpoint(metrics, "swarmrec_request_duration_seconds_count", endpoint)
-        cpu = _shard_endpoint(metrics, "swarmrec_request_cpu_seconds_total", endpoint)
+        n = shards.total("swarmrec_request_duration_seconds_count", endpoint=endpoint)
+        cpu = shards.total("swarmrec_request_cpu_seconds_total", endpoint=endpoint)
         if n <= 0 or cpu <= 0:
             return None
         mean[endpoint] = cpu / n
