@@ -58,6 +58,7 @@ from swarmrec.client import GatewayClient, ZenohClient
 from swarmrec.deployments.base import AttachFile, DeploymentError, SwarmSpec
 from swarmrec.deployments.identities import client_tls, swarm_pki
 from swarmrec.deployments.metrics import Scrape, scrape_prometheus
+from swarmrec.deployments.pod_status import not_ready_report, selector_of
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.settings import to_env
 from swarmrec.runtime.tls import ACL_FILE, tls_endpoint
@@ -702,6 +703,15 @@ class KubernetesDeployment:
         """kubectl in the swarm's namespace."""
         return self.kubectl.run("-n", self.namespace, *args, timeout_s=timeout_s)
 
+    def _why_not_ready(self, workload: Obj) -> str:
+        """What holds ``workload``'s pods (best effort: the cluster may be the problem)."""
+        try:
+            pods = self.kubectl.json("-n", self.namespace, "get", "pods", "-l", selector_of(workload))
+            events = self.kubectl.json("-n", self.namespace, "get", "events")
+        except (KubernetesError, ValueError) as e:
+            return f"(could not read its pods: {e})"
+        return not_ready_report(pods, events)
+
     # --- the Deployment interface ---------------------------------------------------------
 
     def start(self, spec: SwarmSpec, *, progress: bool = False) -> None:
@@ -816,7 +826,13 @@ class KubernetesDeployment:
         deadline = time.monotonic() + s.wait_s
         for kind, name in workloads:
             left = max(deadline - time.monotonic(), 1.0)
-            self.k("rollout", "status", f"{kind}/{name}", f"--timeout={left:.0f}s", timeout_s=left + 30)
+            try:
+                self.k("rollout", "status", f"{kind}/{name}", f"--timeout={left:.0f}s", timeout_s=left + 30)
+            except KubernetesError as e:
+                workload = next(
+                    o for o in objects if o["kind"].lower() == kind and o["metadata"]["name"] == name
+                )
+                raise KubernetesError(f"{e}\n{self._why_not_ready(workload)}") from None
         # kube-proxy programs a Service a moment after its pods are ready.
         for name, port in (
             ("router", ROUTER_PORT),

@@ -6,7 +6,8 @@ membership has settled, and another takes over within a tick when it goes. Each
 tick (``placement_tick_s``) the acting coordinator:
 
 1. asks every live shard for its state (placement version, groups copied, load);
-2. on taking over, starts from the newest placement any shard follows;
+2. on taking over, and whenever a shard follows a newer one, starts from the newest
+   placement any shard follows;
 3. sends the placement to every shard that follows an older one (or has not
    been confirmed since it restarted);
 4. with a handoff in progress, promotes it once every live learner has copied
@@ -30,6 +31,12 @@ tick (``placement_tick_s``) the acting coordinator:
 
 Every shard, coordinator or not, first checks on start that the swarm is not
 further along than the placement it loaded (:meth:`Coordinator.confirm_on_start`).
+
+A shard whose session lost its link to the router (a router restart, a cable) sees no
+shard alive. It does not coordinate while cut off, and once back it gives the other
+members the start grace again, as they come back one by one (:meth:`Coordinator._cut_off`).
+Otherwise the first shard back after a router restart would take the others for gone
+and publish a placement none of them follows.
 """
 
 from __future__ import annotations
@@ -148,11 +155,16 @@ class Coordinator:
         # When each shard was last seen alive (a member never seen: see present_members).
         self._seen: dict[int, float] = {}
         self._started = time.monotonic()
+        # The last time this shard's session got its link to the swarm back (monotonic).
+        self._rejoined = 0.0
 
     def start(self) -> None:
         if self._thread is not None:
             return
-        self.live = LiveShards(self.shard.ctx.session, self.shard.bus.swarm)
+        # A shard that connects to a router (or peers) can be cut off from the swarm: then it
+        # sees no shard, and must not take that for the others having gone.
+        needs_link = bool(self.shard.bus.connect)
+        self.live = LiveShards(self.shard.ctx.session, self.shard.bus.swarm, needs_link=needs_link)
         self._thread = threading.Thread(target=self._run, name="index-coordinator", daemon=True)
         self._thread.start()
 
@@ -280,13 +292,35 @@ class Coordinator:
 
     # --- one tick -----------------------------------------------------------------------
 
+    def _cut_off(self) -> bool:
+        """Whether this shard's session has no link to the swarm now. Cut off, it sees no
+        shard alive, which says nothing of them: it does not coordinate (one that did would
+        drop every other member and publish a placement no other shard could follow). Back,
+        it counts the others as a starting swarm's (``member_start_grace_s`` from now): the
+        others reconnect one by one, each after its own retry delay."""
+        assert self.live is not None
+        if not self.live.reaches_swarm():
+            if self.acting:
+                self.log.warning("cut off from the swarm: not coordinating until the link is back")
+            self.acting = False
+            return True
+        rejoined = self.live.rejoined_at()
+        if rejoined > self._rejoined:
+            self._rejoined = self._started = rejoined
+            self._seen = {m: t for m, t in self._seen.items() if t >= rejoined}
+            self.log.info("back in the swarm: the other members get the start grace")
+        return False
+
     def tick(self) -> None:
         s = self.shard
         assert self.live is not None
-        live = self.live.ids() | {s.shard}
         now = time.monotonic()
+        if self._cut_off():
+            return
+        live = self.live.ids() | {s.shard}
         for m, t in self.live.gone_at().items():
-            self._seen[m] = max(self._seen.get(m, t), t)
+            if t >= self._rejoined:  # tokens that went with this shard's own link say nothing
+                self._seen[m] = max(self._seen.get(m, t), t)
         for m in live:
             self._seen[m] = now
         if s.shard != min(live):
@@ -295,19 +329,27 @@ class Coordinator:
         # Acting, it knows the placement: the shards following it need not send it back.
         known = s.placement.version if self.acting else None
         states = {m: st for m, st in self.states(known).items() if m in live}
-        if not self.acting:
-            # Taking over: the newest placement any live shard follows is the swarm's.
-            newest = max(
-                (p for st in states.values() if st.confirmed and (p := self._placement_of(st)) is not None),
-                key=lambda p: p.version,
-                default=s.placement,
-            )
+        # The newest placement any live shard follows is the swarm's: on taking over, and
+        # while acting too (a shard that did not see this one, say one back first after a
+        # router restart, may have published one). Every placement is a safe step from the
+        # one before it (owners stay until their learners have copied), so following the
+        # newest loses nothing.
+        newest = max(
+            (p for st in states.values() if st.confirmed and (p := self._placement_of(st)) is not None),
+            key=lambda p: p.version,
+            default=s.placement,
+        )
+        if not self.acting or newest.version > s.placement.version:
             if newest.version > s.placement.version or not s.confirmed:
                 s.follow(newest)
+            fields = {"fields": {"version": s.placement.version}}
+            if self.acting:
+                self.log.warning(
+                    "a shard follows a newer placement than the coordinator's: following it", extra=fields
+                )
+            else:
+                self.log.info("acting as the index coordinator", extra=fields)
             self.acting = True
-            self.log.info(
-                "acting as the index coordinator", extra={"fields": {"version": s.placement.version}}
-            )
         current = s.placement
         # Members gone for less than the grace (or not started yet) still count: a shard
         # restarting, or a swarm still starting, moves no group. Queries do not wait for

@@ -30,17 +30,53 @@ __all__ = ["LiveShards", "Routing", "newest_placement", "version_of"]
 
 class LiveShards:
     """The ids of the swarm's live index shards, kept by a liveliness subscriber (with
-    the tokens already declared), so asking costs nothing."""
+    the tokens already declared), so asking costs nothing.
 
-    def __init__(self, session: zenoh.Session, swarm: str) -> None:
+    With ``needs_link`` (a session that connects to a router or peers), it also watches
+    this session's own transports: while it has none, the empty set of live shards says
+    nothing of the others (they vanished because this session did), and
+    :meth:`reaches_swarm` is False until a transport opens again (:meth:`rejoined_at`)."""
+
+    def __init__(self, session: zenoh.Session, swarm: str, *, needs_link: bool = False) -> None:
         self._lock = threading.Lock()
         self._alive: set[int] = set()
         # When each shard's token went away (monotonic): a shard seen only briefly, between
         # two looks of the coordinator, still counts as seen (not as one never started).
         self._gone_at: dict[int, float] = {}
+        self._transports: set[str] = set()
+        self._needs_link = needs_link
+        self._rejoined_at = 0.0
+        self._cut = False
+        self._link_listener = (
+            session.info.declare_transport_events_listener(self._on_transport, history=True)
+            if needs_link
+            else None
+        )
         self._sub = session.liveliness().declare_subscriber(
             keys.alive(swarm, "index-shard", "*"), self._on_token, history=True
         )
+
+    def _on_transport(self, event: zenoh.TransportEvent) -> None:
+        zid = str(event.transport.zid)
+        with self._lock:
+            if event.kind == zenoh.SampleKind.PUT:
+                self._transports.add(zid)
+                if self._cut:
+                    self._cut = False
+                    self._rejoined_at = time.monotonic()
+            else:
+                self._transports.discard(zid)
+                self._cut = not self._transports
+
+    def reaches_swarm(self) -> bool:
+        """Whether this session has a transport to the swarm (always, without ``needs_link``)."""
+        with self._lock:
+            return not self._needs_link or bool(self._transports)
+
+    def rejoined_at(self) -> float:
+        """When this session last got a transport back after having none (monotonic; 0: never cut)."""
+        with self._lock:
+            return self._rejoined_at
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         parsed = keys.parse_alive(str(sample.key_expr))
@@ -66,6 +102,9 @@ class LiveShards:
     def close(self) -> None:
         with contextlib.suppress(zenoh.ZError):  # the session closed first
             self._sub.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
+        if self._link_listener is not None:
+            with contextlib.suppress(zenoh.ZError):
+                self._link_listener.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
 
 
 def version_of(state: pb.ShardState) -> int:
