@@ -52,7 +52,7 @@ from swarmrec.errors import CallError, WireError
 from swarmrec.runtime import ServiceContext, keys
 from swarmrec.runtime.settings import BusSettings
 from swarmrec.services.metrics import ShardMetrics
-from swarmrec.services.routing import LiveShards, version_of
+from swarmrec.services.routing import LiveShards, served_load, version_of
 from swarmrec.services.settings import IndexSettings, PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.placement import placement_from_proto, placement_to_proto
@@ -399,8 +399,13 @@ class Coordinator:
         taken when it lowers the busiest shard's load by ``MIN_GAIN`` at least; None otherwise."""
         totals: dict[int, int] = {}
         for st in states.values():
-            for g, n in enumerate(st.group_queries):
-                totals[g] = totals.get(g, 0) + int(n)
+            try:
+                served = served_load(st, len(current.groups))
+            except WireError as e:
+                self.log.warning(f"shard {st.shard_id}'s load ignored: {e}")
+                continue
+            for g, n in served.items():
+                totals[g] = totals.get(g, 0) + n
         # A shard that restarted counts from 0 again: never a negative load.
         window = {g: max(0, n - self._load_mark.get(g, 0)) for g, n in totals.items()}
         # A window of a few queries a shard is noise: it would move groups back and forth

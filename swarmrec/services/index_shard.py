@@ -215,7 +215,8 @@ class IndexShard(ServiceBase):
                 store_cpu_s=store_cpu_s,
                 shard_id=self.shard,
                 ready_groups=sorted(self.ready),
-                group_queries=self.served,
+                served_groups=[g for g, n in enumerate(self.served) if n],
+                served_queries=[n for n in self.served if n],
                 confirmed=self.confirmed,
                 draining=self.draining,
             )

@@ -3,8 +3,8 @@ placement arithmetic itself is tested in test_placement.py).
 
 The coordinator runs inside an index shard; here it is given a stand-in holding only
 what ``_rebalanced`` reads (settings, a logger), and shard states as the shards send
-them (``ShardState.group_queries``: partial queries served per group since the shard
-started)."""
+them (``ShardState.served_groups``/``served_queries``: partial queries served per group
+since the shard started, groups with none left out)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import pytest
 
 from swarmrec.core.placement import Placement, shard_loads
+from swarmrec.errors import WireError
 from swarmrec.services.coordinator import (
     DEFAULT_STORE_WEIGHT,
     MAX_STORE_WEIGHT,
@@ -24,6 +25,7 @@ from swarmrec.services.coordinator import (
     present_members,
     store_weight,
 )
+from swarmrec.services.routing import served_load
 from swarmrec.services.settings import IndexSettings
 from swarmrec.wire import messages as pb
 
@@ -46,8 +48,16 @@ def coordinator(target: float = 1.0, min_queries: int = 1) -> Coordinator:
     return Coordinator(shard)  # type: ignore[arg-type]  # only settings and log are read
 
 
+def served(per_group: list[int]) -> dict[str, list[int]]:
+    """A shard's served load as it sends it: the groups with any queries, and their counts."""
+    return {
+        "served_groups": [g for g, n in enumerate(per_group) if n],
+        "served_queries": [n for n in per_group if n],
+    }
+
+
 def states(*per_shard: list[int]) -> dict[int, pb.ShardState]:
-    return {m: pb.ShardState(shard_id=m, group_queries=q) for m, q in enumerate(per_shard)}
+    return {m: pb.ShardState(shard_id=m, **served(q)) for m, q in enumerate(per_shard)}
 
 
 def test_a_move_that_lowers_the_busiest_load_by_less_than_the_gain_moves_nothing() -> None:
@@ -129,7 +139,7 @@ def test_where_a_store_costs_as_much_as_a_query_the_coordinator_moves_rather_tha
         return {
             m: pb.ShardState(
                 shard_id=m,
-                group_queries=q,
+                **served(q),
                 query_calls=300,
                 query_cpu_s=0.3,
                 store_calls=300,
@@ -159,3 +169,28 @@ def test_members_keep_their_groups_while_gone_briefly_or_still_starting() -> Non
     assert present(105.0) == {0, 2, 3}  # 1 gone for the grace: its groups move
     assert present(149.9) == {0, 3}  # 3 never started: it keeps its groups for the start grace
     assert present(150.0) == {0}
+
+
+def test_served_load_reads_the_sparse_lists_and_refuses_what_does_not_check_out() -> None:
+    st = pb.ShardState(shard_id=0, served_groups=[1, 3], served_queries=[7, 2])
+    assert served_load(st, 4) == {1: 7, 3: 2}
+    assert served_load(pb.ShardState(shard_id=0), 4) == {}
+    for bad in (
+        pb.ShardState(served_groups=[1, 3], served_queries=[7]),  # lengths differ
+        pb.ShardState(served_groups=[1, 1], served_queries=[7, 2]),  # a group twice
+        pb.ShardState(served_groups=[4], served_queries=[7]),  # beyond the groups
+    ):
+        with pytest.raises(WireError):
+            served_load(bad, 4)
+
+
+def test_a_shard_whose_load_does_not_check_out_is_left_out_of_the_rebalancing() -> None:
+    # The same hot layout as above, where moving a group off shard 0 is taken; a fourth shard
+    # claims a huge load on a group beyond the placement: ignored, the decision is unchanged.
+    current = Placement(1, GROUPS, ((0,), (0,), (1,), (2,)), (0, 1, 2), replicas=1)
+    seen = states([60, 60, 0, 0], [0, 0, 10, 0], [0, 0, 0, 10])
+    liar = pb.ShardState(shard_id=3, served_groups=[9], served_queries=[10**9])
+    honest = coordinator()._rebalanced(current, seen)
+    with_liar = coordinator()._rebalanced(current, {**seen, 3: liar})
+    assert honest is not None and with_liar is not None
+    assert with_liar.owners == honest.owners

@@ -38,11 +38,10 @@ class PlacementRequest(_message.Message):
     def __init__(self, known_version: _Optional[int] = ...) -> None: ...
 
 class ShardState(_message.Message):
-    __slots__ = ("placement", "shard_id", "ready_groups", "group_queries", "confirmed", "draining", "query_calls", "query_cpu_s", "store_calls", "store_cpu_s", "placement_version")
+    __slots__ = ("placement", "shard_id", "ready_groups", "confirmed", "draining", "query_calls", "query_cpu_s", "store_calls", "store_cpu_s", "placement_version", "served_groups", "served_queries")
     PLACEMENT_FIELD_NUMBER: _ClassVar[int]
     SHARD_ID_FIELD_NUMBER: _ClassVar[int]
     READY_GROUPS_FIELD_NUMBER: _ClassVar[int]
-    GROUP_QUERIES_FIELD_NUMBER: _ClassVar[int]
     CONFIRMED_FIELD_NUMBER: _ClassVar[int]
     DRAINING_FIELD_NUMBER: _ClassVar[int]
     QUERY_CALLS_FIELD_NUMBER: _ClassVar[int]
@@ -50,10 +49,11 @@ class ShardState(_message.Message):
     STORE_CALLS_FIELD_NUMBER: _ClassVar[int]
     STORE_CPU_S_FIELD_NUMBER: _ClassVar[int]
     PLACEMENT_VERSION_FIELD_NUMBER: _ClassVar[int]
+    SERVED_GROUPS_FIELD_NUMBER: _ClassVar[int]
+    SERVED_QUERIES_FIELD_NUMBER: _ClassVar[int]
     placement: Placement
     shard_id: int
     ready_groups: _containers.RepeatedScalarFieldContainer[int]
-    group_queries: _containers.RepeatedScalarFieldContainer[int]
     confirmed: bool
     draining: bool
     query_calls: int
@@ -61,7 +61,9 @@ class ShardState(_message.Message):
     store_calls: int
     store_cpu_s: float
     placement_version: int
-    def __init__(self, placement: _Optional[_Union[Placement, _Mapping]] = ..., shard_id: _Optional[int] = ..., ready_groups: _Optional[_Iterable[int]] = ..., group_queries: _Optional[_Iterable[int]] = ..., confirmed: _Optional[bool] = ..., draining: _Optional[bool] = ..., query_calls: _Optional[int] = ..., query_cpu_s: _Optional[float] = ..., store_calls: _Optional[int] = ..., store_cpu_s: _Optional[float] = ..., placement_version: _Optional[int] = ...) -> None: ...
+    served_groups: _containers.RepeatedScalarFieldContainer[int]
+    served_queries: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, placement: _Optional[_Union[Placement, _Mapping]] = ..., shard_id: _Optional[int] = ..., ready_groups: _Optional[_Iterable[int]] = ..., confirmed: _Optional[bool] = ..., draining: _Optional[bool] = ..., query_calls: _Optional[int] = ..., query_cpu_s: _Optional[float] = ..., store_calls: _Optional[int] = ..., store_cpu_s: _Optional[float] = ..., placement_version: _Optional[int] = ..., served_groups: _Optional[_Iterable[int]] = ..., served_queries: _Optional[_Iterable[int]] = ...) -> None: ...
 
 class AdoptRequest(_message.Message):
     __slots__ = ("placement",)
