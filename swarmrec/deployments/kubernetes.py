@@ -58,7 +58,7 @@ from swarmrec.client import GatewayClient, ZenohClient
 from swarmrec.deployments.base import AttachFile, DeploymentError, SwarmSpec
 from swarmrec.deployments.identities import client_tls, swarm_pki
 from swarmrec.deployments.metrics import Scrape, scrape_prometheus
-from swarmrec.deployments.pod_status import not_ready_report, selector_of
+from swarmrec.deployments.pod_status import not_ready_containers, not_ready_report, selector_of
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.settings import to_env
 from swarmrec.runtime.tls import ACL_FILE, tls_endpoint
@@ -710,7 +710,15 @@ class KubernetesDeployment:
             events = self.kubectl.json("-n", self.namespace, "get", "events")
         except (KubernetesError, ValueError) as e:
             return f"(could not read its pods: {e})"
-        return not_ready_report(pods, events)
+        report = [not_ready_report(pods, events)]
+        for pod, container, restarted in not_ready_containers(pods):
+            args = ["logs", pod, "-c", container, "--tail", "8", *(["--previous"] if restarted else [])]
+            try:
+                tail = self.kubectl.run("-n", self.namespace, *args, timeout_s=30).rstrip()
+            except KubernetesError as e:
+                tail = f"(no log: {e})"
+            report.append(f"log of {pod}/{container}{' (before its restart)' if restarted else ''}:\n{tail}")
+        return "\n".join(report)
 
     # --- the Deployment interface ---------------------------------------------------------
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-__all__ = ["not_ready_report", "selector_of"]
+__all__ = ["not_ready_containers", "not_ready_report", "selector_of"]
 
 #: Lines of a report at most: a workload of many pods says the first ones' reasons.
 MAX_LINES = 30
@@ -24,8 +24,15 @@ def selector_of(workload: Mapping[str, Any]) -> str:
     return ",".join(f"{k}={v}" for k, v in sorted(labels.items()))
 
 
+def _completed(status: Mapping[str, Any]) -> bool:
+    """An init container that ran to its end: done, not trouble."""
+    return int(status.get("state", {}).get("terminated", {}).get("exitCode", -1)) == 0
+
+
 def _container_lines(status: Mapping[str, Any]) -> list[str]:
     name = status.get("name", "?")
+    if _completed(status):
+        return []
     out = []
     state = status.get("state", {})
     if "waiting" in state:
@@ -57,6 +64,21 @@ def _pod_lines(pod: Mapping[str, Any]) -> list[str]:
     if ready and not lines:
         return []
     return [f"{phase}{'' if ready else ', not ready'}", *lines]
+
+
+def not_ready_containers(pods: Mapping[str, Any], limit: int = 3) -> list[tuple[str, str, bool]]:
+    """(pod, container, whether it restarted) of the first ``limit`` containers that started
+    and are not ready: their logs say what the pod status cannot (a service stuck starting)."""
+    out: list[tuple[str, str, bool]] = []
+    for pod in sorted(pods.get("items", []), key=lambda p: str(p.get("metadata", {}).get("name", ""))):
+        name = pod.get("metadata", {}).get("name", "?")
+        status = pod.get("status", {})
+        for c in [*status.get("initContainerStatuses", []), *status.get("containerStatuses", [])]:
+            restarted = int(c.get("restartCount", 0)) > 0
+            started = "running" in c.get("state", {}) or "terminated" in c.get("state", {}) or restarted
+            if started and not c.get("ready", False) and not _completed(c) and len(out) < limit:
+                out.append((name, c.get("name", "?"), restarted))
+    return out
 
 
 def not_ready_report(pods: Mapping[str, Any], events: Mapping[str, Any] | None = None) -> str:

@@ -13,7 +13,8 @@ the elastic index under Kubernetes: a deleted shard pod, two deleted at once (bo
 label group), the shard StatefulSet scaled 3 -> 6 -> 2 -> 3 with ``kubectl scale`` alone; after
 each, the index settles on the live shards, every group has its replicas among them, every owner
 holds exactly what the dataset put in the group (read back through the shards' ``transfer``), and
-queries of stored frames are answered by every shard asked. Last, a swarm of its own is scaled
+queries of stored frames are answered by every shard asked. A run whose detectors cannot start
+says what holds their pods. Last, a swarm of its own is scaled
 3 -> 6 -> 2 while a paced replay runs: no store lost, every query answered or reported failed, and
 no answer emptier than what the shards held long before it.
 """
@@ -49,6 +50,7 @@ from swarmrec.deployments.kubernetes import (
     DEFAULT_OVERLAY,
     Kubectl,
     KubernetesDeployment,
+    KubernetesError,
     KubernetesSettings,
     write_overlay,
 )
@@ -651,6 +653,42 @@ def check_reports(
             seen["empty_answers"] += sc.n_candidates == 0
             seen["bounded_below"] += low > 0
     return seen
+
+
+def test_a_rollout_that_never_finishes_says_what_holds_its_pods(loaded: Cluster, tmp_path: Path) -> None:
+    # An overlay on top of the local one whose detectors name an image the node does not have (and,
+    # with imagePullPolicy Never, never pulls): every other workload rolls out, the detectors cannot.
+    overlay = tmp_path / "broken-overlay"
+    overlay.mkdir()
+    image = [
+        {"op": "replace", "path": "/spec/template/spec/containers/0/image", "value": "swarmrec-absent:0"}
+    ]
+    doc = {
+        "apiVersion": "kustomize.config.k8s.io/v1beta1",
+        "kind": "Kustomization",
+        "resources": [os.path.relpath(DEFAULT_OVERLAY.resolve(), overlay)],
+        "patches": [{"target": {"kind": "StatefulSet", "name": "detector"}, "patch": json.dumps(image)}],
+    }
+    (overlay / "kustomization.yaml").write_text(json.dumps(doc))
+    namespace = f"swarmrec-e2e-broken-{os.getpid()}"
+    deployment = KubernetesDeployment(
+        KubernetesSettings(
+            namespace=namespace, out=tmp_path / "k8s", overlay=overlay, kubectl=_kubectl(), wait_s=60
+        )
+    )
+    run = PlacesSettings(
+        source=DatasetSource(frames=60), robots=2, swarm=f"e2e_broken_{os.getpid()}", out=tmp_path / "report",
+        plots=False, progress=False,
+    )  # fmt: skip
+    with pytest.raises(KubernetesError) as raised:
+        main(run, deployment)
+    said = str(raised.value)
+    assert "statefulset/detector" in said, said
+    # The pods and why they wait, not only "timed out waiting for the condition".
+    assert "pod detector-0: Pending, not ready" in said, said
+    assert "ErrImageNeverPull" in said, said
+    # And the run removed what it made.
+    assert not _kubectl().run("get", "namespace", namespace, "--ignore-not-found", "-o", "name").strip()
 
 
 def test_scaling_the_shards_during_a_paced_replay_loses_no_store_and_leaves_no_query_silently_empty(

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from swarmrec.deployments.pod_status import MAX_LINES, not_ready_report, selector_of
+from swarmrec.deployments.pod_status import MAX_LINES, not_ready_containers, not_ready_report, selector_of
 
 
 def _pod(
@@ -85,6 +85,14 @@ def test_an_unscheduled_pod_says_what_the_scheduler_said_and_ready_pods_are_left
 def test_a_running_container_failing_its_probe_and_a_workload_without_pods() -> None:
     probing = {"name": "index-shard", "ready": False, "restartCount": 0, "state": {"running": {}}}
     pods = {"items": [_pod("index-shard-0", "Running", False, [probing])]}
+    # An init container that completed is no trouble: neither said nor its log read.
+    done = {
+        "name": "identity",
+        "ready": False,
+        "state": {"terminated": {"reason": "Completed", "exitCode": 0}},
+    }
+    pods["items"][0]["status"]["initContainerStatuses"] = [done]
+    assert not_ready_containers(pods) == [("index-shard-0", "index-shard", False)]
     assert not_ready_report(pods).splitlines() == [
         "pod index-shard-0: Running, not ready",
         "  index-shard running, not ready",
@@ -104,3 +112,23 @@ def test_a_report_of_many_pods_is_cut_at_max_lines() -> None:
     assert lines[0] == "pod p-000: Pending, not ready"
     assert lines[1] == "  c waiting: ImagePullBackOff"
     assert lines[-1] == f"... {200 - MAX_LINES} more lines"
+
+
+def test_the_containers_whose_logs_are_read_are_those_started_and_not_ready() -> None:
+    running_ready = {"name": "a", "ready": True, "state": {"running": {}}}
+    running_not_ready = {"name": "b", "ready": False, "state": {"running": {}}}
+    never_started = {"name": "c", "ready": False, "state": {"waiting": {"reason": "ContainerCreating"}}}
+    crashed = {
+        "name": "d",
+        "ready": False,
+        "restartCount": 2,
+        "state": {"waiting": {"reason": "CrashLoopBackOff"}},
+    }
+    pods = {
+        "items": [
+            _pod("p-1", "Running", False, [running_ready, running_not_ready]),
+            _pod("p-0", "Running", False, [never_started, crashed]),
+        ]
+    }
+    assert not_ready_containers(pods) == [("p-0", "d", True), ("p-1", "b", False)]
+    assert not_ready_containers(pods, limit=1) == [("p-0", "d", True)]
