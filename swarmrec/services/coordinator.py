@@ -1,8 +1,11 @@
 """The elastic index's coordinator: the lowest live index shard keeps the placement.
 
 Every shard runs one :class:`Coordinator`; it acts only while its shard is the
-lowest id among the live shards (liveliness tokens), so exactly one acts once
-membership has settled, and another takes over within a tick when it goes. Each
+lowest id among the shards present: the live ones (liveliness tokens) and the
+members within their grace (:func:`present_members`), so exactly one acts once
+membership has settled, and another takes over ``member_grace_s`` after it goes.
+A new coordinator's first look at the load only starts its window, and it
+rebalances only on the states of every present member. Each
 tick (``placement_tick_s``) the acting coordinator:
 
 1. asks every live shard for its state (placement version, groups copied, load);
@@ -152,6 +155,8 @@ class Coordinator:
         self._stop = threading.Event()
         # The group loads summed over the shards at the last rebalancing look.
         self._load_mark: dict[int, int] = {}
+        # Set on taking over: the next look only marks the window's start.
+        self._fresh = False
         # When each shard was last seen alive (a member never seen: see present_members).
         self._seen: dict[int, float] = {}
         self._started = time.monotonic()
@@ -311,6 +316,17 @@ class Coordinator:
             self.log.info("back in the swarm: the other members get the start grace")
         return False
 
+    def _present(self, placement: Placement, live: set[int], now: float) -> set[int]:
+        return present_members(
+            placement.members,
+            live,
+            self._seen,
+            started=self._started,
+            now=now,
+            grace_s=self.settings.member_grace_s,
+            start_grace_s=self.settings.member_start_grace_s,
+        )
+
     def tick(self) -> None:
         s = self.shard
         assert self.live is not None
@@ -323,7 +339,12 @@ class Coordinator:
                 self._seen[m] = max(self._seen.get(m, t), t)
         for m in live:
             self._seen[m] = now
-        if s.shard != min(live):
+        # The lowest shard here coordinates: here are the live ones and the members within
+        # their grace (gone a moment, or not seen since this shard started or came back).
+        # A shard that has not seen the lower ones' tokens yet, just started or just back
+        # after its link was cut, does not take itself for the lowest.
+        here = live | self._present(s.placement, live, now)
+        if s.shard != min(here):
             self.acting = False
             return
         # Acting, it knows the placement: the shards following it need not send it back.
@@ -349,20 +370,15 @@ class Coordinator:
                 )
             else:
                 self.log.info("acting as the index coordinator", extra=fields)
+                # A new coordinator looks at a window of its own before it rebalances.
+                self._load_mark = {}
+                self._fresh = True
             self.acting = True
         current = s.placement
         # Members gone for less than the grace (or not started yet) still count: a shard
         # restarting, or a swarm still starting, moves no group. Queries do not wait for
         # this: they go to a group's other owners as soon as one does not answer.
-        present = present_members(
-            current.members,
-            live,
-            self._seen,
-            started=self._started,
-            now=now,
-            grace_s=self.settings.member_grace_s,
-            start_grace_s=self.settings.member_start_grace_s,
-        )
+        present = self._present(current, live, now)
         # Draining shards are stopping: their groups go elsewhere while they still answer.
         draining = {m for m, st in states.items() if st.draining}
         present -= draining
@@ -385,7 +401,13 @@ class Coordinator:
                 self.publish(done, live)
             return
         target = follow_members(current, present)
-        if target.owners == current.owners and set(target.members) == set(current.members):
+        # The load of every present member, or no rebalancing: one on part of the swarm's
+        # load (states lost to a timeout in an overloaded swarm) moves groups by mistake.
+        if (
+            target.owners == current.owners
+            and set(target.members) == set(current.members)
+            and present <= set(states)
+        ):
             target = self._rebalanced(current, states) or target
         # Owners gone for less than the grace stay owners (a restart keeps its groups);
         # draining ones are leaving: they answer and are copied from until the learners own.
@@ -406,6 +428,11 @@ class Coordinator:
                 continue
             for g, n in served.items():
                 totals[g] = totals.get(g, 0) + n
+        if self._fresh:
+            # Taking over: the load served so far is the window's start, not a reason to move.
+            self._fresh = False
+            self._load_mark = totals
+            return None
         # A shard that restarted counts from 0 again: never a negative load.
         window = {g: max(0, n - self._load_mark.get(g, 0)) for g, n in totals.items()}
         # A window of a few queries a shard is noise: it would move groups back and forth
