@@ -1,4 +1,4 @@
-"""The elastic index's coordinator: the lowest live index shard keeps the placement.
+"""The elastic index's coordinator: the lowest index shard present keeps the placement.
 
 Every shard runs one :class:`Coordinator`; it acts only while its shard is the
 lowest id among the shards present: the live ones (liveliness tokens) and the
