@@ -826,20 +826,13 @@ class KubernetesDeployment:
 
         t1 = time.monotonic()
         self.kubectl.apply(objects)
-        workloads = [
-            (o["kind"].lower(), o["metadata"]["name"])
-            for o in objects
-            if o["kind"] in ("Deployment", "StatefulSet")
-        ]
         deadline = time.monotonic() + s.wait_s
-        for kind, name in workloads:
+        for workload in (o for o in objects if o["kind"] in ("Deployment", "StatefulSet")):
+            ref = f"{workload['kind'].lower()}/{workload['metadata']['name']}"
             left = max(deadline - time.monotonic(), 1.0)
             try:
-                self.k("rollout", "status", f"{kind}/{name}", f"--timeout={left:.0f}s", timeout_s=left + 30)
+                self.k("rollout", "status", ref, f"--timeout={left:.0f}s", timeout_s=left + 30)
             except KubernetesError as e:
-                workload = next(
-                    o for o in objects if o["kind"].lower() == kind and o["metadata"]["name"] == name
-                )
                 raise KubernetesError(f"{e}\n{self._why_not_ready(workload)}") from None
         # kube-proxy programs a Service a moment after its pods are ready.
         for name, port in (

@@ -24,6 +24,16 @@ def selector_of(workload: Mapping[str, Any]) -> str:
     return ",".join(f"{k}={v}" for k, v in sorted(labels.items()))
 
 
+def _by_name(items: Sequence[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
+    return sorted(items, key=lambda p: str(p.get("metadata", {}).get("name", "")))
+
+
+def _statuses(pod: Mapping[str, Any]) -> list[Mapping[str, Any]]:
+    """A pod's init containers' statuses, then its containers'."""
+    status = pod.get("status", {})
+    return [*status.get("initContainerStatuses", []), *status.get("containerStatuses", [])]
+
+
 def _completed(status: Mapping[str, Any]) -> bool:
     """An init container that ran to its end: done, not trouble."""
     return int(status.get("state", {}).get("terminated", {}).get("exitCode", -1)) == 0
@@ -58,7 +68,7 @@ def _pod_lines(pod: Mapping[str, Any]) -> list[str]:
     for cond in status.get("conditions", []):
         if cond.get("type") == "PodScheduled" and cond.get("status") != "True":
             lines.append(f"not scheduled: {cond.get('reason', '?')} {cond.get('message', '')}".rstrip())
-    for c in [*status.get("initContainerStatuses", []), *status.get("containerStatuses", [])]:
+    for c in _statuses(pod):
         lines.extend(_container_lines(c))
     ready = any(c.get("type") == "Ready" and c.get("status") == "True" for c in status.get("conditions", []))
     if ready and not lines:
@@ -70,14 +80,15 @@ def not_ready_containers(pods: Mapping[str, Any], limit: int = 3) -> list[tuple[
     """(pod, container, whether it restarted) of the first ``limit`` containers that started
     and are not ready: their logs say what the pod status cannot (a service stuck starting)."""
     out: list[tuple[str, str, bool]] = []
-    for pod in sorted(pods.get("items", []), key=lambda p: str(p.get("metadata", {}).get("name", ""))):
+    for pod in _by_name(pods.get("items", [])):
         name = pod.get("metadata", {}).get("name", "?")
-        status = pod.get("status", {})
-        for c in [*status.get("initContainerStatuses", []), *status.get("containerStatuses", [])]:
+        for c in _statuses(pod):
             restarted = int(c.get("restartCount", 0)) > 0
             started = "running" in c.get("state", {}) or "terminated" in c.get("state", {}) or restarted
-            if started and not c.get("ready", False) and not _completed(c) and len(out) < limit:
+            if started and not c.get("ready", False) and not _completed(c):
                 out.append((name, c.get("name", "?"), restarted))
+                if len(out) == limit:
+                    return out
     return out
 
 
@@ -96,7 +107,7 @@ def not_ready_report(pods: Mapping[str, Any], events: Mapping[str, Any] | None =
             text = f"event {ev.get('reason', '?')}: {ev.get('message', '').strip()}"
             warnings.setdefault(obj.get("name", ""), []).append(text + (f" (x{count})" if count > 1 else ""))
     out: list[str] = []
-    for pod in sorted(items, key=lambda p: str(p.get("metadata", {}).get("name", ""))):
+    for pod in _by_name(items):
         name = pod.get("metadata", {}).get("name", "?")
         lines = _pod_lines(pod)
         if not lines:
