@@ -154,9 +154,8 @@ class Coordinator:
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         # The group loads summed over the shards at the last rebalancing look.
-        self._load_mark: dict[int, int] = {}
-        # Set on taking over: the next look only marks the window's start.
-        self._fresh = False
+        # None once it takes over: the next look only marks the window's start.
+        self._load_mark: dict[int, int] | None = {}
         # When each shard was last seen alive (a member never seen: see present_members).
         self._seen: dict[int, float] = {}
         self._started = time.monotonic()
@@ -371,8 +370,7 @@ class Coordinator:
             else:
                 self.log.info("acting as the index coordinator", extra=fields)
                 # A new coordinator looks at a window of its own before it rebalances.
-                self._load_mark = {}
-                self._fresh = True
+                self._load_mark = None
             self.acting = True
         current = s.placement
         # Members gone for less than the grace (or not started yet) still count: a shard
@@ -428,9 +426,8 @@ class Coordinator:
                 continue
             for g, n in served.items():
                 totals[g] = totals.get(g, 0) + n
-        if self._fresh:
+        if self._load_mark is None:
             # Taking over: the load served so far is the window's start, not a reason to move.
-            self._fresh = False
             self._load_mark = totals
             return None
         # A shard that restarted counts from 0 again: never a negative load.
