@@ -23,6 +23,7 @@ from swarmrec.deployments.identities import Security
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.runtime.settings import BusSettings, Component
 from swarmrec.services.registry import WORKLOADS
+from swarmrec.services.settings import IndexSettings, PlaceSettings
 
 
 def swarm_name(request: pytest.FixtureRequest) -> str:
@@ -65,6 +66,23 @@ def running_swarm(
         yield deployment
     finally:
         deployment.stop()
+
+
+@contextmanager
+def index_shards(tmp: Path, swarm: str, *, shards: int, n_labels: int) -> Iterator[LocalDeployment]:
+    """``shards`` index shards alone (no other service, no gateway), quick to drop a member
+    (member grace 0.5 s) and to act (a coordinator tick every 0.2 s)."""
+    index = IndexSettings(member_grace_s=0.5, placement_tick_s=0.2)
+    with running_swarm(
+        tmp,
+        swarm,
+        PlaceSettings(n_labels=n_labels),
+        index,
+        robots=shards,
+        kinds=["index-shard"],
+        swarm_kinds=(),
+    ) as deployment:
+        yield deployment
 
 
 @pytest.fixture

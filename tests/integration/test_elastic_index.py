@@ -43,11 +43,11 @@ from swarmrec.runtime import keys
 from swarmrec.runtime.rpc import Caller
 from swarmrec.runtime.tls import TlsFiles
 from swarmrec.services.coordinator import MAX_STORE_WEIGHT
-from swarmrec.services.settings import IndexSettings, PlaceSettings
+from swarmrec.services.settings import IndexSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import partial_descriptor_to_proto
 from swarmrec.wire.placement import placement_from_proto
-from tests.integration.conftest import running_swarm
+from tests.integration.conftest import index_shards
 from tests.integration.support import group_rows, wait_until
 
 ROBOTS, FRAMES = 4, 400
@@ -220,16 +220,7 @@ def test_a_frozen_shard_costs_no_store_the_descriptors_queue_and_retry(tmp_path:
 @pytest.fixture
 def shards(tmp_path: Path) -> Iterator[LocalDeployment]:
     """Three index shards alone (version 0: groups on (0, 1), (1, 2), (2, 0))."""
-    index = IndexSettings(member_grace_s=0.5, placement_tick_s=0.2)
-    with running_swarm(
-        tmp_path,
-        "elastic-shards",
-        PlaceSettings(n_labels=30),
-        index,
-        robots=3,
-        kinds=["index-shard"],
-        swarm_kinds=(),
-    ) as swarm:
+    with index_shards(tmp_path, "elastic-shards", shards=3, n_labels=30) as swarm:
         yield swarm
 
 

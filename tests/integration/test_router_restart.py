@@ -20,10 +20,9 @@ import pytest
 
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.runtime import keys
-from swarmrec.services.settings import IndexSettings, PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.placement import placement_from_proto
-from tests.integration.conftest import running_swarm
+from tests.integration.conftest import index_shards
 from tests.integration.support import wait_until
 
 SHARDS, N_LABELS = 4, 40
@@ -33,16 +32,7 @@ DOWN_S = 4.0
 
 @pytest.fixture
 def shards(tmp_path: Path) -> Iterator[LocalDeployment]:
-    index = IndexSettings(member_grace_s=0.5, placement_tick_s=0.2)
-    with running_swarm(
-        tmp_path,
-        "router-restart",
-        PlaceSettings(n_labels=N_LABELS),
-        index,
-        robots=SHARDS,
-        kinds=["index-shard"],
-        swarm_kinds=(),
-    ) as swarm:
+    with index_shards(tmp_path, "router-restart", shards=SHARDS, n_labels=N_LABELS) as swarm:
         yield swarm
 
 
