@@ -36,6 +36,7 @@ runs in router mode.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import queue
@@ -61,6 +62,7 @@ from swarmrec.errors import (
     InvalidArgument,
     MessageTooLargeError,
     RequestError,
+    Unavailable,
     WireError,
 )
 from swarmrec.runtime import keys
@@ -79,6 +81,7 @@ __all__ = [
     "ServiceBase",
     "ServiceContext",
     "Subscription",
+    "dispatch_by_queue",
     "install_signals",
     "run_service",
     "run_services",
@@ -92,6 +95,15 @@ S = TypeVar("S", bound=MetricSet)
 #: Subscribed messages waiting for a worker; beyond it the zenoh callback drops (and
 #: counts, code UNAVAILABLE) rather than block zenoh's receive thread.
 SUBSCRIPTION_CAPACITY = 65536
+
+#: Requests waiting for an endpoint's workers (``dispatch`` queue); beyond it the zenoh
+#: callback answers UNAVAILABLE at once (counted) rather than block zenoh's receive
+#: thread. zenoh's own channel holds as many.
+ENDPOINT_CAPACITY = 256
+
+#: ``dispatch = "auto"`` uses queues in a process hosting more services than this: channels
+#: were faster for 20 services a process (5 robots), queues for 52 (13 robots) and more.
+AUTO_QUEUE_ABOVE = 32
 
 
 @dataclass(frozen=True)
@@ -336,12 +348,52 @@ class _Dispatcher:
 
 
 class _EndpointDispatcher(_Dispatcher):
+    """One endpoint's requests, handed to its workers one of two ways (``dispatch``).
+
+    * channel: the workers block on the queryable's zenoh channel. zenoh's receive thread
+      never takes the interpreter lock, but a worker blocked on the channel wakes every
+      100 ms (to check for signals; measured with strace), and a process hosting 50
+      robots has over 1,800 of them: their wake-ups alone took a core and the lock.
+    * queue: zenoh's callback puts each query in a bounded queue and returns, and the
+      workers block on the queue, asleep until a request comes. The callback takes the
+      lock on zenoh's receive thread for every request, which costs a small process more
+      than its few idle workers do (docs/swarm.md has both measured).
+    """
+
     def __init__(self, ctx: ServiceContext, service: ServiceBase, endpoint: Endpoint) -> None:
         super().__init__(ctx, service, endpoint.name, endpoint.request)
         self.endpoint = endpoint
         # Replies go out on the service's own key, not the query's (which may be a wildcard:
         # detector/*/step): a router's access control allows a robot to reply on its own keys only.
         self.key = keys.endpoint(ctx.bus.swarm, ctx.kind, ctx.bus.robot, endpoint.name)
+        self.inbox: queue.Queue[zenoh.Query | None] = queue.Queue(maxsize=ENDPOINT_CAPACITY)
+
+    def on_query(self, query: zenoh.Query) -> None:
+        # zenoh's thread: hand the query over and return; a full queue is answered now.
+        try:
+            self.inbox.put_nowait(query)
+        except queue.Full:
+            self._refuse_now(query)
+
+    def _refuse_now(self, query: zenoh.Query) -> None:
+        robot = caller_robot(query.attachment)
+        try:
+            msg, payload, _ok = self._error(
+                Unavailable(f"{self.name} has {ENDPOINT_CAPACITY} requests waiting: retry later"), robot
+            )
+            query.reply_err(payload, encoding=encoding_for(msg))
+        except zenoh.ZError:
+            pass  # the caller is gone
+        finally:
+            query.drop()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
+
+    def work(self) -> None:
+        _work(self.inbox, self.serve)
+
+    def work_channel(self, queryable: zenoh.Queryable[Any]) -> None:
+        # Iteration ends when the queryable is undeclared (its channel closes).
+        for query in queryable.handler:
+            self.serve(query)
 
     def answer(self, data: bytes, schema: str, robot: int | None, key: str) -> tuple[Message, bytes, bool]:
         """The reply to one request, or the ErrorReply to answer instead, encoded: (message,
@@ -401,6 +453,22 @@ class _EndpointDispatcher(_Dispatcher):
             self.observe(t0, c0)
 
 
+def _work(inbox: queue.Queue[zenoh.Query | None], serve: Callable[[zenoh.Query], None]) -> None:
+    while (query := inbox.get()) is not None:
+        serve(query)
+
+
+def _close_inbox(inbox: queue.Queue[Any], threads: int) -> None:
+    """After its queryable or subscriber is undeclared: the workers handle what is queued,
+    then stop. A full queue means a stuck worker; it is a daemon thread and ends with the
+    process."""
+    for _ in range(threads):
+        try:
+            inbox.put(None, timeout=5.0)
+        except queue.Full:
+            return
+
+
 @dataclass(frozen=True)
 class _Sample:
     """What a subscription callback hands its worker: bytes and headers, nothing parsed."""
@@ -446,21 +514,6 @@ class _SubscriptionDispatcher(_Dispatcher):
                 self.refuse(e, item.sender)
             finally:
                 self.observe(t0, c0)
-
-    def close(self, threads: int) -> None:
-        # After what is queued: the workers drain first. A full queue means a stuck
-        # worker; it is a daemon thread and ends with the process.
-        for _ in range(threads):
-            try:
-                self.inbox.put(None, timeout=5.0)
-            except queue.Full:
-                return
-
-
-def _work(queryable: zenoh.Queryable[Any], serve: Callable[[zenoh.Query], None]) -> None:
-    # Iteration ends when the queryable is undeclared (its channel closes).
-    for query in queryable.handler:
-        serve(query)
 
 
 @dataclass(frozen=True)
@@ -527,26 +580,38 @@ class _Running:
     service: ServiceBase | None = None
     declared: list[Any] = field(default_factory=list)
     threads: list[threading.Thread] = field(default_factory=list)
-    subscriptions: list[tuple[_SubscriptionDispatcher, int]] = field(default_factory=list)
+    #: The queues its endpoints' and subscriptions' workers take from, and how many workers each.
+    inboxes: list[tuple[queue.Queue[Any], int]] = field(default_factory=list)
     token: Any = None
     #: Its endpoints' keys in the process's LocalEndpoints.
     local_keys: list[str] = field(default_factory=list)
 
 
-def _start(r: _Running) -> None:
-    """Build the service and declare its endpoints, subscriptions, info and token."""
+def dispatch_by_queue(dispatch: str, services: int) -> bool:
+    """Whether a process hosting ``services`` services feeds its endpoints' workers from
+    queues (``dispatch`` auto, channel or queue: :class:`_EndpointDispatcher`)."""
+    return dispatch == "queue" or (dispatch == "auto" and services > AUTO_QUEUE_ABOVE)
+
+
+def _start(r: _Running, queues: bool) -> None:
+    """Build the service and declare its endpoints (their workers fed by ``queues`` or by
+    zenoh's channels), subscriptions, info and token."""
     ctx, h = r.ctx, r.hosted
     bus, session = ctx.bus, ctx.session
     r.service = service = h.factory(ctx)
     for ep in service.ENDPOINTS:
         key = keys.endpoint(bus.swarm, h.kind, bus.robot, ep.name)
-        q = session.declare_queryable(key)
-        r.declared.append(q)
         endpoint = _EndpointDispatcher(ctx, service, ep)
+        if queues:
+            work: Callable[[], None] = endpoint.work
+            r.inboxes.append((endpoint.inbox, bus.workers))
+            r.declared.append(session.declare_queryable(key, endpoint.on_query))
+        else:
+            q = session.declare_queryable(key)
+            r.declared.append(q)
+            work = functools.partial(endpoint.work_channel, q)
         for i in range(bus.workers):
-            t = threading.Thread(
-                target=_work, args=(q, endpoint.serve), name=f"{h.name}-{ep.name}-{i}", daemon=True
-            )
+            t = threading.Thread(target=work, name=f"{h.name}-{ep.name}-{i}", daemon=True)
             t.start()
             r.threads.append(t)
         if ctx.caller.local is not None:
@@ -558,10 +623,10 @@ def _start(r: _Running) -> None:
             t = threading.Thread(target=dispatcher.work, name=f"{h.name}-{sub.name}-{i}", daemon=True)
             t.start()
             r.threads.append(t)
-        r.subscriptions.append((dispatcher, sub.workers))
+        r.inboxes.append((dispatcher.inbox, sub.workers))
         key = keys.endpoint(bus.swarm, h.kind, bus.robot, sub.name)
         r.declared.append(session.declare_subscriber(key, dispatcher.on_sample))
-    r.declared.append(_declare_info(ctx, service, h.wire_kind, r.threads))
+    r.declared.append(_declare_info(ctx, service, h.wire_kind, r))
     # Last: once the token is up, peers may route to this service.
     r.token = session.liveliness().declare_token(keys.alive(bus.swarm, h.kind, bus.robot))
     ctx.metrics.ready.set(1)
@@ -593,8 +658,8 @@ def _stop(r: _Running) -> None:
             local.remove(key)
     for d in r.declared:
         d.undeclare()
-    for dispatcher, workers in r.subscriptions:
-        dispatcher.close(workers)
+    for inbox, workers in r.inboxes:
+        _close_inbox(inbox, workers)
     for t in r.threads:
         t.join(timeout=5.0)
     if r.service is not None:
@@ -625,6 +690,7 @@ def run_services(
     stop = stop or threading.Event()
     install_signals(stop)
     single = len(hosted) == 1
+    queues = dispatch_by_queue(bus.dispatch, len(hosted))
     host_log = service_logger(hosted[0].kind if single else "host", bus.robot, bus.log_level)
     server = MetricsServer(bus.metrics_host, bus.metrics_port) if bus.metrics_port >= 0 else None
     host_ready = None
@@ -659,7 +725,7 @@ def run_services(
                 ctx = ServiceContext(h.config, h.kind, session, metrics, caller, stop, log, own, cn)
                 r = _Running(h, ctx)
                 running.append(r)
-                _start(r)
+                _start(r, queues)
             if host_ready is not None:
                 host_ready.set(1)
             if server is not None:
@@ -672,6 +738,7 @@ def run_services(
             ready: dict[str, Any] = (
                 {"event": "ready", **services[0]} if single else {"event": "ready", "services": services}
             )
+            ready["dispatch"] = "queue" if queues else "channel"
             if bus.listen:
                 ready["listen"] = list(bus.listen)
             host_log.info("ready", extra={"fields": {"services": services, "listen": list(bus.listen)}})
@@ -716,11 +783,11 @@ def run_service(
 
 
 def _declare_info(
-    ctx: ServiceContext, service: ServiceBase, wire_kind: int, threads: list[threading.Thread]
+    ctx: ServiceContext, service: ServiceBase, wire_kind: int, r: _Running
 ) -> zenoh.Queryable[Any]:
     bus = ctx.bus
     key = keys.endpoint(bus.swarm, ctx.kind, bus.robot, "info")
-    q = ctx.session.declare_queryable(key)
+    inbox: queue.Queue[zenoh.Query | None] = queue.Queue(maxsize=ENDPOINT_CAPACITY)
 
     def answer(query: zenoh.Query) -> None:
         info = _member_info(service, ctx, wire_kind)
@@ -729,10 +796,17 @@ def _declare_info(
         finally:
             query.drop()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
 
-    t = threading.Thread(target=_work, args=(q, answer), name="info", daemon=True)
+    def enqueue(query: zenoh.Query) -> None:
+        try:
+            inbox.put_nowait(query)
+        except queue.Full:
+            query.drop()  # type: ignore[no-untyped-call]  # info is asked once per member: a flood gets nothing
+
+    t = threading.Thread(target=_work, args=(inbox, answer), name="info", daemon=True)
     t.start()
-    threads.append(t)
-    return q
+    r.threads.append(t)
+    r.inboxes.append((inbox, 1))
+    return ctx.session.declare_queryable(key, enqueue)
 
 
 def _member_info(service: ServiceBase, ctx: ServiceContext, wire_kind: int) -> pb.MemberInfo:

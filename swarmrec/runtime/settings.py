@@ -143,6 +143,7 @@ def describe(component: type[Component]) -> list[SettingInfo]:
 # --- the two components every service has -------------------------------------------
 
 ZenohMode = Literal["client", "peer", "router"]
+EndpointDispatch = Literal["auto", "channel", "queue"]
 
 
 @dataclass(frozen=True)
@@ -162,6 +163,13 @@ class BusSettings(Component):
     metrics_port: int = setting(0, "Prometheus endpoint port (0: a free one, -1: none)")
     metrics_host: str = setting("127.0.0.1", "Prometheus endpoint address")
     workers: int = setting(2, "worker threads per endpoint (callbacks only enqueue; workers do the work)")
+    dispatch: EndpointDispatch = setting(
+        "auto",
+        "how requests reach an endpoint's workers: channel (zenoh's channel; each waiting worker "
+        "wakes every 100 ms), queue (zenoh's callback fills a queue; its receive thread takes the "
+        "interpreter lock per request) or auto (queue in a process of more than "
+        "32 services, channel otherwise)",
+    )
     request_timeout_s: float = setting(2.0, "how long a service waits for a peer's reply, seconds")
     max_message_bytes: int = setting(1 << 20, "largest request payload accepted, bytes")
     log_level: str = setting("INFO", "logging level")
@@ -184,6 +192,8 @@ class BusSettings(Component):
             problems.append(f"metrics_port must be -1 .. 65535, got {self.metrics_port}")
         if self.workers < 1:
             problems.append(f"workers must be >= 1, got {self.workers}")
+        if self.dispatch not in ("auto", "channel", "queue"):
+            problems.append(f"dispatch must be auto, channel or queue, got {self.dispatch!r}")
         if not (math.isfinite(self.request_timeout_s) and self.request_timeout_s > 0):
             problems.append(f"request_timeout_s must be > 0, got {self.request_timeout_s}")
         if not 1024 <= self.max_message_bytes <= 1 << 24:

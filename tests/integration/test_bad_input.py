@@ -139,10 +139,14 @@ def seeded_swarm(tmp: Path, name: str, place: PlaceSettings, **bus: object) -> I
         yield Swarm(local, client, frames)
 
 
-@pytest.fixture(scope="module")
-def swarm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Swarm]:
+@pytest.fixture(scope="module", params=["channel", "queue"])
+def swarm(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest) -> Iterator[Swarm]:
+    """Every case against both ways requests reach a service's workers (``dispatch``)."""
     place = PlaceSettings(lockstep=True, verify_max_object_pairs=PAIRS_LIMIT)
-    with seeded_swarm(tmp_path_factory.mktemp("bad-input"), "bad-input", place, max_message_bytes=LIMIT) as s:
+    dispatch = request.param
+    tmp = tmp_path_factory.mktemp(f"bad-input-{dispatch}")
+    with seeded_swarm(tmp, f"bad-input-{dispatch}", place, max_message_bytes=LIMIT, dispatch=dispatch) as s:
+        assert {p.info.get("dispatch") for p in s.local.procs} == {dispatch}
         yield s
 
 

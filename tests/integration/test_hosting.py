@@ -1,7 +1,9 @@
 """How services share processes changes nothing a user can see but the process count:
 the same frames through a swarm of one process per service, one process per robot and
 one process for every robot give the same pair scores, equal to the offline evaluation,
-and the same bytes between robots."""
+and the same bytes between robots; so does feeding the endpoints' workers from queues
+instead of zenoh's channels (``dispatch``, which ``auto`` picks by how many services a
+process hosts)."""
 
 from __future__ import annotations
 
@@ -10,13 +12,22 @@ from pathlib import Path
 import pytest
 
 from swarmrec.datasets.source import DatasetSource
+from swarmrec.deployments.base import Deployment
+from swarmrec.deployments.local import LocalDeployment
 from swarmrec.experiments.places import PlacesSettings, PlacesSummary, main
 
 ROBOTS, FRAMES = 3, 300
 
 
-def run(tmp: Path, hosting: str) -> tuple[PlacesSummary, str]:
-    name = hosting.replace(":", "-")
+def run(tmp: Path, hosting: str, dispatch: str = "") -> tuple[PlacesSummary, str, set[object]]:
+    """The run's summary, pairs.csv and how its robot processes fed their workers."""
+    name = hosting.replace(":", "-") + (f"-{dispatch}" if dispatch else "")
+    held: list[LocalDeployment] = []
+
+    def hook(d: Deployment) -> None:
+        assert isinstance(d, LocalDeployment)
+        held.append(d)
+
     settings = PlacesSettings(
         source=DatasetSource(frames=FRAMES),
         robots=ROBOTS,
@@ -27,17 +38,26 @@ def run(tmp: Path, hosting: str) -> tuple[PlacesSummary, str]:
         progress=False,
         plots=False,
     )
-    return main(settings), (tmp / name / "pairs.csv").read_text()
+    summary = main(settings, swarm_hook=hook)
+    dispatches = {p.info.get("dispatch") for p in held[0].procs}
+    return summary, (tmp / name / "pairs.csv").read_text(), dispatches
 
 
 @pytest.mark.slow
-def test_one_process_per_service_per_robot_or_for_all_robots_scores_the_same(tmp_path: Path) -> None:
-    services, pairs = run(tmp_path, "service")
+def test_one_process_per_service_per_robot_or_for_all_robots_scores_the_same(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    services, pairs, dispatches = run(tmp_path, "service")
+    assert dispatches == {"channel"}  # auto: a process of one service
     assert services.offline_check is not None and services.offline_check.identical
     assert services.swarm.processes == 2 + 4 * ROBOTS  # and the router and the gateway
     assert pairs.count("\n") > 20  # the comparison is about something
-    for hosting, processes in (("robot", 2 + ROBOTS), (f"robots:{ROBOTS}", 3)):
-        summary, same = run(tmp_path, hosting)
+    variants = [("robot", 2 + ROBOTS, ""), (f"robots:{ROBOTS}", 3, ""), (f"robots:{ROBOTS}", 3, "queue")]
+    for hosting, processes, dispatch in variants:
+        if dispatch:
+            monkeypatch.setenv("SWARMREC_DISPATCH", dispatch)  # the robot processes read it
+        summary, same, dispatches = run(tmp_path, hosting, dispatch)
+        assert dispatches == {dispatch or "channel"}, (hosting, dispatches)
         assert summary.swarm.processes == processes, hosting
         assert same == pairs, hosting
         assert summary.offline_check is not None and summary.offline_check.identical, hosting
