@@ -101,8 +101,9 @@ SUBSCRIPTION_CAPACITY = 65536
 #: thread. zenoh's own channel holds as many.
 ENDPOINT_CAPACITY = 256
 
-#: ``dispatch = "auto"`` uses queues in a process hosting more services than this: channels
-#: were faster for 20 services a process (5 robots), queues for 52 (13 robots) and more.
+#: ``dispatch = "auto"`` uses queues in a process hosting more services than this: the two
+#: were even for 20 services a process (5 robots), queues faster for 52 (13 robots) and
+#: more (docs/swarm.md); a process of one service keeps zenoh's channels as it always had.
 AUTO_QUEUE_ABOVE = 32
 
 
@@ -356,8 +357,8 @@ class _EndpointDispatcher(_Dispatcher):
       robots has over 1,800 of them: their wake-ups alone took a core and the lock.
     * queue: zenoh's callback puts each query in a bounded queue and returns, and the
       workers block on the queue, asleep until a request comes. The callback takes the
-      lock on zenoh's receive thread for every request, which costs a small process more
-      than its few idle workers do (docs/swarm.md has both measured).
+      lock on zenoh's receive thread for every request, which in a small process costs
+      about what its few idle workers' wake-ups do (docs/swarm.md has both measured).
     """
 
     def __init__(self, ctx: ServiceContext, service: ServiceBase, endpoint: Endpoint) -> None:

@@ -13,7 +13,7 @@ from swarmrec.runtime.settings import BusSettings, load_config
 
 def test_auto_feeds_workers_from_queues_only_in_a_process_of_many_services() -> None:
     assert not dispatch_by_queue("auto", 1)
-    assert not dispatch_by_queue("auto", 20)  # five robots of four services: channels were faster
+    assert not dispatch_by_queue("auto", 20)  # five robots of four services: the two were even
     assert AUTO_QUEUE_ABOVE == 32
     assert not dispatch_by_queue("auto", 32)
     assert dispatch_by_queue("auto", 33)
