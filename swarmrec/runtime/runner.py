@@ -91,6 +91,7 @@ __all__ = [
 
 C = TypeVar("C", bound=Component)
 S = TypeVar("S", bound=MetricSet)
+T = TypeVar("T")
 
 #: Subscribed messages waiting for a worker; beyond it the zenoh callback drops (and
 #: counts, code UNAVAILABLE) rather than block zenoh's receive thread.
@@ -454,9 +455,10 @@ class _EndpointDispatcher(_Dispatcher):
             self.observe(t0, c0)
 
 
-def _work(inbox: queue.Queue[zenoh.Query | None], serve: Callable[[zenoh.Query], None]) -> None:
-    while (query := inbox.get()) is not None:
-        serve(query)
+def _work(inbox: queue.Queue[T | None], handle: Callable[[T], None]) -> None:
+    """A worker: handle each item of ``inbox`` until the None that :func:`_close_inbox` puts."""
+    while (item := inbox.get()) is not None:
+        handle(item)
 
 
 def _close_inbox(inbox: queue.Queue[Any], threads: int) -> None:
@@ -503,18 +505,17 @@ class _SubscriptionDispatcher(_Dispatcher):
             )
 
     def work(self) -> None:
-        while True:
-            item = self.inbox.get()
-            if item is None:
-                return
-            t0, c0 = time.perf_counter(), time.thread_time()
-            try:
-                msg = self.parse(item.data, item.schema, scope_between(self.ctx.bus.robot, item.sender))
-                self.sub.handler(self.service, msg, RequestContext(item.sender, item.key))
-            except Exception as e:  # one bad message must not end the worker
-                self.refuse(e, item.sender)
-            finally:
-                self.observe(t0, c0)
+        _work(self.inbox, self.handle)
+
+    def handle(self, item: _Sample) -> None:
+        t0, c0 = time.perf_counter(), time.thread_time()
+        try:
+            msg = self.parse(item.data, item.schema, scope_between(self.ctx.bus.robot, item.sender))
+            self.sub.handler(self.service, msg, RequestContext(item.sender, item.key))
+        except Exception as e:  # one bad message must not end the worker
+            self.refuse(e, item.sender)
+        finally:
+            self.observe(t0, c0)
 
 
 @dataclass(frozen=True)
