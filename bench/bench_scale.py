@@ -8,7 +8,8 @@ keeps its own services, endpoints, liveliness and metrics; they share a zenoh se
 and an interpreter), and checks its pair scores against the offline evaluation. For
 each size it writes the wall time (start, replay), the memory of the processes (their
 resident sets at the last step, in total and per robot), bytes per query measured on
-the wire, the worst shard balance and whether the scores are identical.
+the wire, the worst shard balance, whether the scores are identical, and how the processes
+stopped (seconds after SIGTERM, exit codes).
 
 Baseline, in the same run: the 10-robot swarm with one process per service (41
 processes), the deployment the project started from: the ratio of its memory per
@@ -93,6 +94,10 @@ def run(robots: int, hosting: str, work: Path, rebalance_target: float) -> dict[
         "wall_s": wall,
         "start_s": s.timings.get("start_s"),
         "replay_s": s.timings.get("replay_s"),
+        # How long the processes took to stop after SIGTERM, and whether each exited by itself
+        # (0) or was killed after the deployment's 10 s (-9).
+        "stop_s": s.timings.get("stop_s"),
+        "exit_codes": s.exit_codes,
         "memory_total_mb": total,
         "memory_per_robot_mb": total / robots,
         "bytes_per_query": s.bytes.per_query,

@@ -59,6 +59,20 @@ def alive(swarm: str, kind: str, robot: int | str) -> str:
     return f"{PREFIX}/{swarm}/alive/{kind}/{_robot(robot)}"
 
 
+def draining(swarm: str, kind: str, robot: int | str) -> str:
+    """Key of the liveliness token a stopping service declares while it still serves
+    (an index shard handing its groups on; ``robot`` ``"*"``: every robot's)."""
+    return f"{PREFIX}/{swarm}/draining/{kind}/{_robot(robot)}"
+
+
+def parse_draining(key: str) -> int | None:
+    """The robot of a draining token key, None for any other key."""
+    parts = key.split("/")
+    if len(parts) != 6 or parts[3] != "draining" or not parts[5].isdigit():
+        return None
+    return int(parts[5])
+
+
 def alive_all(swarm: str) -> str:
     """Selector of every liveliness token of a swarm."""
     return f"{PREFIX}/{swarm}/alive/**"

@@ -185,6 +185,16 @@ def grants(
                     (keys.alive(s, "index-shard", "*"),),
                 )
             )
+        if kind == "index-shard":
+            # A stopping shard says so, and every shard sees who stays to take its groups.
+            out += [
+                Grant("ingress", ("liveliness_token",), (keys.draining(s, kind, r),)),
+                Grant(
+                    "ingress",
+                    ("declare_liveliness_subscriber", "liveliness_query"),
+                    (keys.draining(s, kind, "*"),),
+                ),
+            ]
         if kind == "fusion":
             # Flooding puts onto the neighbours' inboxes; who is a neighbour
             # changes with the radio graph, so every other robot of the swarm.

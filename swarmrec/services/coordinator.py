@@ -168,7 +168,9 @@ class Coordinator:
         # A shard that connects to a router (or peers) can be cut off from the swarm: then it
         # sees no shard, and must not take that for the others having gone.
         needs_link = bool(self.shard.bus.connect)
-        self.live = LiveShards(self.shard.ctx.session, self.shard.bus.swarm, needs_link=needs_link)
+        self.live = LiveShards(
+            self.shard.ctx.session, self.shard.bus.swarm, needs_link=needs_link, watch_draining=True
+        )
         self._thread = threading.Thread(target=self._run, name="index-coordinator", daemon=True)
         self._thread.start()
 
@@ -179,6 +181,10 @@ class Coordinator:
         if self.live is not None:
             self.live.close()
             self.live = None
+
+    def anyone_stays(self) -> bool:
+        """Whether another live shard has not declared it is stopping (False before start)."""
+        return self.live is not None and self.live.anyone_stays(self.shard.shard)
 
     def lowest_live(self) -> int:
         """The lowest shard id this shard sees alive (itself included)."""

@@ -40,6 +40,7 @@ while it is the lowest: :mod:`swarmrec.services.coordinator`.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 import time
@@ -47,6 +48,7 @@ from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
+import zenoh
 
 from swarmrec.core.index import RangeIndex
 from swarmrec.core.placement import Placement, groups_from_bounds, ring
@@ -126,6 +128,7 @@ class IndexShard(ServiceBase):
             held = set(self.placement.groups_of(self.shard)) | set(self.placement.learning(self.shard))
         self.confirmed = False
         self.draining = False
+        self._draining_token: zenoh.LivelinessToken | None = None
         for g in sorted(held):
             self.indexes[g] = RangeIndex(*self.groups[g], self.bus.n_robots)
         restored, skipped = self._replay_log(held)
@@ -351,8 +354,17 @@ class IndexShard(ServiceBase):
         """Before stopping, let the coordinator move this shard's groups to the others (a
         scale-down loses nothing even when a group's other replica goes too): wait until
         this shard holds no group, for at most ``drain_timeout_s``. At once when no other
-        shard stays (the whole swarm is stopping) or nothing is held."""
+        shard stays (the whole swarm is stopping) or nothing is held.
+
+        Whether anyone stays is read from the draining tokens (:func:`keys.draining`) the
+        stopping shards declare, never by asking every shard: when a whole swarm of a
+        hundred shards stops, a hundred such rounds of a hundred requests each took the
+        processes past their time to stop."""
         self.draining = True
+        with contextlib.suppress(zenoh.ZError):  # a session already closed: nothing to tell
+            self._draining_token = self.ctx.session.liveliness().declare_token(
+                keys.draining(self.bus.swarm, "index-shard", self.shard)
+            )
         deadline = time.monotonic() + self.index_settings.drain_timeout_s
         waited = False
         while time.monotonic() < deadline:
@@ -360,11 +372,7 @@ class IndexShard(ServiceBase):
                 holds = bool(self.placement.groups_of(self.shard) or self.placement.learning(self.shard))
             if not holds:
                 break
-            try:
-                states = self.coordinator.states()
-            except CallError:
-                break
-            if not any(m != self.shard and not st.draining for m, st in states.items()):
+            if not self.coordinator.anyone_stays():
                 break  # nobody stays to take the groups
             waited = True
             time.sleep(0.2)
@@ -374,6 +382,10 @@ class IndexShard(ServiceBase):
 
     def close(self) -> None:
         self.coordinator.stop()
+        if self._draining_token is not None:
+            with contextlib.suppress(zenoh.ZError):  # the session closed first
+                self._draining_token.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
+            self._draining_token = None
 
     # --- requests ----------------------------------------------------------------------
 

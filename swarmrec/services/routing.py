@@ -35,11 +35,18 @@ class LiveShards:
     With ``needs_link`` (a session that connects to a router or peers), it also watches
     this session's own transports: while it has none, the empty set of live shards says
     nothing of the others (they vanished because this session did), and
-    :meth:`reaches_swarm` is False until a transport opens again (:meth:`rejoined_at`)."""
+    :meth:`reaches_swarm` is False until a transport opens again (:meth:`rejoined_at`).
 
-    def __init__(self, session: zenoh.Session, swarm: str, *, needs_link: bool = False) -> None:
+    With ``watch_draining`` it also keeps the shards that declared they are stopping
+    (:func:`keys.draining`), so a stopping shard knows whether anyone stays without
+    asking every shard (:meth:`anyone_stays`)."""
+
+    def __init__(
+        self, session: zenoh.Session, swarm: str, *, needs_link: bool = False, watch_draining: bool = False
+    ) -> None:
         self._lock = threading.Lock()
         self._alive: set[int] = set()
+        self._draining: set[int] = set()
         # When each shard's token went away (monotonic): a shard seen only briefly, between
         # two looks of the coordinator, still counts as seen (not as one never started).
         self._gone_at: dict[int, float] = {}
@@ -54,6 +61,13 @@ class LiveShards:
         )
         self._sub = session.liveliness().declare_subscriber(
             keys.alive(swarm, "index-shard", "*"), self._on_token, history=True
+        )
+        self._draining_sub = (
+            session.liveliness().declare_subscriber(
+                keys.draining(swarm, "index-shard", "*"), self._on_draining, history=True
+            )
+            if watch_draining
+            else None
         )
 
     def _on_transport(self, event: zenoh.TransportEvent) -> None:
@@ -90,9 +104,25 @@ class LiveShards:
                 self._alive.discard(shard)
                 self._gone_at[shard] = time.monotonic()
 
+    def _on_draining(self, sample: zenoh.Sample) -> None:
+        shard = keys.parse_draining(str(sample.key_expr))
+        if shard is None:
+            return
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._draining.add(shard)
+            else:
+                self._draining.discard(shard)
+
     def ids(self) -> set[int]:
         with self._lock:
             return set(self._alive)
+
+    def anyone_stays(self, shard: int) -> bool:
+        """Whether a live shard other than ``shard`` has not declared it is stopping
+        (needs ``watch_draining``; a token not seen yet counts as staying)."""
+        with self._lock:
+            return bool(self._alive - self._draining - {shard})
 
     def gone_at(self) -> dict[int, float]:
         """When each shard not alive now was last seen going (monotonic time)."""
@@ -102,6 +132,9 @@ class LiveShards:
     def close(self) -> None:
         with contextlib.suppress(zenoh.ZError):  # the session closed first
             self._sub.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
+        if self._draining_sub is not None:
+            with contextlib.suppress(zenoh.ZError):
+                self._draining_sub.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
         if self._link_listener is not None:
             with contextlib.suppress(zenoh.ZError):
                 self._link_listener.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub

@@ -47,6 +47,7 @@ from swarmrec.runtime.tls import (
 from swarmrec.security.acl import access_control, configure_access_control, grants
 from swarmrec.security.identity import Identity
 from swarmrec.security.pki import PkiSettings, ensure_identity, init_pki
+from swarmrec.services.routing import LiveShards
 from tests.integration.support import wait_until
 
 SWARM = "sec"
@@ -549,6 +550,38 @@ def test_a_robot_cannot_declare_another_robots_liveliness_token(
     assert listed == {keys.alive(SWARM, "verifier", 2), keys.alive(SWARM, "verifier", 3)}
     for token in tokens:
         token.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
+
+
+def test_a_stopping_shard_says_so_for_itself_only_and_its_peers_see_who_stays(
+    acl_swarm: tuple[zenoh.Session, Sessions],
+) -> None:
+    """The draining tokens an index shard reads instead of asking every shard whether
+    anyone stays (IndexShard.drain): a shard may declare its own, never another's."""
+    _, open_as = acl_swarm
+    s1, s2, s3 = (open_as(f"r{r}.index-shard.{SWARM}") for r in (1, 2, 3))
+    live = LiveShards(s1, SWARM, watch_draining=True)
+    try:
+        tokens = [
+            s.liveliness().declare_token(keys.alive(SWARM, "index-shard", r))
+            for r, s in ((1, s1), (2, s2), (3, s3))
+        ]
+        wait_until(lambda: live.ids() == {1, 2, 3}, DEADLINE_S, "the three shards' tokens heard")
+        assert live.anyone_stays(1)
+        tokens.append(s2.liveliness().declare_token(keys.draining(SWARM, "index-shard", 3)))  # denied
+        tokens.append(s2.liveliness().declare_token(keys.draining(SWARM, "index-shard", 2)))
+        tokens.append(s1.liveliness().declare_token(keys.draining(SWARM, "index-shard", 1)))
+        # Shard 2's own token came after the denied one on the same link: heard, so was that.
+        wait_until(lambda: not live.anyone_stays(3), DEADLINE_S, "shards 1 and 2 heard draining")
+        assert live.anyone_stays(1), "shard 3 stays: shard 2 cannot say it stops"
+        assert live.anyone_stays(2)
+        tokens.append(s3.liveliness().declare_token(keys.draining(SWARM, "index-shard", 3)))
+        wait_until(lambda: not live.anyone_stays(1), DEADLINE_S, "every shard heard draining")
+        for token in tokens:
+            token.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
+        wait_until(lambda: live.ids() == set(), DEADLINE_S, "the tokens gone")
+        assert not live.anyone_stays(1)
+    finally:
+        live.close()
 
 
 @pytest.mark.parametrize("token_allowed", [False, True])

@@ -12,9 +12,11 @@ from swarmrec.errors import ConfigError
 from swarmrec.runtime.keys import (
     alive,
     alive_all,
+    draining,
     endpoint,
     event,
     parse_alive,
+    parse_draining,
     validate_swarm_name,
 )
 from swarmrec.services.registry import kinds
@@ -64,6 +66,24 @@ def test_parse_alive_reads_back_every_kind_and_robot(kind: str, robot: int) -> N
 )
 def test_parse_alive_returns_none_for_any_other_key(key: str) -> None:
     assert parse_alive(key) is None
+
+
+@pytest.mark.parametrize("robot", [0, 9, 4_000_000_000])
+def test_parse_draining_reads_back_the_robot(robot: int) -> None:
+    assert parse_draining(draining("lab", "index-shard", robot)) == robot
+
+
+@pytest.mark.parametrize(
+    "key",
+    [
+        "swarmrec/v1/lab/alive/index-shard/3",  # a shard alive is not a shard stopping
+        "swarmrec/v1/lab/draining/index-shard/*",
+        "swarmrec/v1/lab/draining/index-shard/3/extra",
+        "",
+    ],
+)
+def test_parse_draining_returns_none_for_any_other_key(key: str) -> None:
+    assert parse_draining(key) is None
 
 
 @pytest.mark.parametrize("name", ["lab", "a", "A-b_9", "x" * 64])
