@@ -162,7 +162,9 @@ class BusSettings(Component):
     listen: tuple[str, ...] = setting((), "endpoints to listen on (a router)")
     metrics_port: int = setting(0, "Prometheus endpoint port (0: a free one, -1: none)")
     metrics_host: str = setting("127.0.0.1", "Prometheus endpoint address")
-    workers: int = setting(2, "worker threads per endpoint (callbacks only enqueue; workers do the work)")
+    workers: int = setting(
+        2, "worker threads per endpoint: they take its requests in turn and run the handler (see dispatch)"
+    )
     dispatch: EndpointDispatch = setting(
         "auto",
         "how requests reach an endpoint's workers: channel (zenoh's channel; each waiting worker "

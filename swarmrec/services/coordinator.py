@@ -55,7 +55,7 @@ from swarmrec.errors import CallError, WireError
 from swarmrec.runtime import ServiceContext, keys
 from swarmrec.runtime.settings import BusSettings
 from swarmrec.services.metrics import ShardMetrics
-from swarmrec.services.routing import LiveShards, served_load, version_of
+from swarmrec.services.routing import LiveShards, version_of
 from swarmrec.services.settings import IndexSettings, PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.placement import placement_from_proto, placement_to_proto
@@ -115,7 +115,7 @@ class Shard(Protocol):
     def follow(self, placement: Placement, *, confirm: bool = True) -> bool: ...
 
 
-__all__ = ["Coordinator", "Shard", "present_members"]
+__all__ = ["Coordinator", "Shard", "present_members", "served_load"]
 
 
 def present_members(
@@ -140,6 +140,21 @@ def present_members(
         elif now - last < grace_s:
             present.add(m)
     return present
+
+
+def served_load(state: pb.ShardState, n_groups: int) -> dict[int, int]:
+    """The partial queries a shard says it served, by group (only groups with any are sent).
+    Raises WireError when the two lists differ in length, or name a group twice or one
+    beyond ``n_groups``: a shard's report is not trusted further than it checks out."""
+    groups, counts = state.served_groups, state.served_queries
+    if len(groups) != len(counts):
+        raise WireError(f"served_groups has {len(groups)} entries, served_queries {len(counts)}")
+    out: dict[int, int] = {}
+    for g, n in zip(groups, counts, strict=True):
+        if g >= n_groups or g in out:
+            raise WireError(f"served_groups names group {g} twice or beyond the {n_groups} groups")
+        out[g] = int(n)
+    return out
 
 
 class Coordinator:

@@ -25,7 +25,7 @@ from swarmrec.runtime.rpc import Caller
 from swarmrec.wire import messages as pb
 from swarmrec.wire.placement import placement_from_proto
 
-__all__ = ["LiveShards", "Routing", "newest_placement", "served_load", "version_of"]
+__all__ = ["LiveShards", "Routing", "newest_placement", "version_of"]
 
 
 class LiveShards:
@@ -144,21 +144,6 @@ def version_of(state: pb.ShardState) -> int:
     """The version of the placement a shard follows, sent with the placement or alone
     (``PlacementRequest.known_version``)."""
     return state.placement.version if state.HasField("placement") else state.placement_version
-
-
-def served_load(state: pb.ShardState, n_groups: int) -> dict[int, int]:
-    """The partial queries a shard says it served, by group (only groups with any are sent).
-    Raises WireError when the two lists differ in length, or name a group twice or one
-    beyond ``n_groups``: a shard's report is not trusted further than it checks out."""
-    groups, counts = state.served_groups, state.served_queries
-    if len(groups) != len(counts):
-        raise WireError(f"served_groups has {len(groups)} entries, served_queries {len(counts)}")
-    out: dict[int, int] = {}
-    for g, n in zip(groups, counts, strict=True):
-        if g >= n_groups or g in out:
-            raise WireError(f"served_groups names group {g} twice or beyond the {n_groups} groups")
-        out[g] = int(n)
-    return out
 
 
 def newest_placement(

@@ -23,9 +23,9 @@ from swarmrec.services.coordinator import (
     MIN_GAIN,
     Coordinator,
     present_members,
+    served_load,
     store_weight,
 )
-from swarmrec.services.routing import served_load
 from swarmrec.services.settings import IndexSettings
 from swarmrec.wire import messages as pb
 
