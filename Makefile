@@ -106,6 +106,7 @@ contracts: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python bench/bench_offline.py --out bench/results/offline.json
 	$(BIN)/python bench/bench_swarm.py --out bench/results/swarm.json
+	$(BIN)/python bench/bench_cpu.py --out bench/results/swarm_cpu.json
 	$(BIN)/python bench/bench_detector.py --out bench/results/detector.json
 	$(BIN)/python bench/bench_landmarks.py --out bench/results/landmarks.json
 	$(BIN)/python bench/bench_compose.py --rebuild-base --out bench/results/compose.json
