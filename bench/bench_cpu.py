@@ -90,7 +90,7 @@ def read_threads(pid: int) -> Threads:
 def process_role(name: str) -> str:
     if name.startswith("host-"):
         return "robot hosts"
-    return name.split("-")[0]  # router, gateway, or a kind of one process per service
+    return name.rsplit("-", 1)[0]  # router-0, gateway-0, index-shard-3 (one process a service)
 
 
 def snapshot(d: LocalDeployment) -> dict[str, Threads]:

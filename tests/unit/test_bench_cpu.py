@@ -37,6 +37,19 @@ def test_zenohs_runtime_threads_are_told_from_python_threads(bench: ModuleType) 
     assert during.cpu[("python", "user")] >= before.cpu[("python", "user")]
 
 
+@pytest.mark.parametrize(
+    ("name", "role"),
+    [
+        ("host-r0-4", "robot hosts"),
+        ("router-0", "router"),
+        ("gateway-0", "gateway"),
+        ("index-shard-3", "index-shard"),
+    ],
+)
+def test_a_process_is_named_by_its_role(bench: ModuleType, name: str, role: str) -> None:
+    assert bench.process_role(name) == role
+
+
 def test_cpu_and_switches_are_divided_by_the_queries_between_the_two_looks(bench: ModuleType) -> None:
     t = bench.Threads
     before = {
