@@ -67,10 +67,8 @@ def draining(swarm: str, kind: str, robot: int | str) -> str:
 
 def parse_draining(key: str) -> int | None:
     """The robot of a draining token key, None for any other key."""
-    parts = key.split("/")
-    if len(parts) != 6 or parts[3] != "draining" or not parts[5].isdigit():
-        return None
-    return int(parts[5])
+    parsed = _parse_token(key, "draining")
+    return None if parsed is None else parsed[1]
 
 
 def alive_all(swarm: str) -> str:
@@ -80,8 +78,13 @@ def alive_all(swarm: str) -> str:
 
 def parse_alive(key: str) -> tuple[str, int] | None:
     """(kind, robot) of a liveliness token key, None for any other key."""
+    return _parse_token(key, "alive")
+
+
+def _parse_token(key: str, segment: str) -> tuple[str, int] | None:
+    """(kind, robot) of a ``<prefix>/<swarm>/<segment>/<kind>/<robot>`` token key."""
     parts = key.split("/")
-    if len(parts) != 6 or parts[3] != "alive" or not parts[5].isdigit():
+    if len(parts) != 6 or parts[3] != segment or not parts[5].isdigit():
         return None
     return parts[4], int(parts[5])
 

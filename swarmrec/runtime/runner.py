@@ -68,7 +68,14 @@ from swarmrec.errors import (
 from swarmrec.runtime import keys
 from swarmrec.runtime.metrics import MetricSet, MetricsServer, ServiceMetrics, scope_between
 from swarmrec.runtime.rpc import Caller, LocalEndpoints, caller_robot, encoding_for, schema_of
-from swarmrec.runtime.settings import BusSettings, Component, Config, SecuritySettings, StorageSettings
+from swarmrec.runtime.settings import (
+    AUTO_QUEUE_ABOVE,
+    BusSettings,
+    Component,
+    Config,
+    SecuritySettings,
+    StorageSettings,
+)
 from swarmrec.runtime.storage import RecordLog
 from swarmrec.runtime.tls import apply_security
 from swarmrec.wire import messages as pb
@@ -101,11 +108,6 @@ SUBSCRIPTION_CAPACITY = 65536
 #: callback answers UNAVAILABLE at once (counted) rather than block zenoh's receive
 #: thread. zenoh's own channel holds as many.
 ENDPOINT_CAPACITY = 256
-
-#: ``dispatch = "auto"`` uses queues in a process hosting more services than this: the two
-#: were even for 20 services a process (5 robots), queues faster for 52 (13 robots) and
-#: more (docs/swarm.md); a process of one service keeps zenoh's channels as it always had.
-AUTO_QUEUE_ABOVE = 32
 
 
 @dataclass(frozen=True)

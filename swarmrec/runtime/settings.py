@@ -48,6 +48,7 @@ from swarmrec.errors import ConfigError
 from swarmrec.runtime.keys import validate_swarm_name
 
 __all__ = [
+    "AUTO_QUEUE_ABOVE",
     "ENV_PREFIX",
     "BusSettings",
     "Component",
@@ -144,6 +145,10 @@ def describe(component: type[Component]) -> list[SettingInfo]:
 
 ZenohMode = Literal["client", "peer", "router"]
 EndpointDispatch = Literal["auto", "channel", "queue"]
+#: ``dispatch = "auto"`` uses queues in a process hosting more services than this: the two
+#: were even for 20 services a process (5 robots), queues faster for 52 (13 robots) and
+#: more (docs/swarm.md); a process of one service keeps zenoh's channels as it always had.
+AUTO_QUEUE_ABOVE = 32
 
 
 @dataclass(frozen=True)
@@ -170,7 +175,7 @@ class BusSettings(Component):
         "how requests reach an endpoint's workers: channel (zenoh's channel; each waiting worker "
         "wakes every 100 ms), queue (zenoh's callback fills a queue; its receive thread takes the "
         "interpreter lock per request) or auto (queue in a process of more than "
-        "32 services, channel otherwise)",
+        f"{AUTO_QUEUE_ABOVE} services, channel otherwise)",
     )
     request_timeout_s: float = setting(2.0, "how long a service waits for a peer's reply, seconds")
     max_message_bytes: int = setting(1 << 20, "largest request payload accepted, bytes")

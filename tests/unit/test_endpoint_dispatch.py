@@ -7,8 +7,8 @@ from __future__ import annotations
 import pytest
 
 from swarmrec.errors import ConfigError
-from swarmrec.runtime.runner import AUTO_QUEUE_ABOVE, dispatch_by_queue
-from swarmrec.runtime.settings import BusSettings, load_config
+from swarmrec.runtime.runner import dispatch_by_queue
+from swarmrec.runtime.settings import AUTO_QUEUE_ABOVE, BusSettings, load_config
 
 
 def test_auto_feeds_workers_from_queues_only_in_a_process_of_many_services() -> None:
