@@ -3,7 +3,8 @@
 #
 #   make run     the main job: a local swarm of 10 robots (real processes, real zenoh router) on the synthetic world
 #   make evaluate  the offline evaluation (no processes): centralized and 10 robots
-#   make test    regenerated-code check, lint, types, all tests (unit, local processes, containers, training)
+#   make test    regenerated-code check, lint, types, all tests (unit, local processes, containers, training, the compiled data plane)
+#   make dataplane  the compiled data plane (target/release/swarmrec-dataplane; Rust installed by rustup if absent)
 #   make landmarks  the cooperative landmark recognition simulation (10 robots, 118 configurations) and its figures
 #   make bench   benchmarks, figures written to bench/results/
 #   make contracts  regenerate services/ (each service kind's contract) and the architecture figure
@@ -39,7 +40,7 @@ TRAIN_VENV  := .venv-train
 TRAIN_STAMP := $(TRAIN_VENV)/.installed-stamp
 TRAIN_REQS  := models/requirements-train.txt
 
-.PHONY: help venv contracts train-env train-landmarks train-detector train-descriptor landmarks run evaluate test unit lint typecheck proto check-proto bench images swarm-up swarm-run swarm-down k8s-up k8s-apply k8s-run k8s-down clean
+.PHONY: help dataplane dataplane-test venv contracts train-env train-landmarks train-detector train-descriptor landmarks run evaluate test unit lint typecheck proto check-proto bench images swarm-up swarm-run swarm-down k8s-up k8s-apply k8s-run k8s-down clean
 
 help:
 	@sed -n 's/^#   //p' Makefile
@@ -81,8 +82,26 @@ run: $(STAMP)
 evaluate: $(STAMP)
 	$(BIN)/swarmrec evaluate --dataset synthetic --out runs/evaluate
 
-test: $(STAMP) $(TRAIN_STAMP) check-proto lint typecheck
+test: $(STAMP) $(TRAIN_STAMP) check-proto lint typecheck dataplane-test
 	$(BIN)/python -m pytest
+
+# The compiled data plane (docs/dataplane.md): crates from crates.io, pinned by the
+# committed Cargo.lock. It needs Rust >= 1.85 (zenoh 1.10 and prost 0.14): cargo on PATH or
+# rustup's ~/.cargo/bin (this project's machines have it; Debian's rustc 1.63 is too old).
+CARGO ?= $(shell command -v cargo 2>/dev/null || echo $(HOME)/.cargo/bin/cargo)
+DATAPLANE := target/release/swarmrec-dataplane
+
+$(CARGO):
+	@echo "no cargo found (PATH, ~/.cargo/bin): install Rust >= 1.85 with rustup (https://rustup.rs)" >&2; exit 1
+
+$(DATAPLANE): $(CARGO) Cargo.toml Cargo.lock dataplane/Cargo.toml dataplane/build.rs $(wildcard dataplane/src/*.rs) $(wildcard proto/swarmrec/v1/*.proto)
+	$(CARGO) build --release --locked
+	@touch $(DATAPLANE)
+
+dataplane: $(DATAPLANE)
+
+dataplane-test: $(DATAPLANE)
+	$(CARGO) test --release --locked
 
 unit: $(STAMP)
 	$(BIN)/python -m pytest tests/unit -q

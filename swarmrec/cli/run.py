@@ -68,6 +68,13 @@ def add(sub: Subparsers) -> None:
         help="how the local swarm puts services in processes: one per service (default), one per robot "
         "(its services share a session), or K robots per process (a simulation of many robots)",
     )
+    p.add_argument(
+        "--data-plane",
+        choices=("python", "compiled"),
+        default="python",
+        help="which implementation serves the kinds that have a compiled one (the verifier): python "
+        "(default) or compiled (the Rust host, built by `make dataplane`; docs/dataplane.md)",
+    )
     links = p.add_argument_group(
         "emulated links",
         "every robot reaches the swarm through a Toxiproxy proxy of its own (docs/links.md); local runs only",
@@ -201,6 +208,7 @@ def run(args: argparse.Namespace) -> int:
         out=args.out,
         wire_positions=args.wire_positions,
         hosting=args.hosting,
+        data_plane=args.data_plane,
         link=LinkSpec(args.link_rate, args.link_latency),
         schedule=args.link_schedule,
         schedule_unit=args.schedule_unit,
@@ -223,6 +231,11 @@ def run(args: argparse.Namespace) -> int:
         if args.insecure or args.hosting != "service":
             raise ConfigError(
                 "a Kubernetes swarm runs one service per pod under mutual TLS: drop --insecure and --hosting"
+            )
+        if args.data_plane != "python":
+            raise ConfigError(
+                "--data-plane compiled runs on local processes only: the images do not carry the "
+                "compiled host yet (docs/dataplane.md)"
             )
         k8s = KubernetesDeployment(
             KubernetesSettings(

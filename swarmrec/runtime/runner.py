@@ -93,6 +93,8 @@ __all__ = [
     "run_service",
     "run_services",
     "service_logger",
+    "session_bus",
+    "session_identity",
     "zenoh_config",
 ]
 
@@ -542,7 +544,7 @@ class Hosted:
         return c.get(SecuritySettings) if c.has(SecuritySettings) else SecuritySettings()
 
 
-def _session_bus(hosted: Sequence[Hosted]) -> BusSettings:
+def session_bus(hosted: Sequence[Hosted]) -> BusSettings:
     """The bus settings the shared session is opened with; every hosted service must agree
     on what the session is (swarm, mode, endpoints)."""
     first = hosted[0].config.bus
@@ -561,7 +563,7 @@ def _session_bus(hosted: Sequence[Hosted]) -> BusSettings:
     return first
 
 
-def _session_identity(hosted: Sequence[Hosted]) -> str:
+def session_identity(hosted: Sequence[Hosted]) -> str:
     """The common name the shared session presents: its settings' or the one service's own.
     Several services share one certificate only when it is named (the access control
     grants each certificate one service's keys)."""
@@ -677,9 +679,13 @@ def run_services(
     *,
     stop: threading.Event | None = None,
     on_ready: Callable[[pb.MemberInfo], None] | None = None,
+    also_ready: Sequence[dict[str, Any]] = (),
 ) -> int:
     """Run several services in this process over one zenoh session until ``stop`` is set
     (or SIGTERM/SIGINT); returns an exit code.
+
+    ``also_ready``: services another process serves for this one (the compiled host's,
+    :mod:`swarmrec.services.compiled`), listed in the readiness line beside its own.
 
     A robot's services in one process call each other directly (the caller's thread runs
     the endpoint's dispatcher: :class:`~swarmrec.runtime.rpc.LocalEndpoints`); many robots
@@ -690,7 +696,7 @@ def run_services(
     """
     if not hosted:
         raise ConfigError("a host runs at least one service")
-    bus = _session_bus(hosted)
+    bus = session_bus(hosted)
     stop = stop or threading.Event()
     install_signals(stop)
     single = len(hosted) == 1
@@ -712,7 +718,7 @@ def run_services(
     running: list[_Running] = []
     # Calls between services of one robot in this process skip zenoh (rpc.LocalEndpoints).
     local = LocalEndpoints()
-    conf = zenoh_config(bus, hosted[0].security, identity=_session_identity(hosted), log=host_log)
+    conf = zenoh_config(bus, hosted[0].security, identity=session_identity(hosted), log=host_log)
     with zenoh.open(conf) as session:
         try:
             for h in hosted:
@@ -739,8 +745,11 @@ def run_services(
                 | (r.service.announce() if r.service is not None else {})
                 for r in running
             ]
+            services += list(also_ready)
             ready: dict[str, Any] = (
-                {"event": "ready", **services[0]} if single else {"event": "ready", "services": services}
+                {"event": "ready", **services[0]}
+                if len(services) == 1
+                else {"event": "ready", "services": services}
             )
             ready["dispatch"] = "queue" if queues else "channel"
             if bus.listen:

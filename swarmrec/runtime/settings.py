@@ -145,6 +145,8 @@ def describe(component: type[Component]) -> list[SettingInfo]:
 
 ZenohMode = Literal["client", "peer", "router"]
 EndpointDispatch = Literal["auto", "channel", "queue"]
+#: Which implementation serves a kind that has a compiled one (swarmrec.services.compiled).
+DataPlane = Literal["python", "compiled"]
 #: ``dispatch = "auto"`` uses queues in a process hosting more services than this: the two
 #: were even for 20 services a process (5 robots), queues faster for 52 (13 robots) and
 #: more (docs/swarm.md); a process of one service keeps zenoh's channels as it always had.
@@ -177,6 +179,12 @@ class BusSettings(Component):
         "interpreter lock per request) or auto (queue in a process of more than "
         f"{AUTO_QUEUE_ABOVE} services, channel otherwise)",
     )
+    data_plane: DataPlane = setting(
+        "python",
+        "which implementation serves a kind that has a compiled one (docs/dataplane.md): python, or "
+        "compiled (the Rust host, swarmrec-dataplane: same keys, messages, metrics and logs; kinds "
+        "without one stay python)",
+    )
     request_timeout_s: float = setting(2.0, "how long a service waits for a peer's reply, seconds")
     max_message_bytes: int = setting(1 << 20, "largest request payload accepted, bytes")
     log_level: str = setting("INFO", "logging level")
@@ -201,6 +209,8 @@ class BusSettings(Component):
             problems.append(f"workers must be >= 1, got {self.workers}")
         if self.dispatch not in ("auto", "channel", "queue"):
             problems.append(f"dispatch must be auto, channel or queue, got {self.dispatch!r}")
+        if self.data_plane not in ("python", "compiled"):
+            problems.append(f"data_plane must be python or compiled, got {self.data_plane!r}")
         if not (math.isfinite(self.request_timeout_s) and self.request_timeout_s > 0):
             problems.append(f"request_timeout_s must be > 0, got {self.request_timeout_s}")
         if not 1024 <= self.max_message_bytes <= 1 << 24:

@@ -28,8 +28,9 @@ from typing import Literal, cast
 
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.metrics import MetricSet
-from swarmrec.runtime.runner import Hosted, ServiceBase, ServiceContext, run_services
+from swarmrec.runtime.runner import Hosted, ServiceBase, ServiceContext, install_signals, run_services
 from swarmrec.runtime.settings import BusSettings, Component, Config, SecuritySettings, StorageSettings
+from swarmrec.services import compiled
 from swarmrec.services.metrics import (
     DescriptorMetrics,
     DetectorMetrics,
@@ -102,6 +103,9 @@ class ServiceSpec:
     #: Endpoints any client of the swarm may call (the router's access control grants them;
     #: the built-in kinds' are listed in swarmrec.security.acl). A plugin names its own here.
     client_endpoints: tuple[str, ...] = ()
+    #: Also implemented in the compiled host (swarmrec-dataplane, docs/dataplane.md), which
+    #: serves it when the ``data_plane`` setting says ``compiled``.
+    compiled: bool = False
 
     @property
     def all_components(self) -> tuple[type[Component], ...]:
@@ -192,6 +196,7 @@ for _entry in (
         stateful=True,
         components=_PLACES,
         metrics=VerifierMetrics,
+        compiled=True,
     ),
     ServiceSpec(
         "place-owner",
@@ -301,9 +306,20 @@ def hosted(kind: str, config: Config) -> Hosted:
     entry = spec(kind)
     if entry.zenoh_mode is not None and config.bus.mode != entry.zenoh_mode:
         config = config.replace(config.bus.with_(mode=entry.zenoh_mode))
-    factory = cast(Callable[[ServiceContext], ServiceBase], entry.load())
+    if compiled.is_compiled(config, entry.compiled):
+        # Served by the compiled host: the Python class (and its imports) is never loaded.
+        factory = _not_in_python(entry.kind)
+    else:
+        factory = cast(Callable[[ServiceContext], ServiceBase], entry.load())
     cn = entry.common_name(config.bus.swarm, config.bus.robot)
     return Hosted(config, entry.kind, entry.wire, factory, entry.metrics, cn)
+
+
+def _not_in_python(kind: str) -> Callable[[ServiceContext], ServiceBase]:
+    def refuse(_ctx: ServiceContext) -> ServiceBase:
+        raise ConfigError(f"{kind} is served by the compiled host (data_plane compiled), not in Python")
+
+    return refuse
 
 
 def serve(
@@ -314,7 +330,7 @@ def serve(
     on_ready: Callable[[pb.MemberInfo], None] | None = None,
 ) -> int:
     """Run one service of ``kind`` with ``config`` until stopped; returns an exit code."""
-    return run_services([hosted(kind, config)], stop=stop, on_ready=on_ready)
+    return serve_many([(kind, config)], stop=stop, on_ready=on_ready)
 
 
 def serve_many(
@@ -323,8 +339,29 @@ def serve_many(
     stop: threading.Event | None = None,
     on_ready: Callable[[pb.MemberInfo], None] | None = None,
 ) -> int:
-    """Run several services (kinds, robots) in this process over one session (``swarmrec host``)."""
-    return run_services([hosted(kind, config) for kind, config in services], stop=stop, on_ready=on_ready)
+    """Run several services (kinds, robots) in this process over one session (``swarmrec host``).
+
+    Services whose kind is served compiled (the ``data_plane`` setting,
+    :mod:`swarmrec.services.compiled`) run in the compiled host: this process becomes it
+    when they are all there is (not when a caller waits on ``stop`` or ``on_ready``: tests
+    running services in threads), else it starts it as a child beside the Python services."""
+    every = [hosted(kind, config) for kind, config in services]
+    native = [h for h in every if compiled.is_compiled(h.config, spec(h.kind).compiled)]
+    if not native:
+        return run_services(every, stop=stop, on_ready=on_ready)
+    python = [h for h in every if h not in native]
+    if not python and stop is None and on_ready is None:
+        compiled.exec_host(native)
+    child = compiled.CompiledHost(native)
+    try:
+        if not python:
+            wait = stop or threading.Event()
+            install_signals(wait)
+            wait.wait()
+            return 0
+        return run_services(python, stop=stop, on_ready=on_ready, also_ready=child.services)
+    finally:
+        child.stop()
 
 
 def missing_components(kind: str, parts: Sequence[Component]) -> list[str]:

@@ -139,14 +139,22 @@ def seeded_swarm(tmp: Path, name: str, place: PlaceSettings, **bus: object) -> I
         yield Swarm(local, client, frames)
 
 
-@pytest.fixture(scope="module", params=["channel", "queue"])
+@pytest.fixture(scope="module", params=["channel", "queue", "compiled"])
 def swarm(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest) -> Iterator[Swarm]:
-    """Every case against both ways requests reach a service's workers (``dispatch``)."""
+    """Every case against both ways requests reach a Python service's workers (``dispatch``),
+    and with the kinds that have a compiled implementation served by it (``data_plane``)."""
     place = PlaceSettings(lockstep=True, verify_max_object_pairs=PAIRS_LIMIT)
-    dispatch = request.param
-    tmp = tmp_path_factory.mktemp(f"bad-input-{dispatch}")
-    with seeded_swarm(tmp, f"bad-input-{dispatch}", place, max_message_bytes=LIMIT, dispatch=dispatch) as s:
-        assert {p.info.get("dispatch") for p in s.local.procs} == {dispatch}
+    mode = request.param
+    tmp = tmp_path_factory.mktemp(f"bad-input-{mode}")
+    bus: dict[str, object] = (
+        {"data_plane": "compiled", "dispatch": "channel"} if mode == "compiled" else {"dispatch": mode}
+    )
+    with seeded_swarm(tmp, f"bad-input-{mode}", place, max_message_bytes=LIMIT, **bus) as s:
+        served = {(p.kind, p.info.get("dispatch")) for p in s.local.procs}
+        compiled = {k for k in WORKLOADS["places"] if spec(k).compiled}
+        if mode == "compiled":
+            assert compiled and {(k, "compiled") for k in compiled} <= served, served
+        assert {d for k, d in served if mode != "compiled" or k not in compiled} == {bus["dispatch"]}
         yield s
 
 

@@ -18,6 +18,7 @@ from swarmrec.evaluation.bandwidth import holder_load
 from swarmrec.evaluation.scoring import score_decentralized
 from swarmrec.experiments.places import PlacesSettings, main
 from swarmrec.experiments.places.pipeline import as_on_the_wire
+from swarmrec.runtime.settings import DataPlane
 from swarmrec.services.settings import IndexSettings
 from tests.published import rows_differing
 
@@ -33,9 +34,17 @@ def _swarm_pairs(out: Path) -> dict[tuple[int, int], float]:
 
 
 @pytest.mark.slow
-def test_synthetic_swarm_of_four_scores_every_pair_as_the_offline_evaluation(tmp_path: Path) -> None:
+@pytest.mark.parametrize("data_plane", ["python", "compiled"])
+def test_synthetic_swarm_of_four_scores_every_pair_as_the_offline_evaluation(
+    tmp_path: Path, data_plane: DataPlane
+) -> None:
     settings = PlacesSettings(
-        source=DatasetSource(frames=600), robots=4, out=tmp_path / "run", progress=False, plots=True
+        source=DatasetSource(frames=600),
+        robots=4,
+        out=tmp_path / "run",
+        progress=False,
+        plots=True,
+        data_plane=data_plane,
     )
     summary = main(settings)
 
@@ -75,8 +84,12 @@ def test_synthetic_swarm_of_four_scores_every_pair_as_the_offline_evaluation(tmp
 
 
 @pytest.mark.slow
-def test_tum_swarm_of_ten_scores_every_pair_as_the_offline_evaluation(tmp_path: Path, tum_zip: Path) -> None:
+@pytest.mark.parametrize("data_plane", ["python", "compiled"])
+def test_tum_swarm_of_ten_scores_every_pair_as_the_offline_evaluation(
+    tmp_path: Path, tum_zip: Path, data_plane: DataPlane
+) -> None:
     settings = PlacesSettings(
+        data_plane=data_plane,
         source=DatasetSource(str(tum_zip)),
         robots=10,
         out=tmp_path / "run",

@@ -12,7 +12,7 @@ from swarmrec.datasets.source import SYNTHETIC, DatasetSource
 from swarmrec.datasets.tum import DEFAULT_MAX_DT
 from swarmrec.deployments.links import LinkSpec
 from swarmrec.errors import ConfigError
-from swarmrec.runtime.settings import BusSettings
+from swarmrec.runtime.settings import BusSettings, DataPlane
 from swarmrec.services.settings import IndexSettings, PlaceSettings, WirePositions
 
 __all__ = ["PixelSettings", "PlacesSettings"]
@@ -76,6 +76,9 @@ class PlacesSettings:
     wire_positions: WirePositions = "mm"
     #: How a local swarm puts services in processes: service, robot or robots:K.
     hosting: str = "service"
+    #: Which implementation serves the kinds that have a compiled one (python or compiled;
+    #: docs/dataplane.md).
+    data_plane: DataPlane = "python"
     #: Every robot's emulated link (bandwidth, latency; docs/links.md); unlimited by default.
     link: LinkSpec = field(default_factory=LinkSpec)
     #: When robots go out of range (a CSV, swarmrec.deployments.links.read_schedule).
@@ -121,7 +124,12 @@ class PlacesSettings:
 
     def bus(self) -> BusSettings:
         """The swarm's bus settings."""
-        return BusSettings(swarm=self.swarm, n_robots=self.robots, request_timeout_s=self.request_timeout_s)
+        return BusSettings(
+            swarm=self.swarm,
+            n_robots=self.robots,
+            request_timeout_s=self.request_timeout_s,
+            data_plane=self.data_plane,
+        )
 
     def places(self, n_labels: int, bounds: tuple[int, ...]) -> PlaceSettings:
         """The services' place-recognition settings for this run's label list and ranges."""

@@ -1,0 +1,241 @@
+//! `swarmrec-dataplane`: the compiled host of swarmrec's per-message services.
+//!
+//! Started by `swarmrec serve <kind>` / `swarmrec host` (never by hand: the Python CLI
+//! resolves every setting and hands them over whole, `--spec-json`), it runs any set
+//! of compiled services, of one robot or many, on one zenoh session, and behaves
+//! towards the swarm as the Python runner does: the readiness line on stdout, JSON
+//! log lines on stderr, Prometheus and probe pages over HTTP, a liveliness token per
+//! service, SIGTERM/SIGINT to stop (token first, then endpoints, then the session).
+//!
+//! Unless the environment says otherwise, zenoh runs on one thread
+//! (`ZENOH_RUNTIME`, ../shared/ZENOH.md: half the CPU per message of its default
+//! pools here), and requests are served in zenoh's callbacks: no hand-off.
+
+mod association;
+mod metrics;
+mod pb;
+mod recordlog;
+mod runtime;
+mod spec;
+mod verifier;
+mod wirecheck;
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+use anyhow::{bail, Context};
+use zenoh::Wait;
+
+use crate::metrics::{MetricsServer, ServiceMetrics};
+use crate::runtime::{Dispatcher, Log, Service};
+use crate::spec::HostSpec;
+
+/// zenoh's runtime on the process's one thread, I/O handed over to it (ZENOH.md).
+const SINGLE_THREAD_RUNTIME: &str =
+    "(app:(worker_threads:1),rx:(handover:app),tx:(handover:app),net:(handover:app),acc:(handover:app))";
+
+/// The kinds this binary implements.
+const KINDS: &[&str] = &["verifier"];
+
+fn usage() -> ! {
+    eprintln!(
+        "usage: swarmrec-dataplane host --spec-json JSON\n       swarmrec-dataplane kinds\n\n\
+         Started by `swarmrec serve`/`swarmrec host` for the kinds it implements ({}).",
+        KINDS.join(", ")
+    );
+    std::process::exit(2)
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    match args.first().map(String::as_str) {
+        Some("kinds") => println!("{}", KINDS.join(",")),
+        Some("host") if args.len() == 3 && args[1] == "--spec-json" => {
+            if std::env::var_os("ZENOH_RUNTIME").is_none() {
+                std::env::set_var("ZENOH_RUNTIME", SINGLE_THREAD_RUNTIME);
+            }
+            match serde_json::from_str::<HostSpec>(&args[2]).context("--spec-json").and_then(host) {
+                Ok(()) => {}
+                Err(e) => {
+                    eprintln!("{}", serde_json::json!({"level": "ERROR", "service": "host", "msg": format!("{e:#}")}));
+                    std::process::exit(1);
+                }
+            }
+        }
+        _ => usage(),
+    }
+}
+
+static STOP: AtomicBool = AtomicBool::new(false);
+
+extern "C" fn on_signal(_: libc::c_int) {
+    STOP.store(true, Ordering::SeqCst);
+}
+
+struct Hosted {
+    kind: String,
+    robot: u32,
+    swarm: String,
+    wire_kind: i32,
+    service: Arc<dyn Service>,
+    metrics: Arc<ServiceMetrics>,
+    url: String,
+}
+
+fn host(spec: HostSpec) -> anyhow::Result<()> {
+    if spec.services.is_empty() {
+        bail!("a host runs at least one service");
+    }
+    for s in &spec.services {
+        if !KINDS.contains(&s.kind.as_str()) {
+            bail!("{} has no compiled implementation (compiled: {})", s.kind, KINDS.join(", "));
+        }
+    }
+    // SAFETY: the handler only stores to an atomic.
+    unsafe {
+        libc::signal(libc::SIGTERM, on_signal as *const () as libc::sighandler_t);
+        libc::signal(libc::SIGINT, on_signal as *const () as libc::sighandler_t);
+    }
+    let single = spec.services.len() == 1;
+    let host_log = Log::new(if single { &spec.services[0].kind } else { "host" }, spec.services[0].robot, &spec.log_level);
+    let mut hosted: Vec<Hosted> = Vec::new();
+    for s in &spec.services {
+        let metrics = Arc::new(ServiceMetrics::new(&s.kind, s.robot, &s.swarm));
+        let log = Log::new(&s.kind, s.robot, &spec.log_level);
+        let service: Arc<dyn Service> = match s.kind.as_str() {
+            "verifier" => Arc::new(verifier::Verifier::new(s, metrics.clone(), log)?),
+            other => bail!("{other} has no compiled implementation"),
+        };
+        let path = if single { "/metrics".to_string() } else { format!("/metrics/{}/{}", s.kind, s.robot) };
+        hosted.push(Hosted {
+            kind: s.kind.clone(),
+            robot: s.robot,
+            swarm: s.swarm.clone(),
+            wire_kind: s.wire_kind,
+            service,
+            metrics,
+            url: path,
+        });
+    }
+    // Metrics: one endpoint for the process; with several services, /metrics is the host's readiness.
+    let host_metrics = Arc::new(metrics::Registry::new());
+    let host_ready = host_metrics.gauge("swarmrec_service_ready", "1 while every service of this process serves", &[]);
+    host_metrics.set(host_ready, &[], 0.0);
+    let server = if spec.metrics_port >= 0 {
+        let mut pages: Vec<(String, Arc<dyn Fn() -> String + Send + Sync>)> = Vec::new();
+        for h in &hosted {
+            let m = h.metrics.clone();
+            pages.push((h.url.clone(), Arc::new(move || m.registry.render())));
+        }
+        if !single {
+            let m = host_metrics.clone();
+            pages.push(("/metrics".to_string(), Arc::new(move || m.render())));
+        }
+        let port = u16::try_from(spec.metrics_port).context("metrics_port")?;
+        let server = MetricsServer::start(&spec.metrics_host, port, pages).context("metrics endpoint")?;
+        for h in &mut hosted {
+            h.url = server.url(&h.url);
+        }
+        Some(server)
+    } else {
+        for h in &mut hosted {
+            h.url.clear();
+        }
+        None
+    };
+    let config = zenoh::Config::from_json5(&spec.zenoh.to_string()).map_err(|e| anyhow::anyhow!("zenoh config: {e}"))?;
+    let session = zenoh::open(config).wait().map_err(|e| anyhow::anyhow!("zenoh session: {e}"))?;
+    let mut queryables = Vec::new();
+    let mut tokens = Vec::new();
+    for (h, s) in hosted.iter().zip(&spec.services) {
+        let log = Log::new(&h.kind, h.robot, &spec.log_level);
+        for endpoint in h.service.clone().endpoints() {
+            let key = format!("swarmrec/v1/{}/{}/{}/{}", h.swarm, h.kind, h.robot, endpoint.name);
+            let d = Dispatcher {
+                endpoint,
+                key: key.clone(),
+                robot: h.robot,
+                max_message_bytes: s.max_message_bytes,
+                metrics: h.metrics.clone(),
+                log: log.clone(),
+            };
+            let q = session
+                .declare_queryable(&key)
+                .callback(move |query| d.serve(query))
+                .wait()
+                .map_err(|e| anyhow::anyhow!("queryable {key}: {e}"))?;
+            queryables.push(q);
+        }
+        // `info`: what the service says of itself (asked once per member: no counting).
+        let key = format!("swarmrec/v1/{}/{}/{}/info", h.swarm, h.kind, h.robot);
+        let (service, reply_key) = (h.service.clone(), key.clone());
+        let (wire_kind, robot, swarm, url, version) =
+            (h.wire_kind, h.robot, h.swarm.clone(), h.url.clone(), spec.version.clone());
+        let q = session
+            .declare_queryable(&key)
+            .callback(move |query| {
+                let mut info = service.member_info();
+                info.kind = wire_kind;
+                info.robot_id = robot;
+                info.version = version.clone();
+                info.metrics_url = url.clone();
+                info.swarm = swarm.clone();
+                let _ = query
+                    .reply(&reply_key, prost::Message::encode_to_vec(&info))
+                    .encoding(runtime::encoding("MemberInfo"))
+                    .wait();
+            })
+            .wait()
+            .map_err(|e| anyhow::anyhow!("queryable {key}: {e}"))?;
+        queryables.push(q);
+    }
+    // Last: once the tokens are up, peers may route to these services.
+    for h in &hosted {
+        let key = format!("swarmrec/v1/{}/alive/{}/{}", h.swarm, h.kind, h.robot);
+        tokens.push(
+            session.liveliness().declare_token(&key).wait().map_err(|e| anyhow::anyhow!("token {key}: {e}"))?,
+        );
+        h.metrics.registry.set(h.metrics.ready, &[], 1.0);
+    }
+    host_metrics.set(host_ready, &[], 1.0);
+    if let Some(s) = &server {
+        s.set_ready(true);
+    }
+    let entries: Vec<serde_json::Value> = hosted
+        .iter()
+        .map(|h| serde_json::json!({"service": h.kind, "robot": h.robot, "metrics_url": h.url}))
+        .collect();
+    let mut ready = if single {
+        let mut e = entries[0].clone();
+        e["event"] = "ready".into();
+        e
+    } else {
+        serde_json::json!({"event": "ready", "services": entries})
+    };
+    ready["dispatch"] = "compiled".into();
+    host_log.info("ready", serde_json::json!({"services": entries}));
+    println!("{ready}");
+    while !STOP.load(Ordering::SeqCst) {
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    host_log.info("stopping", serde_json::json!({}));
+    if let Some(s) = &server {
+        s.set_ready(false); // first: a probe must not route to a stopping process
+    }
+    host_metrics.set(host_ready, &[], 0.0);
+    for h in &hosted {
+        h.metrics.registry.set(h.metrics.ready, &[], 0.0);
+    }
+    for t in tokens {
+        let _ = t.undeclare().wait();
+    }
+    for q in queryables {
+        let _ = q.undeclare().wait();
+    }
+    let _ = session.close().wait();
+    if let Some(s) = &server {
+        s.close();
+    }
+    host_log.info("stopped", serde_json::json!({}));
+    Ok(())
+}

@@ -1,0 +1,241 @@
+//! The compiled runner: what `swarmrec/runtime/runner.py` does for a Python service,
+//! on one zenoh session per process with requests served in zenoh's callback.
+//!
+//! There is no thread hand-off per message: a query is checked, decoded, handled,
+//! answered and counted on the zenoh thread that received it (with the
+//! single-threaded zenoh runtime, the process's one runtime thread). A handler's
+//! work is bounded by the hostile-input limits before it starts, so it never blocks
+//! that thread for long.
+//!
+//! The contract is the Python runner's, and the behaviour tests run against both:
+//! keys `swarmrec/v1/<swarm>/<kind>/<robot>/<endpoint>`, replies on the service's own
+//! key with the encoding `application/protobuf;swarmrec.v1.<Reply>`, refusals as an
+//! `ErrorReply` error reply with the same codes, bytes counted by message type and
+//! scope, every refusal counted in `swarmrec_rejected_requests_total`, the `info`
+//! endpoint, and the liveliness token declared last and dropped first.
+
+use std::sync::Arc;
+use std::time::{Instant, SystemTime, UNIX_EPOCH};
+
+use prost::Message;
+use zenoh::bytes::{Encoding, ZBytes};
+use zenoh::query::Query;
+use zenoh::Wait;
+
+use crate::metrics::{scope_between, ServiceMetrics};
+use crate::pb;
+use crate::wirecheck::unknown_field;
+
+/// A refusal: the `swarmrec.v1.ErrorCode` to answer with, and why.
+#[derive(Debug, Clone)]
+pub struct RequestError {
+    pub code: pb::ErrorCode,
+    pub message: String,
+}
+
+impl RequestError {
+    pub fn new(code: pb::ErrorCode, message: impl Into<String>) -> RequestError {
+        RequestError { code, message: message.into() }
+    }
+    pub fn invalid(message: impl Into<String>) -> RequestError {
+        RequestError::new(pb::ErrorCode::InvalidArgument, message)
+    }
+    pub fn too_large(what: &str, value: u64, limit: u64, setting: &str) -> RequestError {
+        RequestError::new(
+            pb::ErrorCode::TooLarge,
+            format!("{what}: {value}, more than the limit of {limit} (setting {setting})"),
+        )
+    }
+}
+
+pub type Handled = Result<(&'static str, Vec<u8>), RequestError>;
+
+/// One endpoint: its name, the request's short schema name, and the handler
+/// (payload, caller's robot) -> (reply's short schema name, reply bytes).
+pub struct Endpoint {
+    pub name: &'static str,
+    pub request: &'static str,
+    pub handler: Box<dyn Fn(&[u8], Option<u32>) -> Handled + Send + Sync>,
+}
+
+/// A compiled service, as the runner drives it.
+pub trait Service: Send + Sync {
+    fn endpoints(self: Arc<Self>) -> Vec<Endpoint>;
+    /// What the service says of itself beyond kind, robot, version and swarm.
+    fn member_info(&self) -> pb::MemberInfo;
+}
+
+/// Decodes `data` as `M` (`schema` its full name): MALFORMED when it does not parse or
+/// holds fields the schema lacks, as the Python runner's decode and `check_fields` do.
+pub fn decode<M: Message + Default>(data: &[u8], schema: &str) -> Result<M, RequestError> {
+    let msg = M::decode(data).map_err(|e| {
+        RequestError::new(pb::ErrorCode::Malformed, format!("{} bytes do not decode as {schema}: {e}", data.len()))
+    })?;
+    if let Some(path) = unknown_field(schema, data) {
+        return Err(RequestError::new(
+            pb::ErrorCode::Malformed,
+            format!("{path} holds fields its schema does not have (another message's bytes?)"),
+        ));
+    }
+    Ok(msg)
+}
+
+/// A required field's absence (proto3 reads it as 0), as `MissingFieldError` says it.
+pub fn missing(message: &str, field: &str) -> RequestError {
+    RequestError::invalid(format!("{message} has no {field}; it is required"))
+}
+
+pub fn error_name(code: pb::ErrorCode) -> &'static str {
+    code.as_str_name()
+}
+
+/// CPU time of the calling thread, seconds.
+pub fn thread_cpu_s() -> f64 {
+    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: clock_gettime writes the timespec we pass and nothing else.
+    unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
+    ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
+}
+
+/// JSON lines on stderr, the Python services' log format.
+#[derive(Clone)]
+pub struct Log {
+    pub kind: String,
+    pub robot: u32,
+    pub level: u8,
+}
+
+impl Log {
+    pub fn new(kind: &str, robot: u32, level: &str) -> Log {
+        let level = match level.to_ascii_uppercase().as_str() {
+            "DEBUG" => 10,
+            "WARNING" => 30,
+            "ERROR" => 40,
+            _ => 20,
+        };
+        Log { kind: kind.to_string(), robot, level }
+    }
+
+    pub fn emit(&self, level: u8, msg: &str, fields: serde_json::Value) {
+        if level < self.level {
+            return;
+        }
+        let name = match level {
+            10 => "DEBUG",
+            30 => "WARNING",
+            40 => "ERROR",
+            _ => "INFO",
+        };
+        let ts = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0.0, |d| d.as_secs_f64());
+        let mut entry = serde_json::json!({
+            "ts": (ts * 1000.0).round() / 1000.0, "level": name, "service": self.kind,
+            "robot": self.robot, "msg": msg,
+        });
+        if let (Some(e), serde_json::Value::Object(extra)) = (entry.as_object_mut(), fields) {
+            e.extend(extra);
+        }
+        eprintln!("{entry}");
+    }
+
+    pub fn info(&self, msg: &str, fields: serde_json::Value) {
+        self.emit(20, msg, fields);
+    }
+    pub fn warning(&self, msg: &str, fields: serde_json::Value) {
+        self.emit(30, msg, fields);
+    }
+}
+
+/// The caller's robot id from a query's attachment (decimal digits, at most 10);
+/// None for a client outside the swarm.
+pub fn caller_robot(attachment: Option<&ZBytes>) -> Option<u32> {
+    let raw = attachment?.to_bytes();
+    if raw.is_empty() || raw.len() > 10 || !raw.iter().all(u8::is_ascii_digit) {
+        return None;
+    }
+    std::str::from_utf8(&raw).ok()?.parse::<u64>().ok().and_then(|r| u32::try_from(r).ok())
+}
+
+fn schema_of(encoding: Option<&Encoding>) -> String {
+    let text = encoding.map(|e| e.to_string()).unwrap_or_default();
+    text.split_once(';').map(|(_, s)| s.to_string()).unwrap_or_default()
+}
+
+pub fn encoding(short: &str) -> Encoding {
+    Encoding::APPLICATION_PROTOBUF.with_schema(format!("swarmrec.v1.{short}"))
+}
+
+/// Everything one endpoint's callback needs.
+pub struct Dispatcher {
+    pub endpoint: Endpoint,
+    /// The service's own key of this endpoint: replies go out on it, never on the
+    /// query's (maybe wildcard) key, since the router lets a robot reply on its own keys only.
+    pub key: String,
+    pub robot: u32,
+    pub max_message_bytes: usize,
+    pub metrics: Arc<ServiceMetrics>,
+    pub log: Log,
+}
+
+impl Dispatcher {
+    fn answer(&self, data: &[u8], schema: &str, caller: Option<u32>, scope: &str) -> Handled {
+        let ep = &self.endpoint;
+        self.metrics.count_received(ep.request, scope, data.len());
+        let expected = format!("swarmrec.v1.{}", ep.request);
+        if !schema.is_empty() && schema != expected {
+            return Err(RequestError::invalid(format!("{} takes {expected}, got {schema}", ep.name)));
+        }
+        if data.len() > self.max_message_bytes {
+            return Err(RequestError::new(
+                pb::ErrorCode::TooLarge,
+                format!("message of {} bytes exceeds the limit of {}", data.len(), self.max_message_bytes),
+            ));
+        }
+        (ep.handler)(data, caller)
+    }
+
+    /// Serves one query on the thread that received it; never panics the runtime: a
+    /// handler's panic is answered INTERNAL.
+    pub fn serve(&self, query: Query) {
+        let (t0, c0) = (Instant::now(), thread_cpu_s());
+        let caller = caller_robot(query.attachment());
+        let scope = scope_between(self.robot, caller);
+        let data = query.payload().map(|p| p.to_bytes().into_owned()).unwrap_or_default();
+        let schema = schema_of(query.encoding());
+        let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| self.answer(&data, &schema, caller, scope)))
+            .unwrap_or_else(|_| Err(RequestError::new(pb::ErrorCode::Internal, "the handler panicked")));
+        let (name, payload, ok) = match outcome {
+            Ok((name, payload)) => (name, payload, true),
+            Err(e) => {
+                let code = error_name(e.code);
+                let m = &self.metrics;
+                m.registry.inc(m.rejected, &[self.endpoint.name, code], 1.0);
+                let mut reason = e.message.clone();
+                reason.truncate(300);
+                let fields = serde_json::json!({"endpoint": self.endpoint.name, "code": code, "sender": caller, "reason": reason});
+                if e.code == pb::ErrorCode::Internal {
+                    self.log.emit(40, "handler failed", fields);
+                } else {
+                    self.log.warning("rejected request", fields);
+                }
+                let mut message = e.message;
+                if message.chars().count() > 1000 {
+                    message = message.chars().take(999).collect::<String>() + "…";
+                }
+                ("ErrorReply", pb::ErrorReply { code: e.code as i32, message }.encode_to_vec(), false)
+            }
+        };
+        let size = payload.len();
+        let sent = if ok {
+            query.reply(&self.key, payload).encoding(encoding(name)).wait()
+        } else {
+            query.reply_err(payload).encoding(encoding(name)).wait()
+        };
+        if sent.is_ok() {
+            self.metrics.count_sent(name, scope, size);
+        }
+        drop(query); // finishes the query: the caller need not wait for its timeout
+        let m = &self.metrics;
+        m.registry.observe(m.request_seconds, &[self.endpoint.name], t0.elapsed().as_secs_f64());
+        m.registry.inc(m.request_cpu_seconds, &[self.endpoint.name], thread_cpu_s() - c0);
+    }
+}

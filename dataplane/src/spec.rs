@@ -1,0 +1,50 @@
+//! What `swarmrec serve`/`host` hand the compiled host: every setting already
+//! resolved by the Python configuration (flags, environment, files, defaults), so
+//! the two implementations of a kind can never read their settings differently.
+//! The zenoh configuration travels whole, as the Python binding printed it (the
+//! same zenoh version parses it), with its TLS files and access-control choices.
+
+use std::path::PathBuf;
+
+use serde::Deserialize;
+
+#[derive(Debug, Deserialize)]
+pub struct HostSpec {
+    /// The zenoh configuration (JSON), as `str(zenoh.Config)` printed it.
+    pub zenoh: serde_json::Value,
+    /// Where the process serves Prometheus (port 0: a free one, -1: none).
+    pub metrics_host: String,
+    pub metrics_port: i32,
+    pub log_level: String,
+    /// swarmrec's version, reported in MemberInfo.
+    pub version: String,
+    pub services: Vec<ServiceSpec>,
+}
+
+#[derive(Debug, Deserialize)]
+pub struct ServiceSpec {
+    pub kind: String,
+    /// The `swarmrec.v1.ServiceKind` value.
+    pub wire_kind: i32,
+    pub swarm: String,
+    pub robot: u32,
+    pub n_robots: u32,
+    pub max_message_bytes: usize,
+    pub data_dir: Option<PathBuf>,
+    #[serde(default)]
+    pub fsync: bool,
+    pub places: PlaceSpec,
+}
+
+/// The place-recognition settings a verifier reads (PlaceSettings and its preset).
+#[derive(Clone, Debug, Deserialize)]
+pub struct PlaceSpec {
+    pub n_labels: u32,
+    pub d: f64,
+    pub min_common: u32,
+    pub same_label_only: bool,
+    pub max_objects_per_frame: u32,
+    pub max_objects_per_label: u32,
+    pub verify_max_frames: u32,
+    pub verify_max_object_pairs: u64,
+}
