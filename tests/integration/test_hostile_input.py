@@ -60,9 +60,13 @@ from tests.integration.test_bad_input import (
 TOO_LARGE, INVALID, MALFORMED = "ERROR_CODE_TOO_LARGE", "ERROR_CODE_INVALID_ARGUMENT", "ERROR_CODE_MALFORMED"
 
 
-@pytest.fixture(scope="module")
-def hostile(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Swarm]:
-    with seeded_swarm(tmp_path_factory.mktemp("hostile"), "hostile-input", PlaceSettings()) as s:
+@pytest.fixture(scope="module", params=["python", "compiled"])
+def hostile(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest) -> Iterator[Swarm]:
+    """The seeded swarm with its verifiers in Python, then compiled (``data_plane``)."""
+    mode = request.param
+    with seeded_swarm(
+        tmp_path_factory.mktemp(f"hostile-{mode}"), f"hostile-{mode}", PlaceSettings(), data_plane=mode
+    ) as s:
         yield s
 
 

@@ -138,10 +138,13 @@ class Robot0:
         return out
 
 
-@pytest.fixture
+@pytest.fixture(params=["python", "compiled"])
 def local_swarm(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[LocalDeployment]:
-    """A router of a 2-robot swarm, one replica a label group; robot 0 is started by the test."""
-    with running_swarm(tmp_path, swarm_name(request), IndexSettings(replicas=1), start=False) as swarm:
+    """A router of a 2-robot swarm, one replica a label group; robot 0 is started by the test.
+    Every case runs with the verifier in Python and compiled (``data_plane``)."""
+    with running_swarm(
+        tmp_path, swarm_name(request), IndexSettings(replicas=1), start=False, data_plane=request.param
+    ) as swarm:
         yield swarm
 
 

@@ -35,11 +35,21 @@ from tests.integration.support import protobuf, wait_until
 ROBOTS = 4
 
 
-@pytest.fixture(scope="module")
-def swarm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LocalDeployment]:
-    tmp = tmp_path_factory.mktemp("swarm-mtls")
+@pytest.fixture(scope="module", params=["python", "compiled"])
+def swarm(
+    tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest
+) -> Iterator[LocalDeployment]:
+    """The swarm with its verifiers in Python, then compiled (``data_plane``): the same
+    certificates and access control hold for both."""
+    tmp = tmp_path_factory.mktemp(f"swarm-mtls-{request.param}")
     with running_swarm(
-        tmp, "mtls-swarm", PlaceSettings(), robots=ROBOTS, kinds=("index-shard", "verifier"), swarm_kinds=()
+        tmp,
+        f"mtls-{request.param}",
+        PlaceSettings(),
+        robots=ROBOTS,
+        kinds=("index-shard", "verifier"),
+        swarm_kinds=(),
+        data_plane=request.param,
     ) as deployment:
         yield deployment
 

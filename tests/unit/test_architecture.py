@@ -102,7 +102,7 @@ def test_readmes_layout_table_names_paths_that_exist_and_every_top_level_folder(
         for p in REPO.iterdir()
         if p.is_dir()
         and not p.name.startswith(".")
-        and p.name not in ("runs", "build", "dist", "__pycache__", "swarmrec.egg-info")
+        and p.name not in ("runs", "build", "dist", "target", "__pycache__", "swarmrec.egg-info")
     }
     assert folders <= named | {"swarmrec"}, folders - named
     subpackages = {
