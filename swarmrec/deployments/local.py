@@ -47,7 +47,7 @@ from swarmrec.deployments.identities import Security, client_tls, security_for, 
 from swarmrec.deployments.links import LinkEmulator, LinkSpec, Schedule
 from swarmrec.deployments.metrics import Scrape, scrape
 from swarmrec.errors import ConfigError
-from swarmrec.runtime.hosting import host_ranges, robots_per_process
+from swarmrec.runtime.hosting import host_ranges, robots_per_process, terminate
 from swarmrec.runtime.settings import Component, Config, to_flags
 from swarmrec.runtime.tls import tls_endpoint
 from swarmrec.security.identity import SERVICE_KINDS, Identity
@@ -459,15 +459,9 @@ class LocalDeployment:
 
     def stop_process(self, sp: ServiceProcess, timeout_s: float = 10.0) -> int:
         """SIGTERM, wait, then SIGKILL; returns the exit code."""
-        if sp.proc.poll() is None:
-            sp.proc.send_signal(signal.SIGTERM)
-            try:
-                sp.proc.wait(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                sp.proc.kill()
-                sp.proc.wait()
+        code = terminate(sp.proc, timeout_s)
         sp.release()
-        return int(sp.proc.returncode)
+        return code
 
     def __enter__(self) -> LocalDeployment:
         return self

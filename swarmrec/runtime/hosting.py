@@ -11,9 +11,26 @@ PKI do, to start the processes and to give each its certificate.
 
 from __future__ import annotations
 
+import signal
+import subprocess
+from typing import Any
+
 from swarmrec.errors import ConfigError
 
-__all__ = ["host_ranges", "robots_per_process"]
+__all__ = ["host_ranges", "robots_per_process", "terminate"]
+
+
+def terminate(proc: subprocess.Popen[Any], timeout_s: float = 10.0) -> int:
+    """Stop a service process as its owner does: SIGTERM (it drops its liveliness token,
+    finishes what it serves and exits), then SIGKILL after ``timeout_s``; its exit code."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return int(proc.returncode)
 
 
 def robots_per_process(hosting: str) -> int | None:

@@ -24,7 +24,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import threading
@@ -35,6 +34,7 @@ from typing import Any, NoReturn
 import swarmrec
 from swarmrec.core.presets import get_preset
 from swarmrec.errors import ConfigError
+from swarmrec.runtime.hosting import terminate
 from swarmrec.runtime.runner import Hosted, service_logger, session_bus, session_identity, zenoh_config
 from swarmrec.runtime.settings import Config, StorageSettings
 from swarmrec.services.settings import PlaceSettings
@@ -164,11 +164,4 @@ class CompiledHost:
 
     def stop(self, timeout_s: float = 10.0) -> int:
         """SIGTERM, wait, then SIGKILL; the exit code."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        return int(self.proc.returncode)
+        return terminate(self.proc, timeout_s)
