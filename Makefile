@@ -39,6 +39,11 @@ LANDMARKS_OUT ?= runs/landmarks
 TRAIN_VENV  := .venv-train
 TRAIN_STAMP := $(TRAIN_VENV)/.installed-stamp
 TRAIN_REQS  := models/requirements-train.txt
+# The compiled data plane (docs/dataplane.md): crates from crates.io, pinned by the
+# committed Cargo.lock. It needs Rust >= 1.85 (zenoh 1.10 and prost 0.14): cargo on PATH or
+# rustup's ~/.cargo/bin (this project's machines have it; Debian's rustc 1.63 is too old).
+CARGO ?= $(shell command -v cargo 2>/dev/null || echo $(HOME)/.cargo/bin/cargo)
+DATAPLANE := target/release/swarmrec-dataplane
 
 .PHONY: help dataplane dataplane-test venv contracts train-env train-landmarks train-detector train-descriptor landmarks run evaluate test unit lint typecheck proto check-proto bench images swarm-up swarm-run swarm-down k8s-up k8s-apply k8s-run k8s-down clean
 
@@ -76,7 +81,7 @@ train-descriptor: $(TRAIN_STAMP)
 landmarks: $(STAMP)
 	$(BIN)/swarmrec landmarks --out $(LANDMARKS_OUT)
 
-run: $(STAMP)
+run: $(STAMP) $(DATAPLANE)
 	$(BIN)/swarmrec run --dataset synthetic --robots 10 --out $(RUN_OUT)
 
 evaluate: $(STAMP)
@@ -85,11 +90,7 @@ evaluate: $(STAMP)
 test: $(STAMP) $(TRAIN_STAMP) check-proto lint typecheck dataplane-test
 	$(BIN)/python -m pytest
 
-# The compiled data plane (docs/dataplane.md): crates from crates.io, pinned by the
-# committed Cargo.lock. It needs Rust >= 1.85 (zenoh 1.10 and prost 0.14): cargo on PATH or
-# rustup's ~/.cargo/bin (this project's machines have it; Debian's rustc 1.63 is too old).
-CARGO ?= $(shell command -v cargo 2>/dev/null || echo $(HOME)/.cargo/bin/cargo)
-DATAPLANE := target/release/swarmrec-dataplane
+# The compiled data plane's rules are below `test`.
 
 $(CARGO):
 	@echo "no cargo found (PATH, ~/.cargo/bin): install Rust >= 1.85 with rustup (https://rustup.rs)" >&2; exit 1
@@ -122,10 +123,11 @@ contracts: $(STAMP)
 	$(BIN)/python -m swarmrec.services.contracts
 	$(BIN)/python -m swarmrec.layers --figure docs/figures/architecture.png
 
-bench: $(STAMP)
+bench: $(STAMP) $(DATAPLANE)
 	$(BIN)/python bench/bench_offline.py --out bench/results/offline.json
 	$(BIN)/python bench/bench_swarm.py --out bench/results/swarm.json
-	$(BIN)/python bench/bench_cpu.py --out bench/results/swarm_cpu.json
+	$(BIN)/python bench/bench_cpu.py --data-plane both --out bench/results/swarm_cpu.json
+	$(BIN)/python bench/bench_dataplane.py --out bench/results/dataplane.json
 	$(BIN)/python bench/bench_detector.py --out bench/results/detector.json
 	$(BIN)/python bench/bench_landmarks.py --out bench/results/landmarks.json
 	$(BIN)/python bench/bench_compose.py --rebuild-base --out bench/results/compose.json
@@ -166,4 +168,4 @@ k8s-down:
 	deploy/k8s/cluster-down.sh
 
 clean:
-	rm -rf $(VENV) .venv-train runs .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) .venv-train runs .pytest_cache .mypy_cache .ruff_cache target deploy/.bin

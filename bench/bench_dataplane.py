@@ -2,11 +2,13 @@
 
     python bench/bench_dataplane.py --out bench/results/dataplane.json
 
-For each data plane (``python``, then ``compiled``, in this one run) a local swarm
-of a router and one process, robot 0's verifier (``service`` hosting, so the
-process is the verifier alone; the compiled one ``exec``s into
+For each data plane, ``python`` and ``compiled``, side by side in this one run, a
+local swarm of a router and one process, robot 0's verifier (``service`` hosting,
+so the process is the verifier alone; the compiled one ``exec``s into
 ``swarmrec-dataplane``), is started on loopback in the explicit **insecure** mode
-(no TLS: the figures are the service's, not the handshake's). A 10-robot swarm is
+(no TLS: the figures are the service's, not the handshake's). Both get the same
+requests in chunks of 100 taken in turn (who goes first alternating), so that load
+from elsewhere on the machine falls on both alike; the other swarm meanwhile idles. A 10-robot swarm is
 assumed, as in ``bench/bench_cpu.py``: the verifier stores robot 0's block of the
 TUM constellations (``../shared/data``; the synthetic office when absent), as its
 descriptor service would (millimetre positions), then answers the same ``M``
@@ -41,7 +43,9 @@ import statistics
 import subprocess
 import tempfile
 import time
-from dataclasses import dataclass
+from collections.abc import Iterator, Sequence
+from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -71,6 +75,7 @@ ROBOTS = 10  # the swarm the requests are shaped for (bench_cpu.py's)
 VERIFIER_ROBOT = 0
 WARMUP = 100  # verify requests sent before measuring (not counted)
 IDLE_S = 1.0
+CHUNK = 100  # requests sent to one data plane before the other's turn
 
 
 @dataclass(frozen=True)
@@ -175,46 +180,75 @@ def percentiles(times_s: list[float]) -> dict[str, float]:
     }
 
 
-def loop(
-    session: zenoh.Session,
-    key: str,
-    payloads: list[bytes | None],
-    encoding: zenoh.Encoding | None,
-    pids: dict[str, int],
-) -> tuple[dict[str, Any], list[tuple[str, bytes]]]:
-    """Send ``payloads`` one at a time to ``key``: round trips, CPU of ``pids`` per request, answers."""
-    answers: list[tuple[str, bytes]] = []
-    times: list[float] = []
-    before = {name: usage(pid) for name, pid in pids.items()}
-    t_start = time.perf_counter()
-    for payload in payloads:
-        t0 = time.perf_counter()
-        answers.append(get(session, key, payload, encoding))
-        times.append(time.perf_counter() - t0)
-    wall_s = time.perf_counter() - t_start
-    n = len(payloads)
-    out: dict[str, Any] = {"requests": n, "wall_s": wall_s, "round_trip": percentiles(times)}
-    for name, pid in pids.items():
-        d = usage(pid).minus(before[name])
-        out[name] = {
-            # utime + stime ticks (1/SC_CLK_TCK s): a few ticks in all are a coarse figure.
-            "cpu_ticks": d.ticks,
-            "cpu_ms_per_request_stat": 1e3 * d.ticks / TICKS / n,
-            "cpu_ms_per_request_schedstat": d.sched_ns / 1e6 / n,
-            "context_switches_per_request": d.switches / n,
-        }
-    return out, answers
+@dataclass
+class Tally:
+    """One endpoint of one data plane: round trips, CPU deltas and answers, summed over chunks."""
+
+    times: list[float] = field(default_factory=list)
+    used: dict[str, Usage] = field(default_factory=dict)
+    answers: list[tuple[str, bytes]] = field(default_factory=list)
+    wall_s: float = 0.0
+
+    def figures(self) -> dict[str, Any]:
+        n = len(self.times)
+        out: dict[str, Any] = {"requests": n, "wall_s": self.wall_s, "round_trip": percentiles(self.times)}
+        for name, d in self.used.items():
+            out[name] = {
+                # utime + stime ticks (1/SC_CLK_TCK s): a few ticks in all are a coarse figure.
+                "cpu_ticks": d.ticks,
+                "cpu_ms_per_request_stat": 1e3 * d.ticks / TICKS / n,
+                "cpu_ms_per_request_schedstat": d.sched_ns / 1e6 / n,
+                "context_switches_per_request": d.switches / n,
+            }
+        return out
 
 
-def bench_plane(
-    plane: DataPlane, tmp: Path, stores: list[pb.Constellation], requests: list[pb.VerifyRequest]
-) -> tuple[dict[str, Any], list[tuple[str, bytes]]]:
-    """One swarm (router + robot 0's verifier) with ``plane``: its figures and every answer."""
+@dataclass
+class Plane:
+    """A running swarm of one data plane: a router and robot 0's verifier."""
+
+    name: DataPlane
+    swarm: str
+    deployment: LocalDeployment
+    session: zenoh.Session
+    pids: dict[str, int]
+    exe: str
+    dispatch: str
+    start_s: float
+    exit_codes: dict[str, int] = field(default_factory=dict)  # once stopped
+
+    def key(self, endpoint: str) -> str:
+        return keys.endpoint(self.swarm, "verifier", VERIFIER_ROBOT, endpoint)
+
+    def send(
+        self, endpoint: str, payloads: Sequence[bytes | None], encoding: zenoh.Encoding | None, tally: Tally
+    ) -> None:
+        """Send ``payloads`` one at a time (closed loop), into ``tally``."""
+        key = self.key(endpoint)
+        before = {name: usage(pid) for name, pid in self.pids.items()}
+        t_start = time.perf_counter()
+        for payload in payloads:
+            t0 = time.perf_counter()
+            tally.answers.append(get(self.session, key, payload, encoding))
+            tally.times.append(time.perf_counter() - t0)
+        tally.wall_s += time.perf_counter() - t_start
+        for name, pid in self.pids.items():
+            d = usage(pid).minus(before[name])
+            old = tally.used.get(name, Usage(0, 0, 0))
+            tally.used[name] = Usage(
+                old.ticks + d.ticks, old.sched_ns + d.sched_ns, old.switches + d.switches
+            )
+
+
+@contextmanager
+def running(plane: DataPlane, tmp: Path) -> Iterator[Plane]:
+    """Start a router and robot 0's verifier served by ``plane``; stop them on exit."""
     swarm = f"bench-dataplane-{plane}"
     bus = BusSettings(swarm=swarm, n_robots=ROBOTS, data_plane=plane)
     places = PlaceSettings(n_labels=len(COCO_NAMES), lockstep=True)
     spec = SwarmSpec(bus, ("verifier",), (places,), swarm_kinds=())
     deployment = LocalDeployment(data_dir=tmp / "data", log_dir=tmp / "logs", security="insecure")
+    started: Plane | None = None
     try:
         t0 = time.perf_counter()
         deployment.start_router(spec)
@@ -223,54 +257,84 @@ def bench_plane(
         with deployment.client(10.0) as client:
             client.wait_for({("verifier", VERIFIER_ROBOT)}, 30.0)
             start_s = time.perf_counter() - t0
-            session = client.session
             pid = deployment.find("verifier", VERIFIER_ROBOT).proc.pid
             assert deployment.router is not None
-            pids = {"verifier": pid, "router": deployment.router.proc.pid}
             exe = Path(os.readlink(f"/proc/{pid}/exe")).name
-            served = str(sp.info.get("dispatch", ""))
             if (exe == "swarmrec-dataplane") != (plane == "compiled"):
                 raise SystemExit(f"data plane {plane} but the verifier process runs {exe}: not measured")
-
-            def key(endpoint: str) -> str:
-                return keys.endpoint(swarm, "verifier", VERIFIER_ROBOT, endpoint)
-
-            enc_store = zenoh.Encoding.APPLICATION_PROTOBUF.with_schema(schema_name(pb.Constellation))
-            enc_verify = zenoh.Encoding.APPLICATION_PROTOBUF.with_schema(schema_name(pb.VerifyRequest))
-            t0 = time.perf_counter()
-            stored, store_answers = loop(
-                session, key("store"), [m.SerializeToString() for m in stores], enc_store, pids
-            )
-            bad = [a for a in store_answers if a[0].startswith("error")]
-            if bad:
-                raise SystemExit(f"{plane}: {len(bad)} stores refused, the first: {bad[0]!r}")
-            verify_payloads: list[bytes | None] = [m.SerializeToString() for m in requests]
-            loop(session, key("verify"), verify_payloads[:WARMUP], enc_verify, pids)
-            idle0 = usage(pid)
-            time.sleep(IDLE_S)
-            idle = usage(pid).minus(idle0)
-            info, _ = loop(session, key("info"), [None] * len(requests), None, pids)
-            verified, verify_answers = loop(session, key("verify"), verify_payloads, enc_verify, pids)
+            pids = {"verifier": pid, "router": deployment.router.proc.pid}
+            dispatch = str(sp.info.get("dispatch", ""))
+            started = Plane(plane, swarm, deployment, client.session, pids, exe, dispatch, start_s)
+            yield started
     finally:
         codes = deployment.stop()
-    errors = [a for a in verify_answers if a[0].startswith("error")]
-    matches = [
-        len(pb.VerifyReply.FromString(p).matches) for e, p in verify_answers if not e.startswith("error")
-    ]
-    result = {
-        "process": exe,
-        "dispatch": served,
-        "start_s": start_s,
-        "idle_cpu_ms_per_s": 1e3 * idle.sched_ns / 1e9 / IDLE_S,
-        "store": stored,
-        "info_floor": info,
-        "verify": verified,
-        "verify_errors": len(errors),
-        "matches_per_reply_mean": statistics.fmean(matches) if matches else 0.0,
-        "replies_with_a_match": sum(1 for m in matches if m),
-        "exit_codes": codes,
-    }
-    return result, store_answers + verify_answers
+        if started is not None:
+            started.exit_codes = codes
+
+
+def interleaved(
+    planes: Sequence[Plane], endpoint: str, payloads: Sequence[bytes | None], encoding: zenoh.Encoding | None
+) -> dict[str, Tally]:
+    """Every plane gets every payload, in chunks taken in turn (the first plane alternating),
+    so that load from elsewhere on the machine falls on both alike."""
+    tallies: dict[str, Tally] = {p.name: Tally() for p in planes}
+    for i, start in enumerate(range(0, len(payloads), CHUNK)):
+        chunk = payloads[start : start + CHUNK]
+        for p in planes if i % 2 == 0 else reversed(planes):
+            p.send(endpoint, chunk, encoding, tallies[p.name])
+    return tallies
+
+
+def bench(
+    tmp: Path, stores: list[pb.Constellation], requests: list[pb.VerifyRequest]
+) -> tuple[dict[str, dict[str, Any]], dict[str, list[tuple[str, bytes]]]]:
+    """Both data planes side by side: each one's figures and every store and verify answer."""
+    enc_store = zenoh.Encoding.APPLICATION_PROTOBUF.with_schema(schema_name(pb.Constellation))
+    enc_verify = zenoh.Encoding.APPLICATION_PROTOBUF.with_schema(schema_name(pb.VerifyRequest))
+    store_payloads = [m.SerializeToString() for m in stores]
+    verify_payloads = [m.SerializeToString() for m in requests]
+    with ExitStack() as stack:
+        planes = []
+        for plane in DATA_PLANES:
+            print(f"starting data plane {plane} ...", flush=True)
+            planes.append(stack.enter_context(running(plane, tmp / plane)))
+        print("storing, warming up, idle ...", flush=True)
+        stored = interleaved(planes, "store", store_payloads, enc_store)
+        for name, tally in stored.items():
+            bad = [a for a in tally.answers if a[0].startswith("error")]
+            if bad:
+                raise SystemExit(f"{name}: {len(bad)} stores refused, the first: {bad[0]!r}")
+        interleaved(planes, "verify", verify_payloads[:WARMUP], enc_verify)
+        idle0 = {p.name: usage(p.pids["verifier"]) for p in planes}
+        time.sleep(IDLE_S)
+        idle = {p.name: usage(p.pids["verifier"]).minus(idle0[p.name]) for p in planes}
+        print(f"{len(requests)} info requests, then {len(requests)} verify requests, to each ...", flush=True)
+        info = interleaved(planes, "info", [None] * len(requests), None)
+        verified = interleaved(planes, "verify", verify_payloads, enc_verify)
+        results: dict[str, dict[str, Any]] = {}
+        answers: dict[str, list[tuple[str, bytes]]] = {}
+        for p in planes:
+            replies = verified[p.name].answers
+            errors = [a for a in replies if a[0].startswith("error")]
+            matches = [
+                len(pb.VerifyReply.FromString(b).matches) for e, b in replies if not e.startswith("error")
+            ]
+            results[p.name] = {
+                "process": p.exe,
+                "dispatch": p.dispatch,
+                "start_s": p.start_s,
+                "idle_cpu_ms_per_s": 1e3 * idle[p.name].sched_ns / 1e9 / IDLE_S,
+                "store": stored[p.name].figures(),
+                "info_floor": info[p.name].figures(),
+                "verify": verified[p.name].figures(),
+                "verify_errors": len(errors),
+                "matches_per_reply_mean": statistics.fmean(matches) if matches else 0.0,
+                "replies_with_a_match": sum(1 for m in matches if m),
+            }
+            answers[p.name] = stored[p.name].answers + replies
+    for p in planes:
+        results[p.name]["exit_codes"] = p.exit_codes
+    return results, answers
 
 
 def commit() -> str:
@@ -308,12 +372,8 @@ def main() -> None:
         f"{statistics.fmean(objects):.1f} objects a request",
         flush=True,
     )
-    results: dict[str, dict[str, Any]] = {}
-    answers: dict[str, list[tuple[str, bytes]]] = {}
-    for plane in DATA_PLANES:
-        print(f"data plane {plane} ...", flush=True)
-        with tempfile.TemporaryDirectory() as tmp:
-            results[plane], answers[plane] = bench_plane(plane, Path(tmp), stores, requests)
+    with tempfile.TemporaryDirectory() as tmp:
+        results, answers = bench(Path(tmp), stores, requests)
     py, comp = answers["python"], answers["compiled"]
     differ = [i for i, (a, b) in enumerate(zip(py, comp, strict=True)) if a != b]
     identical = not differ

@@ -31,6 +31,12 @@ if [ "$BASE" = swarmrec-base:bookworm ] || [ "$PROM_BASE" = swarmrec-prometheus-
 fi
 t1=$(date +%s.%N)
 deploy/wheelhouse.sh
+# The compiled data plane (docs/dataplane.md), built on this Debian bookworm host for the
+# bookworm images (it links glibc only), onto the image's PATH beside `swarmrec`.
+make -s dataplane
+rm -rf deploy/.bin
+mkdir -p deploy/.bin
+cp target/release/swarmrec-dataplane deploy/.bin/
 # The shipped ONNX models, laid out as models/ (swarmrec.models finds them via $SWARMREC_MODELS).
 rm -rf deploy/.models
 mkdir -p deploy/.models

@@ -70,10 +70,10 @@ def add(sub: Subparsers) -> None:
     )
     p.add_argument(
         "--data-plane",
-        choices=("python", "compiled"),
-        default="python",
-        help="which implementation serves the kinds that have a compiled one (the verifier): python "
-        "(default) or compiled (the Rust host, built by `make dataplane`; docs/dataplane.md)",
+        choices=("compiled", "python"),
+        default="compiled",
+        help="which implementation serves the kinds that have a compiled one (the verifier): compiled "
+        "(default: the Rust host, built by `make dataplane`; docs/dataplane.md) or python (the reference)",
     )
     links = p.add_argument_group(
         "emulated links",
@@ -232,10 +232,10 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError(
                 "a Kubernetes swarm runs one service per pod under mutual TLS: drop --insecure and --hosting"
             )
-        if args.data_plane != "python":
+        if args.data_plane != "compiled":
             raise ConfigError(
-                "--data-plane compiled runs on local processes only: the images do not carry the "
-                "compiled host yet (docs/dataplane.md)"
+                "a Kubernetes swarm runs what its images and overlay say: --data-plane applies to "
+                "local processes (set SWARMREC_DATA_PLANE in the overlay instead)"
             )
         k8s = KubernetesDeployment(
             KubernetesSettings(

@@ -180,10 +180,10 @@ class BusSettings(Component):
         f"{AUTO_QUEUE_ABOVE} services, channel otherwise)",
     )
     data_plane: DataPlane = setting(
-        "python",
-        "which implementation serves a kind that has a compiled one (docs/dataplane.md): python, or "
-        "compiled (the Rust host, swarmrec-dataplane: same keys, messages, metrics and logs; kinds "
-        "without one stay python)",
+        "compiled",
+        "which implementation serves a kind that has a compiled one (docs/dataplane.md): compiled "
+        "(the Rust host, swarmrec-dataplane, built by `make dataplane`: same keys, messages, metrics "
+        "and logs) or python (the reference); kinds without a compiled one are python either way",
     )
     request_timeout_s: float = setting(2.0, "how long a service waits for a peer's reply, seconds")
     max_message_bytes: int = setting(1 << 20, "largest request payload accepted, bytes")

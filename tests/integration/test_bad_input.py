@@ -147,7 +147,9 @@ def swarm(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureReque
     mode = request.param
     tmp = tmp_path_factory.mktemp(f"bad-input-{mode}")
     bus: dict[str, object] = (
-        {"data_plane": "compiled", "dispatch": "channel"} if mode == "compiled" else {"dispatch": mode}
+        {"data_plane": "compiled", "dispatch": "channel"}
+        if mode == "compiled"
+        else {"data_plane": "python", "dispatch": mode}
     )
     with seeded_swarm(tmp, f"bad-input-{mode}", place, max_message_bytes=LIMIT, **bus) as s:
         served = {(p.kind, p.info.get("dispatch")) for p in s.local.procs}

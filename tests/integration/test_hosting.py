@@ -37,6 +37,9 @@ def run(tmp: Path, hosting: str, dispatch: str = "") -> tuple[PlacesSummary, str
         # Mutual TLS throughout: a shared process presents its robots' host certificate.
         progress=False,
         plots=False,
+        # The Python runner's hosting and dispatch (a compiled kind's process would say
+        # "compiled"; a host mixing both is in test_dataplane_verifier.py).
+        data_plane="python",
     )
     summary = main(settings, swarm_hook=hook)
     dispatches = {p.info.get("dispatch") for p in held[0].procs}

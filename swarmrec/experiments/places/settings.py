@@ -78,7 +78,7 @@ class PlacesSettings:
     hosting: str = "service"
     #: Which implementation serves the kinds that have a compiled one (python or compiled;
     #: docs/dataplane.md).
-    data_plane: DataPlane = "python"
+    data_plane: DataPlane = "compiled"
     #: Every robot's emulated link (bandwidth, latency; docs/links.md); unlimited by default.
     link: LinkSpec = field(default_factory=LinkSpec)
     #: When robots go out of range (a CSV, swarmrec.deployments.links.read_schedule).
