@@ -128,6 +128,7 @@ bench: $(STAMP) $(DATAPLANE)
 	$(BIN)/python bench/bench_swarm.py --out bench/results/swarm.json
 	$(BIN)/python bench/bench_cpu.py --data-plane both --out bench/results/swarm_cpu.json
 	$(BIN)/python bench/bench_dataplane.py --out bench/results/dataplane.json
+	$(BIN)/python bench/tie_rule.py --out bench/results/tie_rule.json
 	$(BIN)/python bench/bench_detector.py --out bench/results/detector.json
 	$(BIN)/python bench/bench_landmarks.py --out bench/results/landmarks.json
 	$(BIN)/python bench/bench_compose.py --rebuild-base --out bench/results/compose.json
