@@ -54,7 +54,7 @@ impl Registry {
     }
 
     fn add(&self, name: &'static str, help: &'static str, kind: Kind, labels: &'static [&'static str]) -> Metric {
-        let mut families = self.families.lock().expect("metrics lock");
+        let mut families = self.families.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         families.push(Family { name, help, kind, labels, series: BTreeMap::new() });
         Metric(families.len() - 1)
     }
@@ -72,7 +72,7 @@ impl Registry {
     }
 
     fn with<R>(&self, m: Metric, labels: &[&str], f: impl FnOnce(&mut Series) -> R) -> R {
-        let mut families = self.families.lock().expect("metrics lock");
+        let mut families = self.families.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         let fam = &mut families[m.0];
         debug_assert_eq!(fam.labels.len(), labels.len(), "{}", fam.name);
         let key: Vec<String> = labels.iter().map(|s| s.to_string()).collect();
@@ -112,7 +112,7 @@ impl Registry {
 
     /// The text exposition format, as prometheus_client writes it (counters as `_total`).
     pub fn render(&self) -> String {
-        let families = self.families.lock().expect("metrics lock");
+        let families = self.families.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         let mut out = String::new();
         for fam in families.iter() {
             let (name, kind) = match fam.kind {

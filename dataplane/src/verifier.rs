@@ -169,6 +169,12 @@ impl Verifier {
         })
     }
 
+    /// The state, also after a handler panicked holding it (answered INTERNAL): what it
+    /// holds is only ever changed by whole appends, so it stays consistent.
+    fn lock(&self) -> std::sync::MutexGuard<'_, State> {
+        self.state.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
     fn constellation(&self, msg: &pb::Constellation) -> Result<(Vec<u32>, Vec<f64>), RequestError> {
         if msg.robot_id() >= self.n_robots {
             return Err(RequestError::invalid(format!(
@@ -204,7 +210,7 @@ impl Verifier {
         let (labels, positions) = self.constellation(&msg)?;
         let f = msg.frame_index();
         let table = Frame::new(&labels, &positions);
-        let mut state = self.state.lock().expect("verifier lock");
+        let mut state = self.lock();
         match state.frames.get(&f) {
             None => {
                 state
@@ -248,10 +254,9 @@ impl Verifier {
             }
             knobs.d = f64::from(d);
         }
-        let query = Frame::new(&labels, &positions);
         let n_query = labels.len() as u64;
         let max_frames = self.places.verify_max_frames;
-        let state = self.state.lock().expect("verifier lock");
+        let state = self.lock();
         let frames: Vec<(u32, &Frame)> = if req.candidate_frame_indices.is_empty() {
             let all: Vec<(u32, &Frame)> = state
                 .order
@@ -296,6 +301,8 @@ impl Verifier {
                 "verify_max_object_pairs",
             ));
         }
+        // Packed only now: a request over the bounds is refused before any work.
+        let query = Frame::new(&labels, &positions);
         let query_key = (query_msg.robot_id(), query_msg.frame_index());
         let mut results: Vec<_> =
             verify(&query, query_key, self.robot, frames, knobs).into_iter().filter(|m| m.score > 0.0).collect();
@@ -335,7 +342,7 @@ impl Service for Verifier {
     }
 
     fn member_info(&self) -> pb::MemberInfo {
-        let n = self.state.lock().expect("verifier lock").frames.len();
+        let n = self.lock().frames.len();
         pb::MemberInfo { stored_items: n as u64, n_labels: self.places.n_labels, ..Default::default() }
     }
 }

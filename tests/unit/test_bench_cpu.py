@@ -44,6 +44,8 @@ def test_zenohs_runtime_threads_are_told_from_python_threads(bench: ModuleType) 
         ("router-0", "router"),
         ("gateway-0", "gateway"),
         ("index-shard-3", "index-shard"),
+        # The compiled host a `swarmrec host` starts, counted as its parent's child.
+        ("host-r0-4/swarmrec-dataplane-4242", "robot hosts (swarmrec-dataplane)"),
     ],
 )
 def test_a_process_is_named_by_its_role(bench: ModuleType, name: str, role: str) -> None:
@@ -70,3 +72,33 @@ def test_cpu_and_switches_are_divided_by_the_queries_between_the_two_looks(bench
     assert acc["cpu_ms_per_query_by_thread"] == pytest.approx({"python": 2.5, "zenoh_runtime": 2.0})
     assert acc["cpu_ms_per_query_user_kernel"] == pytest.approx({"user": 3.5, "kernel": 1.0})
     assert acc["context_switches_per_query"] == pytest.approx({"python": 0.22, "zenoh_runtime": 0.04})
+
+
+def test_every_process_under_a_host_is_found_nearest_first(bench: ModuleType) -> None:
+    # 10 -> 11 -> 13, 10 -> 12; 20 is another tree.
+    parents = {10: 1, 11: 10, 12: 10, 13: 11, 20: 1}
+    assert bench.descendants(parents, 10) == [11, 12, 13]
+    assert bench.descendants(parents, 20) == []
+
+
+def test_a_childs_cost_is_added_to_its_parents_role_and_runs_compare_as_ratios(bench: ModuleType) -> None:
+    by_role = {"robot hosts": 7.5, "robot hosts (swarmrec-dataplane)": 0.5, "router": 1.0}
+    assert bench.with_children(by_role) == {"robot hosts": 8.0, "router": 1.0}
+    assert bench.ratio(2.0, 0.0) is None and bench.ratio(None, 1.0) is None and bench.ratio(3.0, 2.0) == 1.5
+
+    def run(cpu: float, hosts: float, child: float | None) -> dict[str, object]:
+        roles = {"robot hosts": hosts} | ({"robot hosts (swarmrec-dataplane)": child} if child else {})
+        return {
+            "cpu_ms_per_query": cpu,
+            "context_switches_per_query": {"python": 100.0},
+            "cpu_ms_per_query_by_process": roles,
+            "cpu_ms_per_query_by_thread": {"python": cpu},
+            "cpu_ms_per_query_user_kernel": {"user": cpu},
+            "window_s": 10.0,
+            "timings": {"replay_s": 5.0},
+        }
+
+    ratios = bench.compare(run(10.0, 10.0, None), run(8.0, 6.0, 2.0))
+    assert ratios["cpu_ms_per_query"] == 1.25 and ratios["cpu_ms_saved_per_query"] == 2.0
+    assert ratios["cpu_ms_per_query_by_process"]["robot hosts (swarmrec-dataplane)"] is None
+    assert ratios["cpu_ms_per_query_by_process_with_children"] == {"robot hosts": 1.25}
