@@ -39,7 +39,16 @@ from swarmrec.runtime.runner import Hosted, service_logger, session_bus, session
 from swarmrec.runtime.settings import Config, StorageSettings
 from swarmrec.services.settings import PlaceSettings
 
-__all__ = ["BINARY", "ENV_VAR", "CompiledHost", "binary", "exec_host", "host_spec", "is_compiled"]
+__all__ = [
+    "BINARY",
+    "ENV_VAR",
+    "CompiledHost",
+    "binary",
+    "candidates",
+    "exec_host",
+    "host_spec",
+    "is_compiled",
+]
 
 BINARY = "swarmrec-dataplane"
 #: Names the binary explicitly (an image, a build elsewhere).
@@ -53,17 +62,23 @@ def is_compiled(config: Config, has_compiled: bool) -> bool:
     return has_compiled and config.bus.data_plane == "compiled"
 
 
-def binary() -> Path:
-    """The compiled host's executable; ConfigError saying how to build it when absent."""
+def candidates() -> list[Path]:
+    """Where the compiled host may be, in the order it is looked for."""
     named = os.environ.get(ENV_VAR)
-    candidates = [Path(named)] if named else []
-    candidates.append(Path(swarmrec.__file__).resolve().parent.parent / "target" / "release" / BINARY)
+    out = [Path(named)] if named else []
+    out.append(Path(swarmrec.__file__).resolve().parent.parent / "target" / "release" / BINARY)
     found = shutil.which(BINARY)
     if found:
-        candidates.append(Path(found))
-    for path in candidates:
+        out.append(Path(found))
+    return out
+
+
+def binary() -> Path:
+    """The compiled host's executable; ConfigError saying how to build it when absent."""
+    for path in candidates():
         if path.is_file() and os.access(path, os.X_OK):
             return path
+    named = os.environ.get(ENV_VAR)
     where = f"${ENV_VAR} ({named}), " if named else ""
     raise ConfigError(
         f"data_plane is compiled but {BINARY} is not built ({where}target/release, PATH): "

@@ -1,0 +1,87 @@
+"""Handing a kind to the compiled host (swarmrec.services.compiled): which kinds go, what
+the binary is told, where it is found, and the clear error when it is not built."""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+from pathlib import Path
+
+import pytest
+
+from swarmrec.errors import ConfigError
+from swarmrec.runtime.settings import BusSettings, Config, SecuritySettings, StorageSettings
+from swarmrec.services import compiled, registry
+from swarmrec.services.settings import PlaceSettings
+
+
+def config(data_plane: str, **place: object) -> Config:
+    return Config(
+        (
+            BusSettings(
+                swarm="lab", robot=3, n_robots=5, data_plane=data_plane, connect=("tcp/127.0.0.1:7447",)
+            ),  # type: ignore[arg-type]
+            SecuritySettings(security="insecure", insecure_reason="unit test"),
+            StorageSettings(data_dir=Path("/var/lib/x")),
+            PlaceSettings(**place),  # type: ignore[arg-type]
+        )
+    )
+
+
+def test_only_kinds_with_a_compiled_implementation_go_and_only_when_the_setting_says_so() -> None:
+    assert [k for k, e in registry.REGISTRY.items() if e.compiled] == ["verifier"]
+    assert compiled.is_compiled(config("compiled"), registry.spec("verifier").compiled)
+    assert not compiled.is_compiled(config("python"), registry.spec("verifier").compiled)
+    assert not compiled.is_compiled(config("compiled"), registry.spec("index-shard").compiled)
+
+
+def test_a_compiled_kind_is_hosted_without_loading_its_python_class() -> None:
+    hosted = registry.hosted("verifier", config("compiled"))
+    with pytest.raises(ConfigError, match="compiled host"):
+        hosted.factory(None)  # type: ignore[arg-type]
+    assert registry.hosted("verifier", config("python")).factory.__name__ == "Verifier"
+
+
+def test_the_binary_is_told_every_resolved_setting_and_the_zenoh_configuration() -> None:
+    spec = compiled.host_spec(
+        [
+            registry.hosted(
+                "verifier",
+                config("compiled", preset="balanced", n_labels=60, label_bounds=(0, 10, 20, 30, 45, 60)),
+            )
+        ]
+    )
+    json.dumps(spec)  # it travels as JSON
+    (service,) = spec["services"]
+    assert service["kind"] == "verifier" and service["wire_kind"] == registry.spec("verifier").wire
+    assert (service["swarm"], service["robot"], service["n_robots"]) == ("lab", 3, 5)
+    assert service["data_dir"] == "/var/lib/x"
+    places = service["places"]
+    # The balanced preset searches the nearest vector within a label; d and min_common are the preset's.
+    assert (places["n_labels"], places["same_label_only"], places["d"], places["min_common"]) == (
+        60,
+        True,
+        0.25,
+        3,
+    )
+    assert places["verify_max_frames"] == PlaceSettings().verify_max_frames
+    assert spec["zenoh"]["mode"] == "client"
+    assert spec["zenoh"]["connect"]["endpoints"] == ["tcp/127.0.0.1:7447"]
+    assert spec["metrics_port"] == 0 and spec["version"]
+
+
+def test_the_binary_is_found_where_named_and_a_missing_one_says_how_to_build_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    exe = tmp_path / "swarmrec-dataplane"
+    exe.write_text("#!/bin/sh\n")
+    exe.chmod(exe.stat().st_mode | stat.S_IXUSR)
+    monkeypatch.setenv(compiled.ENV_VAR, str(exe))
+    assert compiled.binary() == exe
+    monkeypatch.setenv(compiled.ENV_VAR, str(tmp_path / "missing"))
+    monkeypatch.setattr(compiled, "candidates", lambda: [tmp_path / "missing"])
+    with pytest.raises(ConfigError, match="make dataplane") as e:
+        compiled.binary()
+    assert "missing" in str(e.value) and "python" in str(e.value)
+    assert os.environ[compiled.ENV_VAR].endswith("missing")
