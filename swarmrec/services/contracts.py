@@ -64,6 +64,13 @@ def render_kind(entry: ServiceSpec) -> str:
         f"| in workloads | {', '.join(workloads) or 'none (started on its own)'} |",
         f"| reports itself as | `{wire}` in `MemberInfo` |",
         f"| class | `{entry.factory}` |",
+        "| implementations | "
+        + (
+            "compiled (`swarmrec-dataplane`, the default: docs/dataplane.md) and Python (the reference), "
+            "chosen by `--data-plane` |"
+            if entry.compiled
+            else "Python |"
+        ),
         "",
         "## Endpoints",
         "",
