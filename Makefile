@@ -102,6 +102,8 @@ $(DATAPLANE): $(CARGO) Cargo.toml Cargo.lock dataplane/Cargo.toml dataplane/buil
 dataplane: $(DATAPLANE)
 
 dataplane-test: $(DATAPLANE)
+	$(CARGO) fmt --check
+	$(CARGO) clippy --release --locked -- -D warnings
 	$(CARGO) test --release --locked
 
 unit: $(STAMP)

@@ -60,7 +60,12 @@ impl Frame {
                 }
             }
         }
-        Frame { labels: labels.to_vec(), order, present, near }
+        Frame {
+            labels: labels.to_vec(),
+            order,
+            present,
+            near,
+        }
     }
 
     pub fn n_objects(&self) -> usize {
@@ -118,15 +123,35 @@ pub fn score_pair(a: &Frame, b: &Frame, knobs: Knobs) -> PairScore {
     }
     let n_common = sm as u32;
     if sm == 0 {
-        return PairScore { score: 0.0, semantic: 0.0, matches: Vec::new(), n_common };
+        return PairScore {
+            score: 0.0,
+            semantic: 0.0,
+            matches: Vec::new(),
+            n_common,
+        };
     }
     let (sa, sb) = (a.n_objects() as u64, b.n_objects() as u64);
     let sem = sm as f64 / (sa + sb - sm) as f64;
     if sm < u64::from(knobs.min_common) {
-        return PairScore { score: 0.0, semantic: sem, matches: Vec::new(), n_common };
+        return PairScore {
+            score: 0.0,
+            semantic: sem,
+            matches: Vec::new(),
+            n_common,
+        };
     }
-    let buf_a: Vec<u32> = a.order.iter().copied().filter(|&o| b.count(a.labels[o as usize]) > 0).collect();
-    let buf_b: Vec<u32> = b.order.iter().copied().filter(|&o| a.count(b.labels[o as usize]) > 0).collect();
+    let buf_a: Vec<u32> = a
+        .order
+        .iter()
+        .copied()
+        .filter(|&o| b.count(a.labels[o as usize]) > 0)
+        .collect();
+    let buf_b: Vec<u32> = b
+        .order
+        .iter()
+        .copied()
+        .filter(|&o| a.count(b.labels[o as usize]) > 0)
+        .collect();
     let (ka, kb) = (buf_a.len(), buf_b.len());
     let (wa, wb) = (a.present.len(), b.present.len());
     let mut dist = vec![0.0f64; ka * kb];
@@ -179,7 +204,12 @@ pub fn score_pair(a: &Frame, b: &Frame, knobs: Knobs) -> PairScore {
     }
     let count = matches.len() as u64;
     let score = sem * (count as f64 / sm as f64);
-    PairScore { score, semantic: sem, matches, n_common }
+    PairScore {
+        score,
+        semantic: sem,
+        matches,
+        n_common,
+    }
 }
 
 /// A stored frame compared with a query, as `swarmrec.core.verification.FrameMatch`.
@@ -207,14 +237,33 @@ pub fn verify<'a>(
         .into_iter()
         .map(|(frame, stored)| {
             let first_is_query = query_key < (own_robot, frame);
-            let s = if first_is_query { score_pair(query, stored, knobs) } else { score_pair(stored, query, knobs) };
-            let pairs = if first_is_query { s.matches } else { s.matches.into_iter().map(|(p, q)| (q, p)).collect() };
+            let s = if first_is_query {
+                score_pair(query, stored, knobs)
+            } else {
+                score_pair(stored, query, knobs)
+            };
+            let pairs = if first_is_query {
+                s.matches
+            } else {
+                s.matches.into_iter().map(|(p, q)| (q, p)).collect()
+            };
             let n_union = (query.n_objects() + stored.n_objects()) as u32 - s.n_common;
-            FrameMatch { frame, score: s.score, pairs, n_common: s.n_common, n_union }
+            FrameMatch {
+                frame,
+                score: s.score,
+                pairs,
+                n_common: s.n_common,
+                n_union,
+            }
         })
         .collect();
     // Scores are finite (sums of finite positions' distances), so the order is total.
-    out.sort_by(|x, y| y.score.partial_cmp(&x.score).expect("finite scores").then(x.frame.cmp(&y.frame)));
+    out.sort_by(|x, y| {
+        y.score
+            .partial_cmp(&x.score)
+            .expect("finite scores")
+            .then(x.frame.cmp(&y.frame))
+    });
     out
 }
 
@@ -222,7 +271,11 @@ pub fn verify<'a>(
 mod tests {
     use super::*;
 
-    const PAPER: Knobs = Knobs { d: 0.25, min_common: 3, same_label_only: false };
+    const PAPER: Knobs = Knobs {
+        d: 0.25,
+        min_common: 3,
+        same_label_only: false,
+    };
 
     fn frame(objects: &[(u32, [f64; 3])]) -> Frame {
         let labels: Vec<u32> = objects.iter().map(|o| o.0).collect();
@@ -252,8 +305,18 @@ mod tests {
     fn surroundings_vectors_match_under_a_rigid_motion_and_not_past_d() {
         // The same three objects moved 5 m: surroundings vectors are distances within a
         // frame, so they match; a fourth object 1 m off in one frame only breaks its own match.
-        let a = frame(&[(0, [0.0, 0.0, 1.0]), (1, [1.0, 0.0, 2.0]), (2, [0.0, 1.0, 3.0]), (3, [2.0, 2.0, 2.0])]);
-        let b = frame(&[(0, [5.0, 0.0, 1.0]), (1, [6.0, 0.0, 2.0]), (2, [5.0, 1.0, 3.0]), (3, [8.0, 2.0, 2.0])]);
+        let a = frame(&[
+            (0, [0.0, 0.0, 1.0]),
+            (1, [1.0, 0.0, 2.0]),
+            (2, [0.0, 1.0, 3.0]),
+            (3, [2.0, 2.0, 2.0]),
+        ]);
+        let b = frame(&[
+            (0, [5.0, 0.0, 1.0]),
+            (1, [6.0, 0.0, 2.0]),
+            (2, [5.0, 1.0, 3.0]),
+            (3, [8.0, 2.0, 2.0]),
+        ]);
         let s = score_pair(&a, &b, PAPER);
         assert_eq!(s.n_common, 4);
         assert!(s.matches.len() < 4, "the moved object must not match: {:?}", s.matches);

@@ -54,10 +54,16 @@ fn main() {
             if std::env::var_os("ZENOH_RUNTIME").is_none() {
                 std::env::set_var("ZENOH_RUNTIME", SINGLE_THREAD_RUNTIME);
             }
-            match serde_json::from_str::<HostSpec>(&args[2]).context("--spec-json").and_then(host) {
+            match serde_json::from_str::<HostSpec>(&args[2])
+                .context("--spec-json")
+                .and_then(host)
+            {
                 Ok(()) => {}
                 Err(e) => {
-                    eprintln!("{}", serde_json::json!({"level": "ERROR", "service": "host", "msg": format!("{e:#}")}));
+                    eprintln!(
+                        "{}",
+                        serde_json::json!({"level": "ERROR", "service": "host", "msg": format!("{e:#}")})
+                    );
                     std::process::exit(1);
                 }
             }
@@ -88,7 +94,11 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
     }
     for s in &spec.services {
         if !KINDS.contains(&s.kind.as_str()) {
-            bail!("{} has no compiled implementation (compiled: {})", s.kind, KINDS.join(", "));
+            bail!(
+                "{} has no compiled implementation (compiled: {})",
+                s.kind,
+                KINDS.join(", ")
+            );
         }
     }
     // SAFETY: the handler only stores to an atomic.
@@ -97,7 +107,11 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
         libc::signal(libc::SIGINT, on_signal as *const () as libc::sighandler_t);
     }
     let single = spec.services.len() == 1;
-    let host_log = Log::new(if single { &spec.services[0].kind } else { "host" }, spec.services[0].robot, &spec.log_level);
+    let host_log = Log::new(
+        if single { &spec.services[0].kind } else { "host" },
+        spec.services[0].robot,
+        &spec.log_level,
+    );
     let mut hosted: Vec<Hosted> = Vec::new();
     for s in &spec.services {
         let metrics = Arc::new(ServiceMetrics::new(&s.kind, s.robot, &s.swarm));
@@ -106,7 +120,11 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
             "verifier" => Arc::new(verifier::Verifier::new(s, metrics.clone(), log)?),
             other => bail!("{other} has no compiled implementation"),
         };
-        let path = if single { "/metrics".to_string() } else { format!("/metrics/{}/{}", s.kind, s.robot) };
+        let path = if single {
+            "/metrics".to_string()
+        } else {
+            format!("/metrics/{}/{}", s.kind, s.robot)
+        };
         hosted.push(Hosted {
             kind: s.kind.clone(),
             robot: s.robot,
@@ -119,10 +137,14 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
     }
     // Metrics: one endpoint for the process; with several services, /metrics is the host's readiness.
     let host_metrics = Arc::new(metrics::Registry::new());
-    let host_ready = host_metrics.gauge("swarmrec_service_ready", "1 while every service of this process serves", &[]);
+    let host_ready = host_metrics.gauge(
+        "swarmrec_service_ready",
+        "1 while every service of this process serves",
+        &[],
+    );
     host_metrics.set(host_ready, &[], 0.0);
     let server = if spec.metrics_port >= 0 {
-        let mut pages: Vec<(String, Arc<dyn Fn() -> String + Send + Sync>)> = Vec::new();
+        let mut pages: Vec<(String, metrics::Page)> = Vec::new();
         for h in &hosted {
             let m = h.metrics.clone();
             pages.push((h.url.clone(), Arc::new(move || m.registry.render())));
@@ -143,8 +165,11 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
         }
         None
     };
-    let config = zenoh::Config::from_json5(&spec.zenoh.to_string()).map_err(|e| anyhow::anyhow!("zenoh config: {e}"))?;
-    let session = zenoh::open(config).wait().map_err(|e| anyhow::anyhow!("zenoh session: {e}"))?;
+    let config =
+        zenoh::Config::from_json5(&spec.zenoh.to_string()).map_err(|e| anyhow::anyhow!("zenoh config: {e}"))?;
+    let session = zenoh::open(config)
+        .wait()
+        .map_err(|e| anyhow::anyhow!("zenoh session: {e}"))?;
     let mut queryables = Vec::new();
     let mut tokens = Vec::new();
     for (h, s) in hosted.iter().zip(&spec.services) {
@@ -169,8 +194,13 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
         // `info`: what the service says of itself (asked once per member: no counting).
         let key = format!("swarmrec/v1/{}/{}/{}/info", h.swarm, h.kind, h.robot);
         let (service, reply_key) = (h.service.clone(), key.clone());
-        let (wire_kind, robot, swarm, url, version) =
-            (h.wire_kind, h.robot, h.swarm.clone(), h.url.clone(), spec.version.clone());
+        let (wire_kind, robot, swarm, url, version) = (
+            h.wire_kind,
+            h.robot,
+            h.swarm.clone(),
+            h.url.clone(),
+            spec.version.clone(),
+        );
         let q = session
             .declare_queryable(&key)
             .callback(move |query| {
@@ -193,7 +223,11 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
     for h in &hosted {
         let key = format!("swarmrec/v1/{}/alive/{}/{}", h.swarm, h.kind, h.robot);
         tokens.push(
-            session.liveliness().declare_token(&key).wait().map_err(|e| anyhow::anyhow!("token {key}: {e}"))?,
+            session
+                .liveliness()
+                .declare_token(&key)
+                .wait()
+                .map_err(|e| anyhow::anyhow!("token {key}: {e}"))?,
         );
         h.metrics.registry.set(h.metrics.ready, &[], 1.0);
     }

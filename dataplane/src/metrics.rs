@@ -14,8 +14,9 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 /// Request latencies on loopback are 0.2-5 ms; the Python runner's buckets.
-pub const LATENCY_BUCKETS: [f64; 13] =
-    [0.0002, 0.0005, 0.001, 0.002, 0.003, 0.005, 0.0075, 0.01, 0.02, 0.05, 0.1, 0.5, 2.0];
+pub const LATENCY_BUCKETS: [f64; 13] = [
+    0.0002, 0.0005, 0.001, 0.002, 0.003, 0.005, 0.0075, 0.01, 0.02, 0.05, 0.1, 0.5, 2.0,
+];
 
 #[derive(Clone, Copy, PartialEq)]
 enum Kind {
@@ -36,7 +37,11 @@ struct Family {
 #[derive(Clone)]
 enum Series {
     Value(f64),
-    Histogram { buckets: [u64; LATENCY_BUCKETS.len()], sum: f64, count: u64 },
+    Histogram {
+        buckets: [u64; LATENCY_BUCKETS.len()],
+        sum: f64,
+        count: u64,
+    },
 }
 
 /// One service's metric families (a registry of its own, like each Python service's).
@@ -44,18 +49,29 @@ pub struct Registry {
     families: Mutex<Vec<Family>>,
 }
 
+/// A page of the metrics endpoint: its text, rendered when scraped.
+pub type Page = Arc<dyn Fn() -> String + Send + Sync>;
+
 /// Handle of one family in a [`Registry`].
 #[derive(Clone, Copy)]
 pub struct Metric(usize);
 
 impl Registry {
     pub fn new() -> Registry {
-        Registry { families: Mutex::new(Vec::new()) }
+        Registry {
+            families: Mutex::new(Vec::new()),
+        }
     }
 
     fn add(&self, name: &'static str, help: &'static str, kind: Kind, labels: &'static [&'static str]) -> Metric {
         let mut families = self.families.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-        families.push(Family { name, help, kind, labels, series: BTreeMap::new() });
+        families.push(Family {
+            name,
+            help,
+            kind,
+            labels,
+            series: BTreeMap::new(),
+        });
         Metric(families.len() - 1)
     }
 
@@ -77,7 +93,11 @@ impl Registry {
         debug_assert_eq!(fam.labels.len(), labels.len(), "{}", fam.name);
         let key: Vec<String> = labels.iter().map(|s| s.to_string()).collect();
         let empty = if fam.kind == Kind::Histogram {
-            Series::Histogram { buckets: [0; LATENCY_BUCKETS.len()], sum: 0.0, count: 0 }
+            Series::Histogram {
+                buckets: [0; LATENCY_BUCKETS.len()],
+                sum: 0.0,
+                count: 0,
+            }
         } else {
             Series::Value(0.0)
         };
@@ -166,7 +186,12 @@ fn label_text(names: &[&str], values: &[String], le: Option<&str>) -> String {
     let mut parts: Vec<String> = names
         .iter()
         .zip(values)
-        .map(|(n, v)| format!("{n}=\"{}\"", v.replace('\\', "\\\\").replace('"', "\\\"").replace('\n', "\\n")))
+        .map(|(n, v)| {
+            format!(
+                "{n}=\"{}\"",
+                v.replace('\\', "\\\\").replace('"', "\\\"").replace('\n', "\\n")
+            )
+        })
         .collect();
     if let Some(le) = le {
         parts.push(format!("le=\"{le}\""));
@@ -196,7 +221,11 @@ pub struct ServiceMetrics {
 impl ServiceMetrics {
     pub fn new(kind: &str, robot: u32, swarm: &str) -> ServiceMetrics {
         let r = Registry::new();
-        let info = r.gauge("swarmrec_service_info", "The service behind this endpoint", &["robot", "service", "swarm"]);
+        let info = r.gauge(
+            "swarmrec_service_info",
+            "The service behind this endpoint",
+            &["robot", "service", "swarm"],
+        );
         r.set(info, &[&robot.to_string(), kind, swarm], 1.0);
         let m = ServiceMetrics {
             bytes_sent: r.counter(
@@ -209,7 +238,11 @@ impl ServiceMetrics {
                 "Payload bytes received, by message type and scope",
                 &["message", "scope"],
             ),
-            messages_sent: r.counter("swarmrec_messages_sent", "Messages sent, by message type and scope", &["message", "scope"]),
+            messages_sent: r.counter(
+                "swarmrec_messages_sent",
+                "Messages sent, by message type and scope",
+                &["message", "scope"],
+            ),
             messages_received: r.counter(
                 "swarmrec_messages_received",
                 "Messages received, by message type and scope",
@@ -277,7 +310,7 @@ pub struct MetricsServer {
 
 impl MetricsServer {
     /// Binds `host:port` (0: a free port) and serves `pages` (path -> registry) in a thread.
-    pub fn start(host: &str, port: u16, pages: Vec<(String, Arc<dyn Fn() -> String + Send + Sync>)>) -> std::io::Result<MetricsServer> {
+    pub fn start(host: &str, port: u16, pages: Vec<(String, Page)>) -> std::io::Result<MetricsServer> {
         let listener = TcpListener::bind((host, port))?;
         let port = listener.local_addr()?.port();
         let ready = Arc::new(AtomicBool::new(false));
@@ -293,7 +326,12 @@ impl MetricsServer {
                 }
             }
         })?;
-        Ok(MetricsServer { port, host: host.to_string(), ready, stopping })
+        Ok(MetricsServer {
+            port,
+            host: host.to_string(),
+            ready,
+            stopping,
+        })
     }
 
     pub fn url(&self, path: &str) -> String {
@@ -310,11 +348,7 @@ impl MetricsServer {
     }
 }
 
-fn serve_one(
-    mut stream: TcpStream,
-    pages: &[(String, Arc<dyn Fn() -> String + Send + Sync>)],
-    ready: bool,
-) -> std::io::Result<()> {
+fn serve_one(mut stream: TcpStream, pages: &[(String, Page)], ready: bool) -> std::io::Result<()> {
     stream.set_read_timeout(Some(Duration::from_secs(2)))?;
     let mut reader = BufReader::new(stream.try_clone()?);
     let mut line = String::new();
@@ -326,7 +360,13 @@ fn serve_one(
             break;
         }
     }
-    let path = line.split_whitespace().nth(1).unwrap_or("").split('?').next().unwrap_or("");
+    let path = line
+        .split_whitespace()
+        .nth(1)
+        .unwrap_or("")
+        .split('?')
+        .next()
+        .unwrap_or("");
     let (status, ctype, body) = match path {
         "/healthz" => ("200 OK", "text/plain", "ok\n".to_string()),
         "/ready" if ready => ("200 OK", "text/plain", "ready\n".to_string()),
@@ -336,6 +376,10 @@ fn serve_one(
             None => ("404 Not Found", "text/plain", "not found\n".to_string()),
         },
     };
-    write!(stream, "HTTP/1.1 {status}\r\nContent-Type: {ctype}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}", body.len())?;
+    write!(
+        stream,
+        "HTTP/1.1 {status}\r\nContent-Type: {ctype}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        body.len()
+    )?;
     stream.flush()
 }

@@ -36,7 +36,14 @@ impl RecordLog {
     /// returns it with every whole record, oldest first.
     pub fn open(path: Option<&Path>, fsync: bool) -> std::io::Result<(RecordLog, Vec<Vec<u8>>)> {
         let Some(path) = path else {
-            return Ok((RecordLog { file: None, fsync, truncated_bytes: 0 }, Vec::new()));
+            return Ok((
+                RecordLog {
+                    file: None,
+                    fsync,
+                    truncated_bytes: 0,
+                },
+                Vec::new(),
+            ));
         };
         if let Some(dir) = path.parent() {
             std::fs::create_dir_all(dir)?;
@@ -52,7 +59,14 @@ impl RecordLog {
             OpenOptions::new().write(true).open(path)?.set_len(good as u64)?;
         }
         let file = OpenOptions::new().create(true).append(true).open(path)?;
-        Ok((RecordLog { file: Some(file), fsync, truncated_bytes }, records))
+        Ok((
+            RecordLog {
+                file: Some(file),
+                fsync,
+                truncated_bytes,
+            },
+            records,
+        ))
     }
 
     /// Appends one record; it is in the file (and synced if asked) on return.

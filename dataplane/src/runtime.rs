@@ -35,7 +35,10 @@ pub struct RequestError {
 
 impl RequestError {
     pub fn new(code: pb::ErrorCode, message: impl Into<String>) -> RequestError {
-        RequestError { code, message: message.into() }
+        RequestError {
+            code,
+            message: message.into(),
+        }
     }
     pub fn invalid(message: impl Into<String>) -> RequestError {
         RequestError::new(pb::ErrorCode::InvalidArgument, message)
@@ -50,12 +53,15 @@ impl RequestError {
 
 pub type Handled = Result<(&'static str, Vec<u8>), RequestError>;
 
+/// A request's handler: (payload, caller's robot) -> the reply's short schema name and bytes.
+pub type Handler = Box<dyn Fn(&[u8], Option<u32>) -> Handled + Send + Sync>;
+
 /// One endpoint: its name, the request's short schema name, and the handler
 /// (payload, caller's robot) -> (reply's short schema name, reply bytes).
 pub struct Endpoint {
     pub name: &'static str,
     pub request: &'static str,
-    pub handler: Box<dyn Fn(&[u8], Option<u32>) -> Handled + Send + Sync>,
+    pub handler: Handler,
 }
 
 /// A compiled service, as the runner drives it.
@@ -69,7 +75,10 @@ pub trait Service: Send + Sync {
 /// holds fields the schema lacks, as the Python runner's decode and `check_fields` do.
 pub fn decode<M: Message + Default>(data: &[u8], schema: &str) -> Result<M, RequestError> {
     let msg = M::decode(data).map_err(|e| {
-        RequestError::new(pb::ErrorCode::Malformed, format!("{} bytes do not decode as {schema}: {e}", data.len()))
+        RequestError::new(
+            pb::ErrorCode::Malformed,
+            format!("{} bytes do not decode as {schema}: {e}", data.len()),
+        )
     })?;
     if let Some(path) = unknown_field(schema, data) {
         return Err(RequestError::new(
@@ -113,7 +122,11 @@ impl Log {
             "ERROR" => 40,
             _ => 20,
         };
-        Log { kind: kind.to_string(), robot, level }
+        Log {
+            kind: kind.to_string(),
+            robot,
+            level,
+        }
     }
 
     pub fn emit(&self, level: u8, msg: &str, fields: serde_json::Value) {
@@ -126,7 +139,9 @@ impl Log {
             40 => "ERROR",
             _ => "INFO",
         };
-        let ts = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0.0, |d| d.as_secs_f64());
+        let ts = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0.0, |d| d.as_secs_f64());
         let mut entry = serde_json::json!({
             "ts": (ts * 1000.0).round() / 1000.0, "level": name, "service": self.kind,
             "robot": self.robot, "msg": msg,
@@ -152,7 +167,11 @@ pub fn caller_robot(attachment: Option<&ZBytes>) -> Option<u32> {
     if raw.is_empty() || raw.len() > 10 || !raw.iter().all(u8::is_ascii_digit) {
         return None;
     }
-    std::str::from_utf8(&raw).ok()?.parse::<u64>().ok().and_then(|r| u32::try_from(r).ok())
+    std::str::from_utf8(&raw)
+        .ok()?
+        .parse::<u64>()
+        .ok()
+        .and_then(|r| u32::try_from(r).ok())
 }
 
 fn schema_of(encoding: Option<&Encoding>) -> String {
@@ -182,12 +201,19 @@ impl Dispatcher {
         self.metrics.count_received(ep.request, scope, data.len());
         let expected = format!("swarmrec.v1.{}", ep.request);
         if !schema.is_empty() && schema != expected {
-            return Err(RequestError::invalid(format!("{} takes {expected}, got {schema}", ep.name)));
+            return Err(RequestError::invalid(format!(
+                "{} takes {expected}, got {schema}",
+                ep.name
+            )));
         }
         if data.len() > self.max_message_bytes {
             return Err(RequestError::new(
                 pb::ErrorCode::TooLarge,
-                format!("message of {} bytes exceeds the limit of {}", data.len(), self.max_message_bytes),
+                format!(
+                    "message of {} bytes exceeds the limit of {}",
+                    data.len(),
+                    self.max_message_bytes
+                ),
             ));
         }
         (ep.handler)(data, caller)
@@ -201,8 +227,10 @@ impl Dispatcher {
         let scope = scope_between(self.robot, caller);
         let data = query.payload().map(|p| p.to_bytes().into_owned()).unwrap_or_default();
         let schema = schema_of(query.encoding());
-        let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| self.answer(&data, &schema, caller, scope)))
-            .unwrap_or_else(|_| Err(RequestError::new(pb::ErrorCode::Internal, "the handler panicked")));
+        let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            self.answer(&data, &schema, caller, scope)
+        }))
+        .unwrap_or_else(|_| Err(RequestError::new(pb::ErrorCode::Internal, "the handler panicked")));
         let (name, payload, ok) = match outcome {
             Ok((name, payload)) => (name, payload, true),
             Err(e) => {
@@ -221,7 +249,15 @@ impl Dispatcher {
                 if message.chars().count() > 1000 {
                     message = message.chars().take(999).collect::<String>() + "…";
                 }
-                ("ErrorReply", pb::ErrorReply { code: e.code as i32, message }.encode_to_vec(), false)
+                (
+                    "ErrorReply",
+                    pb::ErrorReply {
+                        code: e.code as i32,
+                        message,
+                    }
+                    .encode_to_vec(),
+                    false,
+                )
             }
         };
         let size = payload.len();
@@ -235,7 +271,9 @@ impl Dispatcher {
         }
         drop(query); // finishes the query: the caller need not wait for its timeout
         let m = &self.metrics;
-        m.registry.observe(m.request_seconds, &[self.endpoint.name], t0.elapsed().as_secs_f64());
-        m.registry.inc(m.request_cpu_seconds, &[self.endpoint.name], thread_cpu_s() - c0);
+        m.registry
+            .observe(m.request_seconds, &[self.endpoint.name], t0.elapsed().as_secs_f64());
+        m.registry
+            .inc(m.request_cpu_seconds, &[self.endpoint.name], thread_cpu_s() - c0);
     }
 }

@@ -66,9 +66,15 @@ pub fn objects(msg: &pb::Constellation, places: &PlaceSpec) -> Result<(Vec<u32>,
     }
     let exact = !msg.positions_m.is_empty();
     if exact && !msg.positions_mm.is_empty() {
-        return Err(RequestError::invalid("constellation carries both positions_mm and positions_m; send one"));
+        return Err(RequestError::invalid(
+            "constellation carries both positions_mm and positions_m; send one",
+        ));
     }
-    let count = if exact { msg.positions_m.len() } else { msg.positions_mm.len() };
+    let count = if exact {
+        msg.positions_m.len()
+    } else {
+        msg.positions_mm.len()
+    };
     if count != 3 * n {
         let field = if exact { "positions_m" } else { "positions_mm" };
         return Err(RequestError::invalid(format!(
@@ -79,7 +85,10 @@ pub fn objects(msg: &pb::Constellation, places: &PlaceSpec) -> Result<(Vec<u32>,
     if let Some(k) = msg.labels.iter().position(|&l| l >= places.n_labels) {
         return Err(RequestError::new(
             pb::ErrorCode::UnknownLabel,
-            format!("object {k} has label {}, outside the label list of {} labels", msg.labels[k], places.n_labels),
+            format!(
+                "object {k} has label {}, outside the label list of {} labels",
+                msg.labels[k], places.n_labels
+            ),
         ));
     }
     let mut counts: HashMap<u32, u32> = HashMap::new();
@@ -115,9 +124,16 @@ pub fn objects(msg: &pb::Constellation, places: &PlaceSpec) -> Result<(Vec<u32>,
 impl Verifier {
     pub fn new(spec: &ServiceSpec, metrics: Arc<ServiceMetrics>, log: Log) -> anyhow::Result<Verifier> {
         let places = spec.places.clone();
-        let knobs = Knobs { d: places.d, min_common: places.min_common, same_label_only: places.same_label_only };
-        let stored_frames =
-            metrics.registry.gauge("swarmrec_verifier_stored_frames", "Constellations held by this verifier", &[]);
+        let knobs = Knobs {
+            d: places.d,
+            min_common: places.min_common,
+            same_label_only: places.same_label_only,
+        };
+        let stored_frames = metrics.registry.gauge(
+            "swarmrec_verifier_stored_frames",
+            "Constellations held by this verifier",
+            &[],
+        );
         let path = spec.data_dir.as_ref().map(|d| d.join("verifier.log"));
         let (record_log, records) = RecordLog::open(path.as_deref(), spec.fsync)?;
         if record_log.truncated_bytes > 0 {
@@ -126,7 +142,11 @@ impl Verifier {
                 serde_json::json!({"path": path, "bytes": record_log.truncated_bytes}),
             );
         }
-        let mut state = State { frames: HashMap::new(), order: Vec::new(), log: record_log };
+        let mut state = State {
+            frames: HashMap::new(),
+            order: Vec::new(),
+            log: record_log,
+        };
         let mut skipped = 0;
         for record in records {
             let msg = match pb::Constellation::decode(&record[..]) {
@@ -141,7 +161,19 @@ impl Verifier {
                     // A log written before stores were idempotent may hold a frame twice: the last wins.
                     let f = msg.frame_index();
                     let table = Frame::new(&labels, &positions);
-                    if state.frames.insert(f, Stored { labels, positions, frame_id: msg.frame_id, table }).is_none() {
+                    if state
+                        .frames
+                        .insert(
+                            f,
+                            Stored {
+                                labels,
+                                positions,
+                                frame_id: msg.frame_id,
+                                table,
+                            },
+                        )
+                        .is_none()
+                    {
                         state.order.push(f);
                     }
                 }
@@ -156,7 +188,10 @@ impl Verifier {
             }
         }
         metrics.registry.set(stored_frames, &[], state.frames.len() as f64);
-        log.info("frames loaded", serde_json::json!({"stored": state.frames.len(), "skipped": skipped}));
+        log.info(
+            "frames loaded",
+            serde_json::json!({"stored": state.frames.len(), "skipped": skipped}),
+        );
         Ok(Verifier {
             robot: spec.robot,
             n_robots: spec.n_robots,
@@ -218,7 +253,15 @@ impl Verifier {
                     .append(&msg.encode_to_vec())
                     .map_err(|e| RequestError::new(pb::ErrorCode::Internal, format!("record log: {e}")))?;
                 let frame_id = msg.frame_id;
-                state.frames.insert(f, Stored { labels, positions, frame_id, table });
+                state.frames.insert(
+                    f,
+                    Stored {
+                        labels,
+                        positions,
+                        frame_id,
+                        table,
+                    },
+                );
                 state.order.push(f);
             }
             // Peers may already have matched against the stored frame: replacing it would
@@ -238,7 +281,9 @@ impl Verifier {
         let n = state.frames.len();
         drop(state);
         self.metrics.registry.set(self.stored_frames, &[], n as f64);
-        Ok(pb::StoreReply { stored_frames: n as u32 })
+        Ok(pb::StoreReply {
+            stored_frames: n as u32,
+        })
     }
 
     fn verify_request(&self, data: &[u8]) -> Result<pb::VerifyReply, RequestError> {
@@ -250,7 +295,9 @@ impl Verifier {
         let mut knobs = self.knobs;
         if let Some(d) = req.distance_threshold_m {
             if !(d.is_finite() && d > 0.0) {
-                return Err(RequestError::invalid(format!("distance_threshold_m must be a positive number, got {d}")));
+                return Err(RequestError::invalid(format!(
+                    "distance_threshold_m must be a positive number, got {d}"
+                )));
             }
             knobs.d = f64::from(d);
         }
@@ -277,13 +324,20 @@ impl Verifier {
         } else {
             let asked = req.candidate_frame_indices.len() as u64;
             if asked > u64::from(max_frames) {
-                return Err(RequestError::too_large("candidate frames to verify", asked, max_frames.into(), "verify_max_frames"));
+                return Err(RequestError::too_large(
+                    "candidate frames to verify",
+                    asked,
+                    max_frames.into(),
+                    "verify_max_frames",
+                ));
             }
             let mut wanted = req.candidate_frame_indices.clone();
             wanted.sort_unstable();
             wanted.dedup();
-            let found: Vec<(u32, &Frame)> =
-                wanted.iter().filter_map(|f| state.frames.get(f).map(|s| (*f, &s.table))).collect();
+            let found: Vec<(u32, &Frame)> = wanted
+                .iter()
+                .filter_map(|f| state.frames.get(f).map(|s| (*f, &s.table)))
+                .collect();
             if found.len() < wanted.len() {
                 self.log.warning(
                     "asked to verify frames it does not hold",
@@ -304,8 +358,10 @@ impl Verifier {
         // Packed only now: a request over the bounds is refused before any work.
         let query = Frame::new(&labels, &positions);
         let query_key = (query_msg.robot_id(), query_msg.frame_index());
-        let mut results: Vec<_> =
-            verify(&query, query_key, self.robot, frames, knobs).into_iter().filter(|m| m.score > 0.0).collect();
+        let mut results: Vec<_> = verify(&query, query_key, self.robot, frames, knobs)
+            .into_iter()
+            .filter(|m| m.score > 0.0)
+            .collect();
         drop(state);
         if req.max_matches > 0 {
             results.truncate(req.max_matches as usize);
@@ -317,10 +373,18 @@ impl Verifier {
                 n_matched: m.pairs.len() as u32,
                 n_common: m.n_common,
                 n_union: m.n_union,
-                object_pairs: if req.include_pairs { m.pairs.iter().flat_map(|&(q, s)| [q, s]).collect() } else { Vec::new() },
+                object_pairs: if req.include_pairs {
+                    m.pairs.iter().flat_map(|&(q, s)| [q, s]).collect()
+                } else {
+                    Vec::new()
+                },
             })
             .collect();
-        Ok(pb::VerifyReply { query_id: req.query_id, robot_id: self.robot, matches })
+        Ok(pb::VerifyReply {
+            query_id: req.query_id,
+            robot_id: self.robot,
+            matches,
+        })
     }
 }
 
@@ -336,13 +400,19 @@ impl Service for Verifier {
             Endpoint {
                 name: "verify",
                 request: "VerifyRequest",
-                handler: Box::new(move |data, _caller| b.verify_request(data).map(|r| ("VerifyReply", r.encode_to_vec()))),
+                handler: Box::new(move |data, _caller| {
+                    b.verify_request(data).map(|r| ("VerifyReply", r.encode_to_vec()))
+                }),
             },
         ]
     }
 
     fn member_info(&self) -> pb::MemberInfo {
         let n = self.lock().frames.len();
-        pb::MemberInfo { stored_items: n as u64, n_labels: self.places.n_labels, ..Default::default() }
+        pb::MemberInfo {
+            stored_items: n as u64,
+            n_labels: self.places.n_labels,
+            ..Default::default()
+        }
     }
 }

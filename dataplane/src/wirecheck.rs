@@ -43,8 +43,8 @@ fn schemas() -> &'static Schemas {
                     if f.label() == Label::Repeated && scalar != 2 {
                         wire_types.push(2); // packed
                     }
-                    let message = (f.r#type() == Type::Message)
-                        .then(|| f.type_name().trim_start_matches('.').to_string());
+                    let message =
+                        (f.r#type() == Type::Message).then(|| f.type_name().trim_start_matches('.').to_string());
                     fields.insert(f.number() as u32, Field { wire_types, message });
                 }
                 out.insert(format!("{package}.{}", msg.name()), fields);
@@ -76,7 +76,9 @@ pub fn unknown_field(schema: &str, data: &[u8]) -> Option<String> {
     let mut buf = data;
     let mut seen: HashMap<u32, usize> = HashMap::new();
     while !buf.is_empty() {
-        let Some(tag) = varint(&mut buf) else { return Some(schema.to_string()) };
+        let Some(tag) = varint(&mut buf) else {
+            return Some(schema.to_string());
+        };
         let (number, wire) = ((tag >> 3) as u32, (tag & 7) as u8);
         let field = match fields.get(&number) {
             Some(f) if f.wire_types.contains(&wire) => f,
@@ -94,9 +96,13 @@ pub fn unknown_field(schema: &str, data: &[u8]) -> Option<String> {
                 buf = &buf[n..];
             }
             2 => {
-                let Some(len) = varint(&mut buf) else { return Some(schema.to_string()) };
+                let Some(len) = varint(&mut buf) else {
+                    return Some(schema.to_string());
+                };
                 let len = usize::try_from(len).ok().filter(|&l| l <= buf.len());
-                let Some(len) = len else { return Some(schema.to_string()) };
+                let Some(len) = len else {
+                    return Some(schema.to_string());
+                };
                 let (body, rest) = buf.split_at(len);
                 buf = rest;
                 if let Some(sub) = &field.message {
@@ -135,7 +141,10 @@ mod tests {
             ..Default::default()
         };
         assert_eq!(unknown_field("swarmrec.v1.VerifyRequest", &req.encode_to_vec()), None);
-        let other = pb::ErrorReply { code: 2, message: "x".into() };
+        let other = pb::ErrorReply {
+            code: 2,
+            message: "x".into(),
+        };
         assert!(unknown_field("swarmrec.v1.VerifyRequest", &other.encode_to_vec()).is_some());
     }
 
