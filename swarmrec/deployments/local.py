@@ -26,7 +26,6 @@ start after the router, on free ports: :attr:`LocalDeployment.gateway_address`.
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import socket
@@ -47,7 +46,7 @@ from swarmrec.deployments.identities import Security, client_tls, security_for, 
 from swarmrec.deployments.links import LinkEmulator, LinkSpec, Schedule
 from swarmrec.deployments.metrics import Scrape, scrape
 from swarmrec.errors import ConfigError
-from swarmrec.runtime.hosting import host_ranges, robots_per_process, terminate
+from swarmrec.runtime.hosting import host_ranges, ready_entries, ready_events, robots_per_process, terminate
 from swarmrec.runtime.settings import Component, Config, to_flags
 from swarmrec.runtime.tls import tls_endpoint
 from swarmrec.security.identity import SERVICE_KINDS, Identity
@@ -106,18 +105,12 @@ class ServiceProcess:
 
     def _read_stdout(self) -> None:
         assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            try:
-                msg = json.loads(line)
-            except json.JSONDecodeError:
-                continue
-            if isinstance(msg, dict) and msg.get("event") == "ready":
-                self.info = msg
-                entries = msg.get("services", [msg])
-                for e in entries if isinstance(entries, list) else []:
-                    if isinstance(e, dict) and isinstance(e.get("metrics_url"), str):
-                        self.urls[(str(e.get("service")), int(e.get("robot", 0)))] = e["metrics_url"]
-                self.ready.set()
+        for msg in ready_events(self.proc.stdout):
+            self.info = msg
+            for e in ready_entries(msg):
+                if isinstance(e.get("metrics_url"), str):
+                    self.urls[(str(e.get("service")), int(e.get("robot", 0)))] = e["metrics_url"]
+            self.ready.set()
 
     def tail(self, n: int = 15) -> str:
         try:

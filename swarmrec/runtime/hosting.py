@@ -11,13 +11,33 @@ PKI do, to start the processes and to give each its certificate.
 
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
+from collections.abc import Iterable, Iterator
 from typing import Any
 
 from swarmrec.errors import ConfigError
 
-__all__ = ["host_ranges", "robots_per_process", "terminate"]
+__all__ = ["host_ranges", "ready_entries", "ready_events", "robots_per_process", "terminate"]
+
+
+def ready_events(lines: Iterable[str]) -> Iterator[dict[str, Any]]:
+    """The readiness lines (``{"event": "ready", ...}``) among a service process's stdout
+    lines, as the runner and the compiled host print them; other lines are skipped."""
+    for line in lines:
+        try:
+            msg = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(msg, dict) and msg.get("event") == "ready":
+            yield msg
+
+
+def ready_entries(msg: dict[str, Any]) -> list[dict[str, Any]]:
+    """The services a readiness line lists (one service's line is its own entry)."""
+    entries = msg.get("services", [msg])
+    return [e for e in entries if isinstance(e, dict)] if isinstance(entries, list) else []
 
 
 def terminate(proc: subprocess.Popen[Any], timeout_s: float = 10.0) -> int:

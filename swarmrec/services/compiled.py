@@ -34,7 +34,7 @@ from typing import Any, NoReturn
 import swarmrec
 from swarmrec.core.presets import get_preset
 from swarmrec.errors import ConfigError
-from swarmrec.runtime.hosting import terminate
+from swarmrec.runtime.hosting import ready_entries, ready_events, terminate
 from swarmrec.runtime.runner import Hosted, service_logger, session_bus, session_identity, zenoh_config
 from swarmrec.runtime.settings import Config, StorageSettings
 from swarmrec.services.settings import PlaceSettings
@@ -162,18 +162,10 @@ class CompiledHost:
 
     def _read(self, ready: threading.Event) -> None:
         assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            try:
-                msg = json.loads(line)
-            except json.JSONDecodeError:
-                continue
-            if isinstance(msg, dict) and msg.get("event") == "ready" and not ready.is_set():
-                entries = msg.get("services", [msg])
-                self.services = [
-                    {k: e[k] for k in ("service", "robot", "metrics_url") if k in e}
-                    for e in entries
-                    if isinstance(e, dict)
-                ]
+        for msg in ready_events(self.proc.stdout):
+            if not ready.is_set():
+                keep = ("service", "robot", "metrics_url")
+                self.services = [{k: e[k] for k in keep if k in e} for e in ready_entries(msg)]
                 ready.set()
         ready.set()  # the child ended before it was ready: the caller sees no services
 
