@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from swarmrec.cli.common import Subparsers
+from swarmrec.runtime.runner import choose_zenoh_runtime
 from swarmrec.runtime.settings import add_flags, load_config
 from swarmrec.services import registry
 
@@ -33,4 +34,5 @@ def run(args: argparse.Namespace) -> int:
     entry = registry.spec(args.kind)
     overrides = {"mode": entry.zenoh_mode} if entry.zenoh_mode else {}
     config = load_config(entry.all_components, args, known=registry.all_components(), overrides=overrides)
+    choose_zenoh_runtime(config.bus)
     return registry.serve(args.kind, config)

@@ -39,6 +39,7 @@ from __future__ import annotations
 import functools
 import json
 import logging
+import os
 import queue
 import signal
 import sys
@@ -70,6 +71,7 @@ from swarmrec.runtime.metrics import MetricSet, MetricsServer, ServiceMetrics, s
 from swarmrec.runtime.rpc import Caller, LocalEndpoints, caller_robot, encoding_for, schema_of
 from swarmrec.runtime.settings import (
     AUTO_QUEUE_ABOVE,
+    SINGLE_THREAD_RUNTIME,
     BusSettings,
     Component,
     Config,
@@ -88,6 +90,7 @@ __all__ = [
     "ServiceBase",
     "ServiceContext",
     "Subscription",
+    "choose_zenoh_runtime",
     "dispatch_by_queue",
     "install_signals",
     "run_service",
@@ -296,6 +299,15 @@ def zenoh_config(
     if security is not None:
         apply_security(conf, bus, security, identity=identity, log=log or logging.getLogger("swarmrec"))
     return conf
+
+
+def choose_zenoh_runtime(bus: BusSettings) -> None:
+    """Give this process's zenoh the runtime ``bus.zenoh_runtime`` names. zenoh reads
+    ``ZENOH_RUNTIME`` once, when its runtime starts: call this before the first session of
+    a service process (``swarmrec serve``/``host``), never in a process that already has
+    one (a test running services in threads keeps its own). A variable already set wins."""
+    if bus.zenoh_runtime == "single":
+        os.environ.setdefault("ZENOH_RUNTIME", SINGLE_THREAD_RUNTIME)
 
 
 def install_signals(stop: threading.Event) -> None:

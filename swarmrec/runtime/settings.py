@@ -147,6 +147,12 @@ ZenohMode = Literal["client", "peer", "router"]
 EndpointDispatch = Literal["auto", "channel", "queue"]
 #: Which implementation serves a kind that has a compiled one (swarmrec.services.compiled).
 DataPlane = Literal["python", "compiled"]
+#: zenoh's runtime in a service process: one thread, or zenoh's own pools.
+ZenohRuntime = Literal["single", "pools"]
+#: The single-threaded runtime (../shared/ZENOH.md): every pool handed over to one worker.
+SINGLE_THREAD_RUNTIME = (
+    "(app:(worker_threads:1),rx:(handover:app),tx:(handover:app),net:(handover:app),acc:(handover:app))"
+)
 #: ``dispatch = "auto"`` uses queues in a process hosting more services than this: the two
 #: were even for 20 services a process (5 robots), queues faster for 52 (13 robots) and
 #: more (docs/swarm.md); a process of one service keeps zenoh's channels as it always had.
@@ -185,6 +191,12 @@ class BusSettings(Component):
         "(the Rust host, swarmrec-dataplane, built by `make dataplane`: same keys, messages, metrics "
         "and logs) or python (the reference); kinds without a compiled one are python either way",
     )
+    zenoh_runtime: ZenohRuntime = setting(
+        "pools",
+        "zenoh's runtime in a Python service process: pools (zenoh's default thread pools) or single "
+        "(one thread: less CPU a message, but not the default yet, docs/dataplane.md); the compiled "
+        "host always runs single; a ZENOH_RUNTIME environment variable overrides both",
+    )
     request_timeout_s: float = setting(2.0, "how long a service waits for a peer's reply, seconds")
     max_message_bytes: int = setting(1 << 20, "largest request payload accepted, bytes")
     log_level: str = setting("INFO", "logging level")
@@ -209,6 +221,8 @@ class BusSettings(Component):
             problems.append(f"workers must be >= 1, got {self.workers}")
         if self.dispatch not in ("auto", "channel", "queue"):
             problems.append(f"dispatch must be auto, channel or queue, got {self.dispatch!r}")
+        if self.zenoh_runtime not in ("single", "pools"):
+            problems.append(f"zenoh_runtime must be single or pools, got {self.zenoh_runtime!r}")
         if self.data_plane not in ("python", "compiled"):
             problems.append(f"data_plane must be python or compiled, got {self.data_plane!r}")
         if not (math.isfinite(self.request_timeout_s) and self.request_timeout_s > 0):

@@ -85,3 +85,19 @@ def test_the_binary_is_found_where_named_and_a_missing_one_says_how_to_build_it(
         compiled.binary()
     assert "missing" in str(e.value) and "python" in str(e.value)
     assert os.environ[compiled.ENV_VAR].endswith("missing")
+
+
+def test_a_service_process_gets_the_zenoh_runtime_its_settings_name_unless_the_environment_does(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from swarmrec.runtime.runner import choose_zenoh_runtime
+    from swarmrec.runtime.settings import SINGLE_THREAD_RUNTIME
+
+    monkeypatch.delenv("ZENOH_RUNTIME", raising=False)
+    choose_zenoh_runtime(BusSettings(zenoh_runtime="pools"))
+    assert "ZENOH_RUNTIME" not in os.environ  # zenoh's own pools: nothing to say
+    choose_zenoh_runtime(BusSettings(zenoh_runtime="single"))
+    assert os.environ["ZENOH_RUNTIME"] == SINGLE_THREAD_RUNTIME
+    monkeypatch.setenv("ZENOH_RUNTIME", "(app:(worker_threads:2))")
+    choose_zenoh_runtime(BusSettings(zenoh_runtime="single"))
+    assert os.environ["ZENOH_RUNTIME"] == "(app:(worker_threads:2))"
