@@ -85,6 +85,7 @@ struct Hosted {
     wire_kind: i32,
     service: Arc<dyn Service>,
     metrics: Arc<ServiceMetrics>,
+    log: Log,
     url: String,
 }
 
@@ -117,7 +118,7 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
         let metrics = Arc::new(ServiceMetrics::new(&s.kind, s.robot, &s.swarm));
         let log = Log::new(&s.kind, s.robot, &spec.log_level);
         let service: Arc<dyn Service> = match s.kind.as_str() {
-            "verifier" => Arc::new(verifier::Verifier::new(s, metrics.clone(), log)?),
+            "verifier" => Arc::new(verifier::Verifier::new(s, metrics.clone(), log.clone())?),
             other => bail!("{other} has no compiled implementation"),
         };
         let path = if single {
@@ -132,6 +133,7 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
             wire_kind: s.wire_kind,
             service,
             metrics,
+            log,
             url: path,
         });
     }
@@ -173,16 +175,15 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
     let mut queryables = Vec::new();
     let mut tokens = Vec::new();
     for (h, s) in hosted.iter().zip(&spec.services) {
-        let log = Log::new(&h.kind, h.robot, &spec.log_level);
         for endpoint in h.service.clone().endpoints() {
-            let key = format!("swarmrec/v1/{}/{}/{}/{}", h.swarm, h.kind, h.robot, endpoint.name);
+            let key = runtime::endpoint_key(&h.swarm, &h.kind, h.robot, endpoint.name);
             let d = Dispatcher {
                 endpoint,
                 key: key.clone(),
                 robot: h.robot,
                 max_message_bytes: s.max_message_bytes,
                 metrics: h.metrics.clone(),
-                log: log.clone(),
+                log: h.log.clone(),
             };
             let q = session
                 .declare_queryable(&key)
@@ -192,7 +193,7 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
             queryables.push(q);
         }
         // `info`: what the service says of itself (asked once per member: no counting).
-        let key = format!("swarmrec/v1/{}/{}/{}/info", h.swarm, h.kind, h.robot);
+        let key = runtime::endpoint_key(&h.swarm, &h.kind, h.robot, "info");
         let (service, reply_key) = (h.service.clone(), key.clone());
         let (wire_kind, robot, swarm, url, version) = (
             h.wire_kind,
@@ -221,7 +222,7 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
     }
     // Last: once the tokens are up, peers may route to these services.
     for h in &hosted {
-        let key = format!("swarmrec/v1/{}/alive/{}/{}", h.swarm, h.kind, h.robot);
+        let key = runtime::alive_key(&h.swarm, &h.kind, h.robot);
         tokens.push(
             session
                 .liveliness()

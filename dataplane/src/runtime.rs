@@ -26,6 +26,18 @@ use crate::metrics::{scope_between, ServiceMetrics};
 use crate::pb;
 use crate::wirecheck::unknown_field;
 
+/// Key of a service's endpoint, `swarmrec/v1/<swarm>/<kind>/<robot>/<endpoint>`
+/// (`swarmrec.runtime.keys.endpoint`).
+pub fn endpoint_key(swarm: &str, kind: &str, robot: u32, name: &str) -> String {
+    format!("swarmrec/v1/{swarm}/{kind}/{robot}/{name}")
+}
+
+/// Key of a service's liveliness token, `swarmrec/v1/<swarm>/alive/<kind>/<robot>`
+/// (`swarmrec.runtime.keys.alive`).
+pub fn alive_key(swarm: &str, kind: &str, robot: u32) -> String {
+    format!("swarmrec/v1/{swarm}/alive/{kind}/{robot}")
+}
+
 /// A refusal: the `swarmrec.v1.ErrorCode` to answer with, and why.
 #[derive(Debug, Clone)]
 pub struct RequestError {

@@ -345,11 +345,13 @@ def serve_many(
     :mod:`swarmrec.services.compiled`) run in the compiled host: this process becomes it
     when they are all there is (not when a caller waits on ``stop`` or ``on_ready``: tests
     running services in threads), else it starts it as a child beside the Python services."""
-    every = [hosted(kind, config) for kind, config in services]
-    native = [h for h in every if compiled.is_compiled(h.config, spec(h.kind).compiled)]
+    native: list[Hosted] = []
+    python: list[Hosted] = []
+    for kind, config in services:
+        h = hosted(kind, config)
+        (native if compiled.is_compiled(h.config, spec(kind).compiled) else python).append(h)
     if not native:
-        return run_services(every, stop=stop, on_ready=on_ready)
-    python = [h for h in every if h not in native]
+        return run_services(python, stop=stop, on_ready=on_ready)
     if not python and stop is None and on_ready is None:
         compiled.exec_host(native)
     child = compiled.CompiledHost(native)
