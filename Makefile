@@ -41,7 +41,8 @@ TRAIN_STAMP := $(TRAIN_VENV)/.installed-stamp
 TRAIN_REQS  := models/requirements-train.txt
 # The compiled data plane (docs/dataplane.md): crates from crates.io, pinned by the
 # committed Cargo.lock. It needs Rust >= 1.85 (zenoh 1.10 and prost 0.14): cargo on PATH or
-# rustup's ~/.cargo/bin (this project's machines have it; Debian's rustc 1.63 is too old).
+# rustup's ~/.cargo/bin (this project's machines have it; Debian's rustc 1.63 is too old),
+# and a C++17 compiler for numpy's vendored argsort (dataplane/vendor: Debian's g++).
 CARGO ?= $(shell command -v cargo 2>/dev/null || echo $(HOME)/.cargo/bin/cargo)
 DATAPLANE := target/release/swarmrec-dataplane
 
@@ -95,7 +96,8 @@ test: $(STAMP) $(TRAIN_STAMP) check-proto lint typecheck dataplane-test
 $(CARGO):
 	@echo "no cargo found (PATH, ~/.cargo/bin): install Rust >= 1.85 with rustup (https://rustup.rs)" >&2; exit 1
 
-$(DATAPLANE): $(CARGO) Cargo.toml Cargo.lock dataplane/Cargo.toml dataplane/build.rs $(wildcard dataplane/src/*.rs) $(wildcard proto/swarmrec/v1/*.proto)
+$(DATAPLANE): $(CARGO) Cargo.toml Cargo.lock dataplane/Cargo.toml dataplane/build.rs $(wildcard dataplane/src/*.rs) $(wildcard dataplane/csrc/*) $(wildcard proto/swarmrec/v1/*.proto)
+	@command -v $${CXX:-c++} >/dev/null || { echo "no C++ compiler ($${CXX:-c++}) for dataplane/csrc: install one (Debian: apt-get install g++)" >&2; exit 1; }
 	$(CARGO) build --release --locked
 	@touch $(DATAPLANE)
 

@@ -11,11 +11,14 @@
 //! (`ZENOH_RUNTIME`, ../shared/ZENOH.md: half the CPU per message of its default
 //! pools here), and requests are served in zenoh's callbacks: no hand-off.
 
+mod argsort;
 mod association;
+mod compute;
 mod metrics;
 mod pb;
 mod recordlog;
 mod runtime;
+mod selection;
 mod spec;
 mod verifier;
 mod wirecheck;
@@ -39,7 +42,8 @@ const KINDS: &[&str] = &["verifier"];
 
 fn usage() -> ! {
     eprintln!(
-        "usage: swarmrec-dataplane host --spec-json JSON\n       swarmrec-dataplane kinds\n\n\
+        "usage: swarmrec-dataplane host --spec-json JSON\n       swarmrec-dataplane kinds\n       \
+         swarmrec-dataplane compute   (JSON lines on stdin: the exactness tests' entry)\n\n\
          Started by `swarmrec serve`/`swarmrec host` for the kinds it implements ({}).",
         KINDS.join(", ")
     );
@@ -50,6 +54,12 @@ fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
     match args.first().map(String::as_str) {
         Some("kinds") => println!("{}", KINDS.join(",")),
+        Some("compute") if args.len() == 1 => {
+            if let Err(e) = compute::serve_lines(std::io::stdin().lock(), std::io::stdout().lock()) {
+                eprintln!("compute: {e:#}");
+                std::process::exit(1);
+            }
+        }
         Some("host") if args.len() == 3 && args[1] == "--spec-json" => {
             if std::env::var_os("ZENOH_RUNTIME").is_none() {
                 std::env::set_var("ZENOH_RUNTIME", SINGLE_THREAD_RUNTIME);

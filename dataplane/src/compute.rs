@@ -1,0 +1,76 @@
+//! `swarmrec-dataplane compute`: the compiled computations one JSON line at a time,
+//! so the exactness tests can hand the compiled code and the Python reference the
+//! same inputs (`tests/integration/test_argsort.py`, `test_dataplane_index.py`).
+//! Not a service: no zenoh, no settings; one answer line per request line.
+use std::io::{BufRead, Write};
+
+use anyhow::Context;
+use serde::Deserialize;
+use serde_json::{json, Value};
+
+use crate::argsort::{argsort_f64_at, argsort_i64_at, Level};
+use crate::selection::{select_candidates, select_robots};
+
+#[derive(Deserialize)]
+#[serde(tag = "op", rename_all = "snake_case", deny_unknown_fields)]
+enum Request {
+    /// The level numpy's 64-bit argsort runs at in this process.
+    Level,
+    /// `numpy.argsort(values)`; `level` forces a program (default: numpy's choice).
+    Argsort {
+        values: Value,
+        dtype: String,
+        level: Option<String>,
+    },
+    SelectCandidates {
+        scores: Vec<f64>,
+        n_ret: usize,
+    },
+    SelectRobots {
+        robots: Vec<usize>,
+        n_fq: usize,
+        self_robot: Option<usize>,
+    },
+}
+
+pub fn serve_lines(input: impl BufRead, mut output: impl Write) -> anyhow::Result<()> {
+    for line in input.lines() {
+        let line = line.context("stdin")?;
+        if line.trim().is_empty() {
+            continue;
+        }
+        let answer = match serde_json::from_str::<Request>(&line) {
+            Ok(request) => answer(request).unwrap_or_else(|e| json!({"error": format!("{e:#}")})),
+            Err(e) => json!({"error": format!("bad request: {e}")}),
+        };
+        writeln!(output, "{answer}")?;
+        output.flush()?;
+    }
+    Ok(())
+}
+
+fn answer(request: Request) -> anyhow::Result<Value> {
+    Ok(match request {
+        Request::Level => json!({"result": Level::numpy().name()}),
+        Request::Argsort { values, dtype, level } => {
+            let level = match level {
+                None => Level::numpy(),
+                Some(name) => Level::parse(&name).with_context(|| format!("unknown level {name:?}"))?,
+            };
+            let order = match dtype.as_str() {
+                "f64" => argsort_f64_at(&serde_json::from_value::<Vec<f64>>(values)?, level),
+                "i64" => argsort_i64_at(&serde_json::from_value::<Vec<i64>>(values)?, level),
+                other => anyhow::bail!("dtype {other:?}: f64 or i64"),
+            };
+            json!({"result": order})
+        }
+        Request::SelectCandidates { scores, n_ret } => json!({"result": select_candidates(&scores, n_ret)}),
+        Request::SelectRobots {
+            robots,
+            n_fq,
+            self_robot,
+        } => {
+            json!({"result": select_robots(&robots, n_fq, self_robot)})
+        }
+    })
+}
