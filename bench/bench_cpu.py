@@ -65,7 +65,7 @@ from swarmrec.deployments.local import LocalDeployment
 from swarmrec.evaluation.scoring import score_decentralized
 from swarmrec.experiments.places import PlacesSettings, main
 from swarmrec.experiments.places.pipeline import as_on_the_wire
-from swarmrec.runtime.settings import DataPlane
+from swarmrec.runtime.settings import DataPlane, ZenohRuntime
 
 REPO = Path(__file__).resolve().parents[1]
 TUM_ZIP = REPO.parent / "shared" / "data" / "tum_fr3_long_office_household_constellations.zip"
@@ -76,6 +76,9 @@ TICKS = os.sysconf("SC_CLK_TCK")
 #: The compiled host's executable (swarmrec.services.compiled.BINARY).
 COMPILED_EXE = "swarmrec-dataplane"
 DATA_PLANES: tuple[DataPlane, ...] = ("python", "compiled")
+ZENOH_RUNTIMES: tuple[ZenohRuntime, ...] = ("pools", "single")
+#: The variable every service process (router included) reads its zenoh_runtime from.
+RUNTIME_ENV = "SWARMREC_ZENOH_RUNTIME"
 
 
 @dataclass
@@ -259,9 +262,27 @@ def compare(base: dict[str, Any], other: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def run_swarm(dataset: Path, hosting: str, data_plane: DataPlane, offline_s: float) -> dict[str, Any]:
-    """One lock-step replay of ``dataset`` through a 10-robot local swarm, accounted."""
+def run_swarm(
+    dataset: Path, hosting: str, data_plane: DataPlane, offline_s: float, runtime: ZenohRuntime = "pools"
+) -> dict[str, Any]:
+    """One lock-step replay of ``dataset`` through a 10-robot local swarm, accounted, every
+    service process (router included) on zenoh's ``runtime``."""
     marks: dict[str, Any] = {}
+    saved = os.environ.get(RUNTIME_ENV)
+    os.environ[RUNTIME_ENV] = runtime
+    try:
+        result = _run_swarm(dataset, hosting, data_plane, offline_s, marks)
+    finally:
+        if saved is None:
+            os.environ.pop(RUNTIME_ENV, None)
+        else:
+            os.environ[RUNTIME_ENV] = saved
+    return {**result, "zenoh_runtime": runtime}
+
+
+def _run_swarm(
+    dataset: Path, hosting: str, data_plane: DataPlane, offline_s: float, marks: dict[str, Any]
+) -> dict[str, Any]:
 
     def swarm_up(d: Deployment) -> None:
         assert isinstance(d, LocalDeployment)
@@ -273,7 +294,10 @@ def run_swarm(dataset: Path, hosting: str, data_plane: DataPlane, offline_s: flo
         marks["after"] = snapshot(d)
         marks["t1"] = time.perf_counter()
 
-    print(f"swarm of 10 robots, {hosting}, lock-step, data plane {data_plane} ...", flush=True)
+    runtime = os.environ.get(RUNTIME_ENV, "pools")
+    print(
+        f"swarm of 10 robots, {hosting}, lock-step, data plane {data_plane}, zenoh {runtime} ...", flush=True
+    )
     with tempfile.TemporaryDirectory() as tmp:
         settings = PlacesSettings(
             source=DatasetSource(str(dataset)),
@@ -298,7 +322,15 @@ def run_swarm(dataset: Path, hosting: str, data_plane: DataPlane, offline_s: flo
         "data_plane": data_plane,
         "compiled_host_processes": compiled,
         "queries": queries,
+        # None: not compared, because a frame was missing or stored after its step (below).
         "identical_to_offline": s.offline_check.identical if s.offline_check else None,
+        "replay_faults": {
+            "missing_slots": s.queries.missing_slots,
+            "late_frames": s.queries.late_frames,
+            "failed_shard_requests": s.queries.failed_shard_requests,
+            "failed_verifier_requests": s.queries.failed_verifier_requests,
+            "errors": s.queries.errors[:5],
+        },
         "timings": s.timings,
         "window_s": window_s,
         "cores_busy": acc["cpu_s"] / window_s,
@@ -326,7 +358,8 @@ def commit() -> str:
 
 def print_run(result: dict[str, Any]) -> None:
     print(
-        f"[{result['data_plane']}] {result['queries']} queries, identical {result['identical_to_offline']}: "
+        f"[{result['data_plane']}, zenoh {result['zenoh_runtime']}] {result['queries']} queries, "
+        f"identical {result['identical_to_offline']}: "
         f"{result['cpu_ms_per_query']:.1f} ms of CPU a query ({result['cores_busy']:.2f} cores busy), "
         f"offline {result['offline_cpu_ms_per_query']:.2f} ms; "
         f"a 10 s run allows {result['budget_for_10_s']['cpu_ms_per_query']:.1f} ms"
@@ -340,7 +373,12 @@ def print_run(result: dict[str, Any]) -> None:
         print(f"  {title}: " + ", ".join(f"{k} {v:.2f}" for k, v in result[key].items()))
 
 
-def print_comparison(py: dict[str, Any], comp: dict[str, Any], ratios: dict[str, Any]) -> None:
+def print_comparison(
+    py: dict[str, Any],
+    comp: dict[str, Any],
+    ratios: dict[str, Any],
+    names: tuple[str, str] = ("python", "compiled"),
+) -> None:
     def fmt(v: float | None) -> str:
         return "-" if v is None else f"{v:.2f}"
 
@@ -365,7 +403,7 @@ def print_comparison(py: dict[str, Any], comp: dict[str, Any], ratios: dict[str,
     rows.append(
         ("replay s", py["timings"].get("replay_s"), comp["timings"].get("replay_s"), ratios["replay_s"])
     )
-    print(f"{'':34} {'python':>9} {'compiled':>9} {'py/comp':>8}")
+    print(f"{'':34} {names[0]:>9} {names[1]:>9} {'ratio':>8}")
     for name, x, y, r in rows:
         print(f"{name:34} {fmt(x):>9} {fmt(y):>9} {fmt(r):>8}")
 
@@ -381,6 +419,13 @@ def main_bench() -> None:
         default="python",
         help="the verifier's implementation; both: python then compiled, in this run (default python)",
     )
+    ap.add_argument(
+        "--zenoh-runtime",
+        choices=(*ZENOH_RUNTIMES, "both"),
+        default="pools",
+        help="zenoh's runtime in every service process; both: the last data plane's run again on "
+        "the single runtime, in this run (default pools)",
+    )
     args = ap.parse_args()
     if not args.dataset.exists():
         raise SystemExit(f"{args.dataset} not found: this benchmark reads ../shared/data (see its README)")
@@ -388,8 +433,18 @@ def main_bench() -> None:
 
     print("offline evaluation (baseline) ...", flush=True)
     offline_s = offline_cpu_s(args.dataset)
-    runs = {plane: run_swarm(args.dataset, args.hosting, plane, offline_s) for plane in planes}
+    default_runtime: ZenohRuntime = "single" if args.zenoh_runtime == "single" else "pools"
+    runs = {
+        plane: run_swarm(args.dataset, args.hosting, plane, offline_s, default_runtime) for plane in planes
+    }
     first = runs[planes[0]]
+    by_runtime: dict[str, dict[str, Any]] = {}
+    if args.zenoh_runtime == "both":
+        last = planes[-1]
+        by_runtime = {
+            "pools": runs[last],
+            "single": run_swarm(args.dataset, args.hosting, last, offline_s, "single"),
+        }
     result: dict[str, Any] = {
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count() or 1},
         "dataset": args.dataset.name,
@@ -402,12 +457,22 @@ def main_bench() -> None:
     if len(runs) > 1:
         result["data_planes"] = runs
         result["python_over_compiled"] = compare(runs["python"], runs["compiled"])
+    if by_runtime:
+        # The same data plane with zenoh's pools and on one thread, every process alike.
+        result["zenoh_runtimes"] = by_runtime
+        result["pools_over_single"] = compare(by_runtime["pools"], by_runtime["single"])
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     for run in runs.values():
         print_run(run)
+    if by_runtime:
+        print_run(by_runtime["single"])
     if len(runs) > 1:
         print_comparison(runs["python"], runs["compiled"], result["python_over_compiled"])
+    if by_runtime:
+        print_comparison(
+            by_runtime["pools"], by_runtime["single"], result["pools_over_single"], ("pools", "single")
+        )
 
 
 if __name__ == "__main__":

@@ -33,7 +33,11 @@ use crate::metrics::{MetricsServer, ServiceMetrics};
 use crate::runtime::{Dispatcher, Log, Service};
 use crate::spec::HostSpec;
 
-/// zenoh's runtime on the process's one thread, I/O handed over to it (ZENOH.md).
+/// zenoh's runtime on the process's one thread, every pool handed over to it (ZENOH.md).
+/// Sending too: on a thread of its own, zenoh's TLS link would read and write one TLS
+/// stream from two threads (upstream zenoh issue 2557). The Python side's
+/// `SINGLE_THREAD_RUNTIME` (swarmrec/runtime/settings.py) is the same string, and the
+/// zenoh configuration Python hands over deepens the send queues this runtime needs.
 const SINGLE_THREAD_RUNTIME: &str =
     "(app:(worker_threads:1),rx:(handover:app),tx:(handover:app),net:(handover:app),acc:(handover:app))";
 
@@ -82,7 +86,42 @@ fn main() {
     }
 }
 
+/// zenoh's own warnings and errors (a link closed, a message it could not send) as JSON log
+/// lines on stderr, like the services' (`"service": "zenoh"`): a message zenoh gives up on
+/// is then in the host's log, never silent (docs/dataplane.md, "No silent loss").
+fn zenoh_log(log: Log) {
+    zenoh_util::init_log_with_callback(
+        |meta| *meta.level() <= tracing::Level::WARN,
+        move |record| {
+            let level = if record.level == tracing::Level::ERROR { 40 } else { 30 };
+            let msg = record.message.unwrap_or_default();
+            log.emit(level, &msg, serde_json::json!({"target": record.target}));
+        },
+    );
+}
+
 static STOP: AtomicBool = AtomicBool::new(false);
+
+/// The zenoh session, or None when SIGTERM/SIGINT came first. A client waits for its router
+/// as long as it takes (`connect/timeout_ms` -1), and zenoh's open does not return until then:
+/// it runs on a thread of its own so that a host still waiting can be stopped.
+fn open_session(config: zenoh::Config) -> anyhow::Result<Option<zenoh::Session>> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::Builder::new()
+        .name("open".into())
+        .spawn(move || {
+            let _ = tx.send(zenoh::open(config).wait());
+        })
+        .context("a thread to open the session")?;
+    loop {
+        match rx.recv_timeout(std::time::Duration::from_millis(100)) {
+            Ok(opened) => return opened.map(Some).map_err(|e| anyhow::anyhow!("zenoh session: {e}")),
+            Err(std::sync::mpsc::RecvTimeoutError::Timeout) if STOP.load(Ordering::SeqCst) => return Ok(None),
+            Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {}
+            Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => bail!("zenoh session: its thread ended"),
+        }
+    }
+}
 
 extern "C" fn on_signal(_: libc::c_int) {
     STOP.store(true, Ordering::SeqCst);
@@ -103,6 +142,7 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
     if spec.services.is_empty() {
         bail!("a host runs at least one service");
     }
+    zenoh_log(Log::new("zenoh", spec.services[0].robot, "WARNING"));
     for s in &spec.services {
         if !KINDS.contains(&s.kind.as_str()) {
             bail!(
@@ -179,9 +219,14 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
     };
     let config =
         zenoh::Config::from_json5(&spec.zenoh.to_string()).map_err(|e| anyhow::anyhow!("zenoh config: {e}"))?;
-    let session = zenoh::open(config)
-        .wait()
-        .map_err(|e| anyhow::anyhow!("zenoh session: {e}"))?;
+    let session = match open_session(config)? {
+        Some(session) => session,
+        None => {
+            // Stopped while the router was out of reach: nothing was declared yet.
+            host_log.info("stopped before reaching the swarm", serde_json::json!({}));
+            return Ok(());
+        }
+    };
     let mut queryables = Vec::new();
     let mut tokens = Vec::new();
     for (h, s) in hosted.iter().zip(&spec.services) {

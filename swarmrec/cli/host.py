@@ -15,7 +15,7 @@ from pathlib import Path
 
 from swarmrec.cli.common import Subparsers
 from swarmrec.errors import ConfigError
-from swarmrec.runtime.runner import choose_zenoh_runtime
+from swarmrec.runtime.runner import choose_zenoh_runtime, zenoh_log_from_env
 from swarmrec.runtime.settings import Config, StorageSettings, add_flags, load_config
 from swarmrec.services import registry
 
@@ -79,4 +79,5 @@ def configs(args: argparse.Namespace) -> list[tuple[str, Config]]:
 def run(args: argparse.Namespace) -> int:
     services = configs(args)
     choose_zenoh_runtime(services[0][1].bus)
+    zenoh_log_from_env()
     return registry.serve_many(services)

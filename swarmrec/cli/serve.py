@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from swarmrec.cli.common import Subparsers
-from swarmrec.runtime.runner import choose_zenoh_runtime
+from swarmrec.runtime.runner import choose_zenoh_runtime, zenoh_log_from_env
 from swarmrec.runtime.settings import add_flags, load_config
 from swarmrec.services import registry
 
@@ -35,4 +35,5 @@ def run(args: argparse.Namespace) -> int:
     overrides = {"mode": entry.zenoh_mode} if entry.zenoh_mode else {}
     config = load_config(entry.all_components, args, known=registry.all_components(), overrides=overrides)
     choose_zenoh_runtime(config.bus)
+    zenoh_log_from_env()
     return registry.serve(args.kind, config)

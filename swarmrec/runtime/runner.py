@@ -71,6 +71,7 @@ from swarmrec.runtime.metrics import MetricSet, MetricsServer, ServiceMetrics, s
 from swarmrec.runtime.rpc import Caller, LocalEndpoints, caller_robot, encoding_for, schema_of
 from swarmrec.runtime.settings import (
     AUTO_QUEUE_ABOVE,
+    SINGLE_RUNTIME_TX_QUEUE,
     SINGLE_THREAD_RUNTIME,
     BusSettings,
     Component,
@@ -91,14 +92,18 @@ __all__ = [
     "ServiceContext",
     "Subscription",
     "choose_zenoh_runtime",
+    "deepen_send_queue",
     "dispatch_by_queue",
     "install_signals",
+    "on_single_runtime",
+    "open_session",
     "run_service",
     "run_services",
     "service_logger",
     "session_bus",
     "session_identity",
     "zenoh_config",
+    "zenoh_log_from_env",
 ]
 
 C = TypeVar("C", bound=Component)
@@ -298,15 +303,37 @@ def zenoh_config(
     conf.insert_json5("scouting/multicast/enabled", "false")
     if security is not None:
         apply_security(conf, bus, security, identity=identity, log=log or logging.getLogger("swarmrec"))
+    if on_single_runtime(bus):
+        deepen_send_queue(conf)
     return conf
+
+
+def on_single_runtime(bus: BusSettings) -> bool:
+    """Whether a service process with ``bus`` runs zenoh on one thread (:func:`choose_zenoh_runtime`).
+    Never a router: it forwards messages it cannot bound (any client's) into the queues of
+    receivers it does not control, and on one thread a full queue waits on itself."""
+    return bus.zenoh_runtime == "single" and bus.mode != "router"
+
+
+def deepen_send_queue(conf: zenoh.Config) -> None:
+    """The send queue a process on the single runtime needs (``SINGLE_RUNTIME_TX_QUEUE``):
+    requests and replies travel at zenoh's ``data`` priority, the one deepened."""
+    conf.insert_json5("transport/link/tx/queue/size/data", str(SINGLE_RUNTIME_TX_QUEUE))
+
+
+def zenoh_log_from_env() -> None:
+    """zenoh's own log (its Rust side: links, routing) on stdout when ``RUST_LOG`` asks for it,
+    e.g. ``RUST_LOG=warn``; nothing otherwise (its lines are not the services' JSON)."""
+    zenoh.try_init_log_from_env()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
 
 
 def choose_zenoh_runtime(bus: BusSettings) -> None:
     """Give this process's zenoh the runtime ``bus.zenoh_runtime`` names. zenoh reads
     ``ZENOH_RUNTIME`` once, when its runtime starts: call this before the first session of
     a service process (``swarmrec serve``/``host``), never in a process that already has
-    one (a test running services in threads keeps its own). A variable already set wins."""
-    if bus.zenoh_runtime == "single":
+    one (a test running services in threads keeps its own). A variable already set wins.
+    A router keeps zenoh's pools (:func:`on_single_runtime`)."""
+    if on_single_runtime(bus):
         os.environ.setdefault("ZENOH_RUNTIME", SINGLE_THREAD_RUNTIME)
 
 
@@ -731,7 +758,14 @@ def run_services(
     # Calls between services of one robot in this process skip zenoh (rpc.LocalEndpoints).
     local = LocalEndpoints()
     conf = zenoh_config(bus, hosted[0].security, identity=session_identity(hosted), log=host_log)
-    with zenoh.open(conf) as session:
+    opened = open_session(conf, stop)
+    if opened is None:
+        # Stopped while the router was out of reach: nothing was declared yet.
+        if server is not None:
+            server.close()
+        host_log.info("stopped before reaching the swarm")
+        return 0
+    with opened as session:
         try:
             for h in hosted:
                 b = h.config.bus
@@ -788,6 +822,30 @@ def run_services(
                 server.close()
     host_log.info("stopped")
     return 0
+
+
+def open_session(conf: zenoh.Config, stop: threading.Event) -> zenoh.Session | None:
+    """The zenoh session, or None when ``stop`` is set first. A client waits for its router
+    as long as it takes (``connect/timeout_ms`` -1) and ``zenoh.open`` does not return until
+    then, so it runs on a thread of its own: a service still waiting can be stopped (SIGTERM
+    sets ``stop``; the waiting thread is a daemon and ends with the process)."""
+    box: list[zenoh.Session | BaseException] = []
+    done = threading.Event()
+
+    def opening() -> None:
+        try:
+            box.append(zenoh.open(conf))
+        except BaseException as e:  # handed to the waiting thread, raised there
+            box.append(e)
+        done.set()
+
+    threading.Thread(target=opening, name="zenoh-open", daemon=True).start()
+    while not done.wait(0.1):
+        if stop.is_set():
+            return None
+    if isinstance(box[0], BaseException):
+        raise box[0]
+    return box[0]
 
 
 def run_service(

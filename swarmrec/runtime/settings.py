@@ -149,10 +149,20 @@ EndpointDispatch = Literal["auto", "channel", "queue"]
 DataPlane = Literal["python", "compiled"]
 #: zenoh's runtime in a service process: one thread, or zenoh's own pools.
 ZenohRuntime = Literal["single", "pools"]
-#: The single-threaded runtime (../shared/ZENOH.md): every pool handed over to one worker.
+#: zenoh on one thread (../shared/ZENOH.md): every pool handed over to one worker.
+#: Sending stays on that thread too: with the sender on a thread of its own, zenoh's TLS
+#: link reads and writes one TLS stream from two threads at once, which corrupts it
+#: (upstream zenoh issue 2557; measured here: a compiled host crashed within seconds
+#: under mutual TLS). One thread has its own hazard, answered by SINGLE_RUNTIME_TX_QUEUE.
 SINGLE_THREAD_RUNTIME = (
     "(app:(worker_threads:1),rx:(handover:app),tx:(handover:app),net:(handover:app),acc:(handover:app))"
 )
+#: Batches (64 kB each) a link's send queue holds per priority in a process on the single
+#: runtime: zenoh's most. With its default of 2, a message over 128 kB (a 400 kB request
+#: is 7 batches) waits for room only the sender can make, and the sender runs on the one
+#: thread that waits: after 5 s zenoh closes the link and the message is lost
+#: (docs/dataplane.md, "No silent loss"). 16 batches hold one message up to ~1 MB.
+SINGLE_RUNTIME_TX_QUEUE = 16
 #: ``dispatch = "auto"`` uses queues in a process hosting more services than this: the two
 #: were even for 20 services a process (5 robots), queues faster for 52 (13 robots) and
 #: more (docs/swarm.md); a process of one service keeps zenoh's channels as it always had.
@@ -192,10 +202,11 @@ class BusSettings(Component):
         "and logs) or python (the reference); kinds without a compiled one are python either way",
     )
     zenoh_runtime: ZenohRuntime = setting(
-        "pools",
-        "zenoh's runtime in a Python service process: pools (zenoh's default thread pools) or single "
-        "(one thread: less CPU a message, but not the default yet, docs/dataplane.md); the compiled "
-        "host always runs single; a ZENOH_RUNTIME environment variable overrides both",
+        "single",
+        "zenoh's runtime in a Python service process: single (one thread, with a deeper send "
+        "queue: less CPU a message, docs/dataplane.md) or pools (zenoh's default thread pools); "
+        "a router always runs pools, the compiled host always single; a ZENOH_RUNTIME environment "
+        "variable overrides both",
     )
     request_timeout_s: float = setting(2.0, "how long a service waits for a peer's reply, seconds")
     max_message_bytes: int = setting(1 << 20, "largest request payload accepted, bytes")

@@ -35,7 +35,14 @@ import swarmrec
 from swarmrec.core.presets import get_preset
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.hosting import ready_entries, ready_events, terminate
-from swarmrec.runtime.runner import Hosted, service_logger, session_bus, session_identity, zenoh_config
+from swarmrec.runtime.runner import (
+    Hosted,
+    deepen_send_queue,
+    service_logger,
+    session_bus,
+    session_identity,
+    zenoh_config,
+)
 from swarmrec.runtime.settings import Config, StorageSettings
 from swarmrec.services.settings import PlaceSettings
 
@@ -121,6 +128,7 @@ def host_spec(hosted: Sequence[Hosted]) -> dict[str, Any]:
     bus = session_bus(hosted)
     log = service_logger(hosted[0].kind, bus.robot, bus.log_level)
     conf = zenoh_config(bus, hosted[0].security, identity=session_identity(hosted), log=log)
+    deepen_send_queue(conf)  # the compiled host always runs zenoh on one thread
     return {
         "zenoh": json.loads(str(conf)),
         "metrics_host": bus.metrics_host,

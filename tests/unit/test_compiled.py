@@ -98,6 +98,10 @@ def test_a_service_process_gets_the_zenoh_runtime_its_settings_name_unless_the_e
     assert "ZENOH_RUNTIME" not in os.environ  # zenoh's own pools: nothing to say
     choose_zenoh_runtime(BusSettings(zenoh_runtime="single"))
     assert os.environ["ZENOH_RUNTIME"] == SINGLE_THREAD_RUNTIME
+    monkeypatch.delenv("ZENOH_RUNTIME")
+    router = BusSettings(zenoh_runtime="single", mode="router", listen=("tcp/127.0.0.1:7447",))
+    choose_zenoh_runtime(router)
+    assert "ZENOH_RUNTIME" not in os.environ  # a router keeps zenoh's pools
     monkeypatch.setenv("ZENOH_RUNTIME", "(app:(worker_threads:2))")
     choose_zenoh_runtime(BusSettings(zenoh_runtime="single"))
     assert os.environ["ZENOH_RUNTIME"] == "(app:(worker_threads:2))"
