@@ -130,7 +130,7 @@ contracts: $(STAMP)
 bench: $(STAMP) $(DATAPLANE)
 	$(BIN)/python bench/bench_offline.py --out bench/results/offline.json
 	$(BIN)/python bench/bench_swarm.py --out bench/results/swarm.json
-	$(BIN)/python bench/bench_cpu.py --data-plane both --out bench/results/swarm_cpu.json
+	$(BIN)/python bench/bench_cpu.py --data-plane both --zenoh-runtime both --out bench/results/swarm_cpu.json
 	$(BIN)/python bench/bench_dataplane.py --out bench/results/dataplane.json
 	$(BIN)/python bench/tie_rule.py --out bench/results/tie_rule.json
 	$(BIN)/python bench/bench_detector.py --out bench/results/detector.json

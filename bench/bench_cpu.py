@@ -40,6 +40,17 @@ Every descendant of a started process is counted under its parent's role. The
 compiled host serves requests in zenoh's callbacks on its one runtime thread
 (``app-0``), so its verify work is ``zenoh_runtime`` CPU; its other threads (main,
 metrics) are the ``compiled`` class.
+
+``--zenoh-runtime`` picks zenoh's runtime in the service processes (the router keeps
+zenoh's pools; docs/dataplane.md): ``single`` (swarmrec's default), ``pools``, or
+``both``: the last data plane's replay again on zenoh's pools, in this run; then
+
+* ``zenoh_runtimes``: that data plane's figures, ``single`` and ``pools``;
+* ``pools_over_single``: their ratios (> 1: one thread costs less).
+
+Each run says whether its pair scores equal the offline evaluation
+(``identical_to_offline``; None when they could not be compared because frames went
+missing or were stored late) and what went wrong in the replay (``replay_faults``).
 """
 
 from __future__ import annotations
@@ -77,7 +88,7 @@ TICKS = os.sysconf("SC_CLK_TCK")
 COMPILED_EXE = "swarmrec-dataplane"
 DATA_PLANES: tuple[DataPlane, ...] = ("python", "compiled")
 ZENOH_RUNTIMES: tuple[ZenohRuntime, ...] = ("pools", "single")
-#: The variable every service process (router included) reads its zenoh_runtime from.
+#: The variable every service process reads its zenoh_runtime from (the router ignores it).
 RUNTIME_ENV = "SWARMREC_ZENOH_RUNTIME"
 
 
@@ -266,7 +277,7 @@ def run_swarm(
     dataset: Path, hosting: str, data_plane: DataPlane, offline_s: float, runtime: ZenohRuntime = "pools"
 ) -> dict[str, Any]:
     """One lock-step replay of ``dataset`` through a 10-robot local swarm, accounted, every
-    service process (router included) on zenoh's ``runtime``."""
+    service process on zenoh's ``runtime`` (the router keeps its pools)."""
     marks: dict[str, Any] = {}
     saved = os.environ.get(RUNTIME_ENV)
     os.environ[RUNTIME_ENV] = runtime
@@ -324,6 +335,8 @@ def _run_swarm(
         "queries": queries,
         # None: not compared, because a frame was missing or stored after its step (below).
         "identical_to_offline": s.offline_check.identical if s.offline_check else None,
+        # Lock-step query latency (the detector's process call, end to end), ms.
+        "query_latency_ms": s.queries.latency_ms,
         "replay_faults": {
             "missing_slots": s.queries.missing_slots,
             "late_frames": s.queries.late_frames,
@@ -422,9 +435,9 @@ def main_bench() -> None:
     ap.add_argument(
         "--zenoh-runtime",
         choices=(*ZENOH_RUNTIMES, "both"),
-        default="pools",
-        help="zenoh's runtime in every service process; both: the last data plane's run again on "
-        "the single runtime, in this run (default pools)",
+        default="single",
+        help="zenoh's runtime in the service processes (the router keeps its pools); both: the last "
+        "data plane's run again on zenoh's pools, in this run (default single, swarmrec's default)",
     )
     args = ap.parse_args()
     if not args.dataset.exists():
@@ -433,7 +446,7 @@ def main_bench() -> None:
 
     print("offline evaluation (baseline) ...", flush=True)
     offline_s = offline_cpu_s(args.dataset)
-    default_runtime: ZenohRuntime = "single" if args.zenoh_runtime == "single" else "pools"
+    default_runtime: ZenohRuntime = "pools" if args.zenoh_runtime == "pools" else "single"
     runs = {
         plane: run_swarm(args.dataset, args.hosting, plane, offline_s, default_runtime) for plane in planes
     }
@@ -442,8 +455,8 @@ def main_bench() -> None:
     if args.zenoh_runtime == "both":
         last = planes[-1]
         by_runtime = {
-            "pools": runs[last],
-            "single": run_swarm(args.dataset, args.hosting, last, offline_s, "single"),
+            "single": runs[last],
+            "pools": run_swarm(args.dataset, args.hosting, last, offline_s, "pools"),
         }
     result: dict[str, Any] = {
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count() or 1},
@@ -466,7 +479,7 @@ def main_bench() -> None:
     for run in runs.values():
         print_run(run)
     if by_runtime:
-        print_run(by_runtime["single"])
+        print_run(by_runtime["pools"])
     if len(runs) > 1:
         print_comparison(runs["python"], runs["compiled"], result["python_over_compiled"])
     if by_runtime:

@@ -9,6 +9,7 @@ use serde::Deserialize;
 use serde_json::{json, Value};
 
 use crate::argsort::{argsort_f64_at, argsort_i64_at, Level};
+use crate::index::RangeIndex;
 use crate::selection::{select_candidates, select_robots};
 
 #[derive(Deserialize)]
@@ -31,6 +32,24 @@ enum Request {
         n_fq: usize,
         self_robot: Option<usize>,
     },
+    /// A range index fed `stores` (robot, frame, slice) in order, then asked `queries`
+    /// and read back: its rows in arrival order, each robot's frame count, and `gets`.
+    RangeIndex {
+        lo: u32,
+        hi: u32,
+        n_robots: u32,
+        stores: Vec<(u32, u64, Vec<f64>)>,
+        queries: Vec<IndexQuery>,
+        gets: Vec<(u32, u64)>,
+    },
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct IndexQuery {
+    counts: Vec<f64>,
+    n_ret: usize,
+    before: Option<u64>,
 }
 
 pub fn serve_lines(input: impl BufRead, mut output: impl Write) -> anyhow::Result<()> {
@@ -71,6 +90,30 @@ fn answer(request: Request) -> anyhow::Result<Value> {
             self_robot,
         } => {
             json!({"result": select_robots(&robots, n_fq, self_robot)})
+        }
+        Request::RangeIndex {
+            lo,
+            hi,
+            n_robots,
+            stores,
+            queries,
+            gets,
+        } => {
+            let mut index = RangeIndex::new(lo, hi, n_robots)?;
+            for (robot, frame, counts) in &stores {
+                index.add(*robot, *frame, counts)?;
+            }
+            let answers: Vec<Vec<(u32, u64, f64)>> = queries
+                .iter()
+                .map(|q| {
+                    let found = index.candidates(&q.counts, q.n_ret, q.before);
+                    found.iter().map(|c| (c.robot, c.frame, c.score)).collect()
+                })
+                .collect();
+            let rows: Vec<(u32, u64, &[f64])> = index.rows(0, index.size());
+            let frames: Vec<u64> = (0..n_robots).map(|r| index.frames_of(r)).collect();
+            let got: Vec<Option<&[f64]>> = gets.iter().map(|&(r, f)| index.get(r, f)).collect();
+            json!({"result": {"candidates": answers, "rows": rows, "frames_of": frames, "get": got}})
         }
     })
 }

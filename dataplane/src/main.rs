@@ -14,6 +14,7 @@
 mod argsort;
 mod association;
 mod compute;
+mod index;
 mod metrics;
 mod pb;
 mod recordlog;
