@@ -10,6 +10,8 @@ use serde_json::{json, Value};
 
 use crate::argsort::{argsort_f64_at, argsort_i64_at, Level};
 use crate::index::RangeIndex;
+use crate::pb;
+use crate::placement::Placement;
 use crate::selection::{select_candidates, select_robots};
 
 #[derive(Deserialize)]
@@ -42,6 +44,33 @@ enum Request {
         queries: Vec<IndexQuery>,
         gets: Vec<(u32, u64)>,
     },
+    /// A placement from the wire: refused (the reference's message), or what it says of
+    /// `shards` and label `ranges`.
+    Placement {
+        placement: PlacementJson,
+        n_labels: u32,
+        shards: Vec<u32>,
+        ranges: Vec<(u32, u32)>,
+    },
+}
+
+/// A `Placement` message as JSON (prost's types are not serde's).
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PlacementJson {
+    version: u64,
+    group_bounds: Vec<u32>,
+    groups: Vec<GroupJson>,
+    members: Vec<u32>,
+    replicas: u32,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct GroupJson {
+    owners: Vec<u32>,
+    learners: Vec<u32>,
+    leaving: Vec<u32>,
 }
 
 #[derive(Deserialize)]
@@ -114,6 +143,43 @@ fn answer(request: Request) -> anyhow::Result<Value> {
             let frames: Vec<u64> = (0..n_robots).map(|r| index.frames_of(r)).collect();
             let got: Vec<Option<&[f64]>> = gets.iter().map(|&(r, f)| index.get(r, f)).collect();
             json!({"result": {"candidates": answers, "rows": rows, "frames_of": frames, "get": got}})
+        }
+        Request::Placement {
+            placement,
+            n_labels,
+            shards,
+            ranges,
+        } => {
+            let msg = pb::Placement {
+                version: placement.version,
+                group_bounds: placement.group_bounds,
+                groups: placement
+                    .groups
+                    .into_iter()
+                    .map(|g| pb::GroupOwners {
+                        owners: g.owners,
+                        learners: g.learners,
+                        leaving: g.leaving,
+                    })
+                    .collect(),
+                members: placement.members,
+                replicas: placement.replicas,
+            };
+            match Placement::from_proto(&msg, n_labels) {
+                Err(refused) => json!({"result": {"refused": refused}}),
+                Ok(p) => {
+                    let groups_of: Vec<Vec<usize>> = shards.iter().map(|&s| p.groups_of(s)).collect();
+                    let learning: Vec<Vec<usize>> = shards.iter().map(|&s| p.learning(s)).collect();
+                    let targets: Vec<Vec<u32>> = (0..p.groups.len()).map(|g| p.store_targets(g)).collect();
+                    let of_range: Vec<Option<usize>> =
+                        ranges.iter().map(|&(lo, hi)| p.group_of_range(lo, hi)).collect();
+                    let same = p.to_proto() == msg;
+                    json!({"result": {
+                        "groups_of": groups_of, "learning": learning, "store_targets": targets,
+                        "settled": p.settled(), "group_of_range": of_range, "round_trip": same,
+                    }})
+                }
+            }
         }
     })
 }

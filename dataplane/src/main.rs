@@ -17,6 +17,7 @@ mod compute;
 mod index;
 mod metrics;
 mod pb;
+mod placement;
 mod recordlog;
 mod runtime;
 mod selection;
