@@ -169,4 +169,5 @@ def test_the_compiled_host_runs_the_same_runtime_as_the_python_processes() -> No
     assert on_single_runtime(BusSettings(zenoh_runtime="single"))
     router = BusSettings(zenoh_runtime="single", mode="router", listen=("tcp/127.0.0.1:7447",))
     assert not on_single_runtime(router)
-    assert not on_single_runtime(BusSettings())
+    assert not on_single_runtime(BusSettings(zenoh_runtime="pools"))
+    assert BusSettings().zenoh_runtime == "single"  # the default
