@@ -11,7 +11,13 @@ from pathlib import Path
 import pytest
 
 from swarmrec.errors import ConfigError
-from swarmrec.runtime.settings import BusSettings, Config, SecuritySettings, StorageSettings
+from swarmrec.runtime.settings import (
+    SINGLE_RUNTIME_TX_QUEUE,
+    BusSettings,
+    Config,
+    SecuritySettings,
+    StorageSettings,
+)
 from swarmrec.services import compiled, registry
 from swarmrec.services.settings import PlaceSettings
 
@@ -69,6 +75,8 @@ def test_the_binary_is_told_every_resolved_setting_and_the_zenoh_configuration()
     assert spec["zenoh"]["mode"] == "client"
     assert spec["zenoh"]["connect"]["endpoints"] == ["tcp/127.0.0.1:7447"]
     assert spec["metrics_port"] == 0 and spec["version"]
+    # The compiled host runs zenoh on one thread: its send queue holds a ~1 MB message.
+    assert spec["zenoh"]["transport"]["link"]["tx"]["queue"]["size"]["data"] == SINGLE_RUNTIME_TX_QUEUE
 
 
 def test_the_binary_is_found_where_named_and_a_missing_one_says_how_to_build_it(
