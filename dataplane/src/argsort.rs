@@ -110,62 +110,68 @@ extern "C" {
     fn swarmrec_argsort_i64_x86_v3(arr: *mut i64, arg: *mut usize, n: usize);
 }
 
-/// `numpy.argsort(values)` (the default kind) as numpy sorts in this process.
-pub fn argsort_f64(values: &[f64]) -> Vec<usize> {
-    argsort_f64_at(values, Level::numpy())
+/// A key type numpy sorts with x86-simd-sort: its two compiled programs and numpy's order.
+pub trait Key: Copy {
+    /// The vendored library's argsort of `n` keys at `arr` into `arg` at `level` (X86_V4 or
+    /// X86_V3), which the CPU must have.
+    ///
+    /// # Safety
+    /// `arr` and `arg` point to `n` elements each; the CPU has `level`.
+    #[cfg(target_arch = "x86_64")]
+    unsafe fn simd_argsort(level: Level, arr: *mut Self, arg: *mut usize, n: usize);
+    /// numpy's `Tag::less` for the type.
+    fn less(a: &Self, b: &Self) -> bool;
 }
 
-/// `numpy.argsort(values)` for an int64 array, as numpy sorts in this process.
-pub fn argsort_i64(values: &[i64]) -> Vec<usize> {
-    argsort_i64_at(values, Level::numpy())
+impl Key for f64 {
+    #[cfg(target_arch = "x86_64")]
+    unsafe fn simd_argsort(level: Level, arr: *mut f64, arg: *mut usize, n: usize) {
+        if level == Level::X86V4 {
+            swarmrec_argsort_f64_x86_v4(arr, arg, n)
+        } else {
+            swarmrec_argsort_f64_x86_v3(arr, arg, n)
+        }
+    }
+    fn less(a: &f64, b: &f64) -> bool {
+        double_less(a, b)
+    }
+}
+
+impl Key for i64 {
+    #[cfg(target_arch = "x86_64")]
+    unsafe fn simd_argsort(level: Level, arr: *mut i64, arg: *mut usize, n: usize) {
+        if level == Level::X86V4 {
+            swarmrec_argsort_i64_x86_v4(arr, arg, n)
+        } else {
+            swarmrec_argsort_i64_x86_v3(arr, arg, n)
+        }
+    }
+    fn less(a: &i64, b: &i64) -> bool {
+        a < b
+    }
+}
+
+/// `numpy.argsort(values)` (the default kind) as numpy sorts in this process.
+pub fn argsort<T: Key>(values: &[T]) -> Vec<usize> {
+    argsort_at(values, Level::numpy())
 }
 
 /// `numpy.argsort(values)` with the program of `level` (a level the CPU lacks runs
 /// numpy's introsort instead of faulting).
-pub fn argsort_f64_at(values: &[f64], level: Level) -> Vec<usize> {
+pub fn argsort_at<T: Key>(values: &[T], level: Level) -> Vec<usize> {
     let mut arg: Vec<usize> = (0..values.len()).collect();
     if values.len() < 2 {
         return arg;
     }
     match available(level) {
         #[cfg(target_arch = "x86_64")]
-        Level::X86V4 => {
+        simd @ (Level::X86V4 | Level::X86V3) => {
             let mut copy = values.to_vec();
-            // SAFETY: both buffers hold values.len() elements and outlive the call; the
-            // library reads `copy` and permutes `arg` in place, nothing else.
-            unsafe { swarmrec_argsort_f64_x86_v4(copy.as_mut_ptr(), arg.as_mut_ptr(), copy.len()) }
+            // SAFETY: both buffers hold values.len() elements and outlive the call, the CPU
+            // has `simd` (available); the library reads `copy` and permutes `arg`, nothing else.
+            unsafe { T::simd_argsort(simd, copy.as_mut_ptr(), arg.as_mut_ptr(), copy.len()) }
         }
-        #[cfg(target_arch = "x86_64")]
-        Level::X86V3 => {
-            let mut copy = values.to_vec();
-            // SAFETY: as above.
-            unsafe { swarmrec_argsort_f64_x86_v3(copy.as_mut_ptr(), arg.as_mut_ptr(), copy.len()) }
-        }
-        _ => introsort(values, &mut arg, double_less),
-    }
-    arg
-}
-
-/// The int64 twin of [`argsort_f64_at`].
-pub fn argsort_i64_at(values: &[i64], level: Level) -> Vec<usize> {
-    let mut arg: Vec<usize> = (0..values.len()).collect();
-    if values.len() < 2 {
-        return arg;
-    }
-    match available(level) {
-        #[cfg(target_arch = "x86_64")]
-        Level::X86V4 => {
-            let mut copy = values.to_vec();
-            // SAFETY: as in argsort_f64_at.
-            unsafe { swarmrec_argsort_i64_x86_v4(copy.as_mut_ptr(), arg.as_mut_ptr(), copy.len()) }
-        }
-        #[cfg(target_arch = "x86_64")]
-        Level::X86V3 => {
-            let mut copy = values.to_vec();
-            // SAFETY: as in argsort_f64_at.
-            unsafe { swarmrec_argsort_i64_x86_v3(copy.as_mut_ptr(), arg.as_mut_ptr(), copy.len()) }
-        }
-        _ => introsort(values, &mut arg, |a: &i64, b: &i64| a < b),
+        _ => introsort(values, &mut arg, T::less),
     }
     arg
 }
@@ -351,9 +357,9 @@ mod tests {
                 })
                 .collect();
             for level in [Level::X86V4, Level::X86V3, Level::Baseline] {
-                assert!(is_sorted_by(&values, &argsort_f64_at(&values, level)), "{n} {level:?}");
+                assert!(is_sorted_by(&values, &argsort_at(&values, level)), "{n} {level:?}");
                 let ints: Vec<i64> = values.iter().map(|v| (*v * 4.0) as i64).collect();
-                let arg = argsort_i64_at(&ints, level);
+                let arg = argsort_at(&ints, level);
                 assert!(arg.windows(2).all(|w| ints[w[0]] <= ints[w[1]]), "{n} {level:?} int");
             }
         }
@@ -365,7 +371,7 @@ mod tests {
         // np.argsort(np.array([1., 0.] * 9)).tolist()
         let values: Vec<f64> = (0..18).map(|i| if i % 2 == 0 { 1.0 } else { 0.0 }).collect();
         let expected = [17, 1, 15, 3, 5, 13, 7, 9, 11, 14, 12, 0, 16, 6, 4, 2, 10, 8];
-        assert_eq!(argsort_f64_at(&values, Level::Baseline), expected);
+        assert_eq!(argsort_at(&values, Level::Baseline), expected);
     }
 
     #[test]
@@ -383,7 +389,7 @@ mod tests {
     #[test]
     fn nan_sorts_last_at_the_baseline() {
         let values = [f64::NAN, 1.0, -1.0, f64::NAN, 0.0];
-        let arg = argsort_f64_at(&values, Level::Baseline);
+        let arg = argsort_at(&values, Level::Baseline);
         assert_eq!(&arg[..3], &[2, 4, 1]);
     }
 }

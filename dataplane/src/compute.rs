@@ -8,7 +8,7 @@ use anyhow::Context;
 use serde::Deserialize;
 use serde_json::{json, Value};
 
-use crate::argsort::{argsort_f64_at, argsort_i64_at, Level};
+use crate::argsort::{argsort_at, Level};
 use crate::index::RangeIndex;
 use crate::pb;
 use crate::placement::Placement;
@@ -106,8 +106,8 @@ fn answer(request: Request) -> anyhow::Result<Value> {
                 Some(name) => Level::parse(&name).with_context(|| format!("unknown level {name:?}"))?,
             };
             let order = match dtype.as_str() {
-                "f64" => argsort_f64_at(&serde_json::from_value::<Vec<f64>>(values)?, level),
-                "i64" => argsort_i64_at(&serde_json::from_value::<Vec<i64>>(values)?, level),
+                "f64" => argsort_at(&serde_json::from_value::<Vec<f64>>(values)?, level),
+                "i64" => argsort_at(&serde_json::from_value::<Vec<i64>>(values)?, level),
                 other => anyhow::bail!("dtype {other:?}: f64 or i64"),
             };
             json!({"result": order})

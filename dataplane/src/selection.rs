@@ -6,7 +6,7 @@
 //! the cut the kept set does not depend on the sort, and it is skipped, as in the
 //! reference.
 
-use crate::argsort::{argsort_f64, argsort_i64};
+use crate::argsort::argsort;
 
 /// Indices of the (at most) `n_ret` best scores > 0, increasing, as the paper picks them:
 /// `sorted(numpy.argsort(-scores)[:n_ret])` restricted to positive scores.
@@ -22,7 +22,7 @@ pub fn select_candidates(scores: &[f64], n_ret: usize) -> Vec<usize> {
     }
     // A tie straddles the cut: numpy's sort of the whole negated vector decides.
     let negated: Vec<f64> = scores.iter().map(|s| -s).collect();
-    let mut chosen = argsort_f64(&negated);
+    let mut chosen = argsort(&negated);
     chosen.truncate(n_ret);
     chosen.sort_unstable();
     chosen
@@ -40,7 +40,7 @@ pub fn select_robots(candidate_robots: &[usize], n_fq: usize, self_robot: Option
             counts[r] += 1;
         }
         let negated: Vec<i64> = counts.iter().map(|c| -c).collect();
-        chosen.extend(argsort_i64(&negated).into_iter().take(n_fq));
+        chosen.extend(argsort(&negated).into_iter().take(n_fq));
     }
     chosen.extend(self_robot);
     chosen.sort_unstable();

@@ -6,11 +6,13 @@ against a deadline, and requests wait on zenoh's own reply stream.
 
 from __future__ import annotations
 
+import json
+import subprocess
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import zenoh
 
@@ -22,6 +24,7 @@ from swarmrec.deployments.metrics import read_metrics
 from swarmrec.errors import NoReply
 from swarmrec.runtime import keys
 from swarmrec.runtime.rpc import Caller
+from swarmrec.services.compiled import binary
 from swarmrec.synthetic import OfficeConfig, generate_office, write_dataset
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import schema_name
@@ -156,3 +159,23 @@ def group_rows(caller: Caller, swarm: str, shard: int, group: int) -> set[tuple[
         start = reply.next_row
         if reply.done:
             return rows
+
+
+def compute(requests: list[dict[str, Any]], env: dict[str, str] | None = None) -> list[Any]:
+    """The compiled data plane's answers to ``requests`` (``swarmrec-dataplane compute``, one
+    JSON line each; dataplane/src/compute.rs), in order; none may be an error."""
+    lines = "".join(json.dumps(r) + "\n" for r in requests)
+    done = subprocess.run(
+        [str(binary()), "compute"],
+        input=lines,
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+        check=True,
+    )
+    answers = [json.loads(line) for line in done.stdout.splitlines()]
+    assert len(answers) == len(requests), done.stderr
+    errors = [a["error"] for a in answers if "error" in a]
+    assert not errors, errors[:3]
+    return [a["result"] for a in answers]

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from swarmrec.core.selection import select_candidates, select_robots
-from swarmrec.services.compiled import binary
+from tests.integration.support import compute
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -59,6 +59,11 @@ CHOICES = {
     "no X86_V3": {"NPY_DISABLE_CPU_FEATURES": "X86_V3"},
     "only X86_V3": {"NPY_ENABLE_CPU_FEATURES": "X86_V3"},
 }
+
+
+def numpy_env(choice: dict[str, str]) -> dict[str, str]:
+    """This process's environment with numpy's CPU-feature variables as ``choice`` sets them."""
+    return {k: v for k, v in os.environ.items() if not k.startswith("NPY_")} | choice
 
 
 def tied_values(rng: random.Random, n: int) -> list[float]:
@@ -99,28 +104,9 @@ def cases(seed: int) -> list[dict[str, Any]]:
     return out
 
 
-def compiled(requests: list[dict[str, Any]], env: dict[str, str]) -> list[Any]:
-    lines = "".join(json.dumps(r) + "\n" for r in requests)
-    done = subprocess.run(
-        [str(binary()), "compute"],
-        input=lines,
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=120,
-        check=True,
-    )
-    answers = [json.loads(line) for line in done.stdout.splitlines()]
-    assert len(answers) == len(requests), done.stderr
-    errors = [a["error"] for a in answers if "error" in a]
-    assert not errors, errors[:3]
-    return [a["result"] for a in answers]
-
-
 @pytest.mark.parametrize("choice", list(CHOICES))
 def test_compiled_sorts_and_selections_equal_numpys(choice: str, tmp_path: Path) -> None:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("NPY_")}
-    env.update(CHOICES[choice])
+    env = numpy_env(CHOICES[choice])
     requests = cases(seed=len(choice))
     (tmp_path / "cases.json").write_text(json.dumps(requests))
     done = subprocess.run(
@@ -133,8 +119,8 @@ def test_compiled_sorts_and_selections_equal_numpys(choice: str, tmp_path: Path)
         check=True,
     )
     numpy_side = json.loads(done.stdout)
-    assert compiled([{"op": "level"}], env) == [numpy_side["level"]]
-    answers = compiled(requests, env)
+    assert compute([{"op": "level"}], env) == [numpy_side["level"]]
+    answers = compute(requests, env)
     mismatched = [
         (i, r["op"], len(r.get("values", r.get("scores", []))))
         for i, (r, a, b) in enumerate(zip(requests, answers, numpy_side["answers"], strict=True))
@@ -147,8 +133,8 @@ def test_every_level_is_checked_on_this_machine() -> None:
     """The choices above reach all three programs here (else a level went untested)."""
     levels = set()
     for extra in CHOICES.values():
-        env = {k: v for k, v in os.environ.items() if not k.startswith("NPY_")} | extra
-        levels.update(compiled([{"op": "level"}], env))
+        env = numpy_env(extra)
+        levels.update(compute([{"op": "level"}], env))
     assert levels == {"X86_V4", "X86_V3", "baseline"}
 
 

@@ -14,16 +14,14 @@ read back (arrival order), frame counts and stored slices must be the reference'
 from __future__ import annotations
 
 import itertools
-import json
 import random
-import subprocess
 from typing import Any
 
 import numpy as np
 import pytest
 
 from swarmrec.core.index import RangeIndex
-from swarmrec.services.compiled import binary
+from tests.integration.support import compute
 
 
 def random_case(rng: random.Random) -> dict[str, Any]:
@@ -71,22 +69,11 @@ def reference(case: dict[str, Any]) -> dict[str, Any]:
     return {"candidates": candidates, "rows": rows, "frames_of": frames_of, "get": gets}
 
 
-def compiled(cases: list[dict[str, Any]]) -> list[Any]:
-    lines = "".join(json.dumps(c) + "\n" for c in cases)
-    done = subprocess.run(
-        [str(binary()), "compute"], input=lines, capture_output=True, text=True, timeout=120, check=True
-    )
-    answers = [json.loads(line) for line in done.stdout.splitlines()]
-    assert len(answers) == len(cases), done.stderr
-    assert not [a for a in answers if "error" in a], answers[:3]
-    return [a["result"] for a in answers]
-
-
 @pytest.mark.parametrize("seed", range(4))
 def test_the_compiled_index_answers_as_the_reference(seed: int) -> None:
     rng = random.Random(seed)
     cases = [random_case(rng) for _ in range(60)]
-    for case, got in zip(cases, compiled(cases), strict=True):
+    for case, got in zip(cases, compute(cases), strict=True):
         want = reference(case)
         # Candidates compared as lists of [robot, frame, score]: order and every bit of the score.
         assert got["candidates"] == want["candidates"], case
@@ -217,7 +204,7 @@ def test_the_compiled_placement_checks_and_answers_as_the_reference() -> None:
             {"op": "placement", "placement": msg, "n_labels": n_labels, "shards": shards, "ranges": ranges}
         )
         expected.append(placement_reference(msg, n_labels, shards, ranges))
-    got = compiled(cases)
+    got = compute(cases)
     refused = sum(1 for e in expected if "refused" in e)
     assert 100 < refused < 350  # both kinds are well represented
     for case, g, e in zip(cases, got, expected, strict=True):
