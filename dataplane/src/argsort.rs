@@ -273,49 +273,44 @@ fn introsort<T: Copy>(v: &[T], arg: &mut [usize], less: impl Fn(&T, &T) -> bool)
     }
 }
 
-/// numpy's `aheapsort_` on one partition (1-based heap over `arg`).
+/// numpy's `aheapsort_` on one partition. Only an introsort partition that recursed past
+/// twice the depth of a balanced tree gets here, which random arrays never do, and numpy
+/// 2.4 no longer runs its heapsort on its own (`kind="heapsort"` runs the default sort),
+/// so unlike the rest this is checked to sort, not against numpy's own picks. (1-based heap over `arg`).
 fn heapsort<T: Copy>(v: &[T], arg: &mut [usize], less: &impl Fn(&T, &T) -> bool) {
     let mut n = arg.len();
-    // a[k] is arg[k - 1]: numpy offsets the array by one for heap indexing.
-    let a = |k: usize| k - 1;
     let mut l = n >> 1;
     while l > 0 {
-        let tmp = arg[a(l)];
-        let (mut i, mut j) = (l, l << 1);
-        while j <= n {
-            if j < n && less(&v[arg[a(j)]], &v[arg[a(j + 1)]]) {
-                j += 1;
-            }
-            if less(&v[tmp], &v[arg[a(j)]]) {
-                arg[a(i)] = arg[a(j)];
-                i = j;
-                j += j;
-            } else {
-                break;
-            }
-        }
-        arg[a(i)] = tmp;
+        let tmp = arg[l - 1];
+        sift_down(v, arg, l, n, tmp, less);
         l -= 1;
     }
     while n > 1 {
-        let tmp = arg[a(n)];
-        arg[a(n)] = arg[a(1)];
+        let tmp = arg[n - 1];
+        arg[n - 1] = arg[0];
         n -= 1;
-        let (mut i, mut j) = (1usize, 2usize);
-        while j <= n {
-            if j < n && less(&v[arg[a(j)]], &v[arg[a(j + 1)]]) {
-                j += 1;
-            }
-            if less(&v[tmp], &v[arg[a(j)]]) {
-                arg[a(i)] = arg[a(j)];
-                i = j;
-                j += j;
-            } else {
-                break;
-            }
-        }
-        arg[a(i)] = tmp;
+        sift_down(v, arg, 1, n, tmp, less);
     }
+}
+
+/// One of numpy's sift-downs: `tmp` sinks from heap slot `i` of a heap of `n` (slots are
+/// 1-based, as numpy offsets the array by one: slot k is `arg[k - 1]`), the larger child
+/// rising, ties keeping the left one.
+fn sift_down<T: Copy>(v: &[T], arg: &mut [usize], mut i: usize, n: usize, tmp: usize, less: &impl Fn(&T, &T) -> bool) {
+    let mut j = i << 1;
+    while j <= n {
+        if j < n && less(&v[arg[j - 1]], &v[arg[j]]) {
+            j += 1;
+        }
+        if less(&v[tmp], &v[arg[j - 1]]) {
+            arg[i - 1] = arg[j - 1];
+            i = j;
+            j += j;
+        } else {
+            break;
+        }
+    }
+    arg[i - 1] = tmp;
 }
 
 /// numpy's `npy_get_msb`: the index of the highest set bit (0 for 0 and 1).
@@ -384,6 +379,24 @@ mod tests {
         assert_eq!(choose(true, true, "", "AVX2 AVX512_SKX"), Level::X86V4);
         assert_eq!(choose(true, false, "", ""), Level::X86V3);
         assert_eq!(choose(false, false, "", ""), Level::Baseline);
+    }
+
+    #[test]
+    fn the_heapsort_fallback_sorts_tied_keys() {
+        let mut x: u64 = 0x2545_F491_4F6C_DD1D;
+        for n in [1usize, 2, 3, 7, 16, 100, 1000] {
+            let values: Vec<f64> = (0..n)
+                .map(|_| {
+                    x ^= x << 13;
+                    x ^= x >> 7;
+                    x ^= x << 17;
+                    (x % 4) as f64
+                })
+                .collect();
+            let mut arg: Vec<usize> = (0..n).collect();
+            heapsort(&values, &mut arg, &double_less);
+            assert!(is_sorted_by(&values, &arg), "{n}");
+        }
     }
 
     #[test]
