@@ -79,7 +79,7 @@ def test_samples_are_grouped_by_service_and_robot_and_down_targets_are_failed(
         _target("index-shard", "1", "up", "2030-01-01T00:00:00.5Z"),
         _target("verifier", "3", "down", "2001-01-01T00:00:00Z"),  # stale, but down: not waited for
     ]
-    result = scrape_prometheus(url, fresh_after=time.time(), timeout_s=5)
+    result = scrape_prometheus(url, fresh_after=time.time(), timeout_s=5, down_grace_s=0.2)
     assert state["federate_queries"] == [{"match[]": ['{job="swarmrec"}']}]
     assert result.failed == ["verifier-3"]
     assert result.total("swarmrec_message_bytes_sent_total", scope="swarm") == 200
@@ -98,3 +98,24 @@ def test_waits_for_a_scrape_after_the_given_instant_and_times_out_without_one(
     with pytest.raises(TimeoutError, match="has not scraped every target"):
         scrape_prometheus(url, fresh_after=time.time(), timeout_s=1.0)
     assert time.monotonic() - t0 >= 1.0
+
+
+def test_a_target_down_for_one_scrape_is_waited_for_not_failed(
+    prometheus: tuple[str, dict[str, Any]],
+) -> None:
+    """A scrape that timed out once (a loaded machine) is not a failed service: the target
+    gets a few scrapes to answer again, and its figures are then read."""
+    url, state = prometheus
+    fresh = "2030-01-01T00:00:00.5Z"
+    state["targets"] = [_target("descriptor", "0", "up", fresh), _target("index-shard", "1", "down", fresh)]
+
+    def recovers() -> None:
+        time.sleep(0.5)
+        state["targets"] = [_target("descriptor", "0", "up", fresh), _target("index-shard", "1", "up", fresh)]
+
+    threading.Thread(target=recovers, daemon=True).start()
+    t0 = time.monotonic()
+    result = scrape_prometheus(url, fresh_after=time.time(), timeout_s=5, down_grace_s=3.0)
+    assert result.failed == []
+    assert 0.4 < time.monotonic() - t0 < 3.0
+    assert result.per_service("swarmrec_shard_partial_queries_total", "index-shard") == {1: 7}
