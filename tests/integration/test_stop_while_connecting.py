@@ -13,26 +13,20 @@ from __future__ import annotations
 
 import json
 import signal
-import socket
 import subprocess
 import sys
 import time
 
 import pytest
 
-
-def closed_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port  # released: nothing listens there
+from swarmrec.deployments.local import free_port
 
 
 @pytest.mark.parametrize("data_plane", ["python", "compiled"])
 def test_a_service_waiting_for_its_router_stops_on_sigterm(data_plane: str) -> None:
     cmd = [
         sys.executable, "-m", "swarmrec", "serve", "verifier", "--security", "insecure",
-        "--connect", f"tcp/127.0.0.1:{closed_port()}", "--robot", "0", "--n-robots", "2",
+        "--connect", f"tcp/127.0.0.1:{free_port()}", "--robot", "0", "--n-robots", "2",
         "--data-plane", data_plane, "--metrics-port", "-1",
     ]  # fmt: skip
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import pytest
 
-from swarmrec.deployments.local import LocalDeployment
+from swarmrec.deployments.local import LocalDeployment, free_port
 from swarmrec.runtime.runner import on_single_runtime
 from swarmrec.runtime.settings import SINGLE_RUNTIME_TX_QUEUE, SINGLE_THREAD_RUNTIME, BusSettings
 from swarmrec.services.settings import PlaceSettings
@@ -67,19 +67,10 @@ time.sleep(600)
 """
 
 
-def free_tcp_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
-
-
 def ask_through_router(queue: int) -> list[tuple[int, float]]:
     """Three 400 kB requests through a router on the single runtime with a send queue of
     ``queue`` batches (0: zenoh's default): (replies, seconds) each."""
-    port = str(free_tcp_port())
+    port = str(free_port())
     env = {**os.environ, "ZENOH_RUNTIME": SINGLE_THREAD_RUNTIME}
     procs = []
     try:
