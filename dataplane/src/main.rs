@@ -21,6 +21,7 @@ mod placement;
 mod recordlog;
 mod runtime;
 mod selection;
+mod shard;
 mod spec;
 mod verifier;
 mod wirecheck;
@@ -44,7 +45,7 @@ const SINGLE_THREAD_RUNTIME: &str =
     "(app:(worker_threads:1),rx:(handover:app),tx:(handover:app),net:(handover:app),acc:(handover:app))";
 
 /// The kinds this binary implements.
-const KINDS: &[&str] = &["verifier"];
+const KINDS: &[&str] = &["index-shard", "verifier"];
 
 fn usage() -> ! {
     eprintln!(
@@ -104,6 +105,99 @@ fn zenoh_log(log: Log) {
 
 static STOP: AtomicBool = AtomicBool::new(false);
 
+/// Dies with the process that started this one (a Python host mixing kinds): a host killed
+/// must not leave its compiled services answering.
+fn die_with_parent() {
+    // SAFETY: prctl with PR_SET_PDEATHSIG only sets this process's parent-death signal.
+    unsafe {
+        libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL);
+    }
+    // SAFETY: getppid has no preconditions.
+    if unsafe { libc::getppid() } == 1 {
+        std::process::exit(1); // the parent was gone before the signal was set
+    }
+}
+
+/// The Python process running the compiled index shards' coordinators (placements are
+/// computed by the one implementation of their rules, `swarmrec.core.placement`). It is
+/// this host's child: killed or frozen, the host takes its coordinators with it; one that
+/// ends on its own is started again.
+struct Sidecar {
+    argv: Vec<String>,
+    child: Option<std::process::Child>,
+    log: Log,
+    next_start: std::time::Instant,
+}
+
+impl Sidecar {
+    fn new(argv: Vec<String>, log: Log) -> Sidecar {
+        let mut s = Sidecar {
+            argv,
+            child: None,
+            log,
+            next_start: std::time::Instant::now(),
+        };
+        s.keep_up();
+        s
+    }
+
+    fn keep_up(&mut self) {
+        if self.argv.is_empty() {
+            return;
+        }
+        if let Some(child) = &mut self.child {
+            match child.try_wait() {
+                Ok(None) => return,
+                Ok(Some(status)) => self.log.warning(
+                    "the shards' coordinator ended: starting it again",
+                    serde_json::json!({"status": status.to_string()}),
+                ),
+                Err(e) => self.log.warning(&format!("the shards' coordinator: {e}"), serde_json::json!({})),
+            }
+            self.child = None;
+            self.next_start = std::time::Instant::now() + std::time::Duration::from_secs(1);
+        }
+        if std::time::Instant::now() < self.next_start {
+            return;
+        }
+        let mut cmd = std::process::Command::new(&self.argv[0]);
+        cmd.args(&self.argv[1..]).stdin(std::process::Stdio::null());
+        // SAFETY: the closure only calls prctl, which is async-signal-safe.
+        unsafe {
+            std::os::unix::process::CommandExt::pre_exec(&mut cmd, || {
+                libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL);
+                Ok(())
+            });
+        }
+        match cmd.spawn() {
+            Ok(child) => self.child = Some(child),
+            Err(e) => {
+                self.log
+                    .emit(40, &format!("the shards' coordinator did not start: {e}"), serde_json::json!({}));
+                self.next_start = std::time::Instant::now() + std::time::Duration::from_secs(5);
+            }
+        }
+    }
+
+    /// SIGTERM, up to 5 s, then SIGKILL.
+    fn stop(&mut self) {
+        let Some(mut child) = self.child.take() else { return };
+        // SAFETY: kill with the child's own pid.
+        unsafe {
+            libc::kill(child.id() as libc::pid_t, libc::SIGTERM);
+        }
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(5);
+        while std::time::Instant::now() < deadline {
+            if let Ok(Some(_)) = child.try_wait() {
+                return;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        let _ = child.kill();
+        let _ = child.wait();
+    }
+}
+
 /// The zenoh session, or None when SIGTERM/SIGINT came first. A client waits for its router
 /// as long as it takes (`connect/timeout_ms` -1), and zenoh's open does not return until then:
 /// it runs on a thread of its own so that a host still waiting can be stopped.
@@ -154,6 +248,9 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
             );
         }
     }
+    if spec.die_with_parent {
+        die_with_parent();
+    }
     // SAFETY: the handler only stores to an atomic.
     unsafe {
         libc::signal(libc::SIGTERM, on_signal as *const () as libc::sighandler_t);
@@ -171,6 +268,7 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
         let log = Log::new(&s.kind, s.robot, &spec.log_level);
         let service: Arc<dyn Service> = match s.kind.as_str() {
             "verifier" => Arc::new(verifier::Verifier::new(s, metrics.clone(), log.clone())?),
+            "index-shard" => shard::IndexShard::new(s, metrics.clone(), log.clone())?,
             other => bail!("{other} has no compiled implementation"),
         };
         let path = if single {
@@ -229,6 +327,9 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
             return Ok(());
         }
     };
+    for h in &hosted {
+        h.service.attach(&session)?;
+    }
     let mut queryables = Vec::new();
     let mut tokens = Vec::new();
     for (h, s) in hosted.iter().zip(&spec.services) {
@@ -307,10 +408,20 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
     ready["dispatch"] = "compiled".into();
     host_log.info("ready", serde_json::json!({"services": entries}));
     println!("{ready}");
+    let mut coordinator = Sidecar::new(spec.coordinator.clone(), host_log.clone());
     while !STOP.load(Ordering::SeqCst) {
+        coordinator.keep_up();
         std::thread::sleep(std::time::Duration::from_millis(50));
     }
     host_log.info("stopping", serde_json::json!({}));
+    // Still serving: an index shard hands its groups on first (a scale-down loses nothing).
+    std::thread::scope(|scope| {
+        for h in &hosted {
+            scope.spawn(|| h.service.drain());
+        }
+    });
+    // Drained (the coordinators moved the groups): now the coordinators may go.
+    coordinator.stop();
     if let Some(s) = &server {
         s.set_ready(false); // first: a probe must not route to a stopping process
     }
@@ -323,6 +434,9 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
     }
     for q in queryables {
         let _ = q.undeclare().wait();
+    }
+    for h in &hosted {
+        h.service.close();
     }
     let _ = session.close().wait();
     if let Some(s) = &server {

@@ -5,7 +5,7 @@
 //! Counting is a few adds under an uncontended lock per message; rendering happens
 //! only when scraped.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::fmt::Write as _;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::{TcpListener, TcpStream};
@@ -216,6 +216,9 @@ pub struct ServiceMetrics {
     #[allow(dead_code)] // exported (zero) like every service's; the verifier calls no peer
     pub peer_failures: Metric,
     pub ready: Metric,
+    /// (calls, CPU seconds) served per endpoint since start: what an index shard reports
+    /// to the coordinator as a store's cost against a query's.
+    costs: Mutex<HashMap<&'static str, (u64, f64)>>,
 }
 
 impl ServiceMetrics {
@@ -274,6 +277,7 @@ impl ServiceMetrics {
                 &[],
             ),
             registry: r,
+            costs: Mutex::new(HashMap::new()),
         };
         m.registry.set(m.ready, &[], 0.0);
         m
@@ -282,6 +286,20 @@ impl ServiceMetrics {
     pub fn count_sent(&self, message: &str, scope: &str, size: usize) {
         self.registry.inc(self.bytes_sent, &[message, scope], size as f64);
         self.registry.inc(self.messages_sent, &[message, scope], 1.0);
+    }
+
+    /// Adds one served request's CPU time to `endpoint`'s running cost.
+    pub fn add_cost(&self, endpoint: &'static str, cpu_s: f64) {
+        let mut costs = self.costs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        let c = costs.entry(endpoint).or_insert((0, 0.0));
+        c.0 += 1;
+        c.1 += cpu_s;
+    }
+
+    /// (calls, CPU seconds) of `endpoint` so far.
+    pub fn cost(&self, endpoint: &str) -> (u64, f64) {
+        let costs = self.costs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        costs.get(endpoint).copied().unwrap_or((0, 0.0))
     }
 
     pub fn count_received(&self, message: &str, scope: &str, size: usize) {

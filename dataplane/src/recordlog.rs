@@ -13,6 +13,7 @@ pub const MAX_RECORD_BYTES: usize = 1 << 24;
 
 pub struct RecordLog {
     file: Option<File>,
+    path: Option<std::path::PathBuf>,
     fsync: bool,
     /// Bytes of a truncated last record cut off when opened.
     pub truncated_bytes: u64,
@@ -39,6 +40,7 @@ impl RecordLog {
             return Ok((
                 RecordLog {
                     file: None,
+                    path: None,
                     fsync,
                     truncated_bytes: 0,
                 },
@@ -62,11 +64,20 @@ impl RecordLog {
         Ok((
             RecordLog {
                 file: Some(file),
+                path: Some(path.to_path_buf()),
                 fsync,
                 truncated_bytes,
             },
             records,
         ))
+    }
+
+    /// Every whole record in the file now, oldest first (none for a log kept nowhere): an
+    /// index shard taking a group back reads its own records of it again.
+    pub fn records(&self) -> std::io::Result<Vec<Vec<u8>>> {
+        let Some(path) = &self.path else { return Ok(Vec::new()) };
+        let data = std::fs::read(path)?;
+        Ok(scan(&data).0.into_iter().map(<[u8]>::to_vec).collect())
     }
 
     /// Appends one record; it is in the file (and synced if asked) on return.
@@ -115,6 +126,7 @@ mod tests {
         log.append(b"four").unwrap();
         let (_, records) = RecordLog::open(Some(&path), false).unwrap();
         assert_eq!(records.len(), 4);
+        assert_eq!(log.records().unwrap().len(), 4);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

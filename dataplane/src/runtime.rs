@@ -81,6 +81,16 @@ pub trait Service: Send + Sync {
     fn endpoints(self: Arc<Self>) -> Vec<Endpoint>;
     /// What the service says of itself beyond kind, robot, version and swarm.
     fn member_info(&self) -> pb::MemberInfo;
+    /// Called once the session is open, before the endpoints are declared: a service
+    /// that asks peers or watches liveliness keeps the session.
+    fn attach(&self, _session: &zenoh::Session) -> anyhow::Result<()> {
+        Ok(())
+    }
+    /// Called on SIGTERM while the service still serves (token and endpoints up): an index
+    /// shard hands its groups on first.
+    fn drain(&self) {}
+    /// Called after the endpoints are gone, before the session closes.
+    fn close(&self) {}
 }
 
 /// Decodes `data` as `M` (`schema` its full name): MALFORMED when it does not parse or
@@ -285,7 +295,8 @@ impl Dispatcher {
         let m = &self.metrics;
         m.registry
             .observe(m.request_seconds, &[self.endpoint.name], t0.elapsed().as_secs_f64());
-        m.registry
-            .inc(m.request_cpu_seconds, &[self.endpoint.name], thread_cpu_s() - c0);
+        let cpu = thread_cpu_s() - c0;
+        m.registry.inc(m.request_cpu_seconds, &[self.endpoint.name], cpu);
+        m.add_cost(self.endpoint.name, cpu);
     }
 }

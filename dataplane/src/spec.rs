@@ -19,6 +19,14 @@ pub struct HostSpec {
     /// swarmrec's version, reported in MemberInfo.
     pub version: String,
     pub services: Vec<ServiceSpec>,
+    /// The command of the Python process that runs the index shards' coordinators beside
+    /// this host (empty: none). Started once the host is ready, stopped after the shards
+    /// drained, and it dies with the host (`PR_SET_PDEATHSIG`).
+    #[serde(default)]
+    pub coordinator: Vec<String>,
+    /// The host is the child of a Python host (a host mixing both kinds): it dies with it.
+    #[serde(default)]
+    pub die_with_parent: bool,
 }
 
 #[derive(Debug, Deserialize)]
@@ -34,6 +42,27 @@ pub struct ServiceSpec {
     #[serde(default)]
     pub fsync: bool,
     pub places: PlaceSpec,
+    /// An index shard's settings (absent for other kinds).
+    #[serde(default)]
+    pub index: Option<IndexSpec>,
+}
+
+/// What an index shard reads beyond the place settings (IndexSettings, the label groups
+/// and the swarm's first placement), resolved by Python.
+#[derive(Clone, Debug, Deserialize)]
+pub struct IndexSpec {
+    /// The label groups `[lo, hi)` (PlaceSettings.bounds).
+    pub groups: Vec<(u32, u32)>,
+    /// Candidates a partial query returns when it asks for 0 (the preset's n_ret).
+    pub n_ret: u32,
+    /// Shards answer from the frames stored before a query's step (PlaceSettings.lockstep).
+    pub lockstep: bool,
+    pub transfer_page: u32,
+    pub drain_timeout_s: f64,
+    /// The placement a shard with nothing on disk starts from (version 0, `ring`), as
+    /// serialized `swarmrec.v1.Placement` bytes: computed by the one implementation of
+    /// the placement rules, the Python core.
+    pub initial_placement: Vec<u8>,
 }
 
 /// The place-recognition settings a verifier reads (PlaceSettings and its preset).

@@ -9,11 +9,15 @@ the zenoh configuration travels as the Python binding prints it (TLS files, acce
 control, endpoints). Then:
 
 * ``swarmrec serve <kind>``: the process becomes the compiled host (``exec``): no
-  Python stays behind it.
+  Python stays behind it. An index shard's coordinator, which computes placements, is
+  Python: the compiled host runs it in a child process of its own, this same command
+  line with :data:`COORDINATORS_ONLY` set (:mod:`swarmrec.services.shard_coordinator`).
 * ``swarmrec host`` with only compiled kinds: the same.
 * ``swarmrec host`` mixing both: the compiled kinds run in a child process on a
   session of their own (the same certificate), started first; its services are listed
-  in the host's readiness line beside the Python ones, and it is stopped with the host.
+  in the host's readiness line beside the Python ones, and it is stopped with the host
+  (and dies with it: ``PR_SET_PDEATHSIG``). Compiled index shards' coordinators then run
+  in the Python host.
 
 The binary is found at ``$SWARMREC_DATAPLANE``, else in the checkout's
 ``target/release`` (``make dataplane`` builds it there), else on ``PATH``.
@@ -32,6 +36,7 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 import swarmrec
+from swarmrec.core.placement import groups_from_bounds, ring
 from swarmrec.core.presets import get_preset
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.hosting import ready_entries, ready_events, terminate
@@ -44,22 +49,30 @@ from swarmrec.runtime.runner import (
     zenoh_config,
 )
 from swarmrec.runtime.settings import Config, StorageSettings
-from swarmrec.services.settings import PlaceSettings
+from swarmrec.services.settings import IndexSettings, PlaceSettings
+from swarmrec.wire.placement import placement_to_proto
 
 __all__ = [
     "BINARY",
+    "COORDINATORS_ONLY",
     "ENV_VAR",
     "CompiledHost",
     "binary",
     "candidates",
+    "coordinator_command",
     "exec_host",
     "host_spec",
     "is_compiled",
+    "needs_python",
+    "stop_timeout_s",
 ]
 
 BINARY = "swarmrec-dataplane"
 #: Names the binary explicitly (an image, a build elsewhere).
 ENV_VAR = "SWARMREC_DATAPLANE"
+#: Set in the environment of the process a compiled host starts for its index shards'
+#: coordinators: the same command line then runs only those.
+COORDINATORS_ONLY = "SWARMREC_SHARD_COORDINATORS_ONLY"
 #: How long a compiled child of a mixed host may take to say it is ready.
 READY_TIMEOUT_S = 60.0
 
@@ -93,6 +106,29 @@ def binary() -> Path:
     )
 
 
+def _index_settings(h: Hosted) -> IndexSettings:
+    return h.config.get(IndexSettings) if h.config.has(IndexSettings) else IndexSettings()
+
+
+def _index(h: Hosted) -> dict[str, Any]:
+    """An index shard's settings beyond the place settings (dataplane/src/spec.rs,
+    IndexSpec), with the placement a shard with nothing on disk starts from: computed by
+    the Python core, the one implementation of the placement rules."""
+    bus = h.config.bus
+    places = h.config.get(PlaceSettings)
+    index = _index_settings(h)
+    groups = groups_from_bounds(places.bounds(bus).tolist())
+    first = ring(groups, range(bus.n_robots), replicas=index.replicas)
+    return {
+        "groups": [list(g) for g in groups],
+        "n_ret": get_preset(places.preset).n_ret,
+        "lockstep": places.lockstep,
+        "transfer_page": index.transfer_page,
+        "drain_timeout_s": index.drain_timeout_s,
+        "initial_placement": list(placement_to_proto(first).SerializeToString()),
+    }
+
+
 def _service(h: Hosted) -> dict[str, Any]:
     """One service's resolved settings, as the binary reads them (dataplane/src/spec.rs)."""
     bus = h.config.bus
@@ -100,6 +136,7 @@ def _service(h: Hosted) -> dict[str, Any]:
     preset = get_preset(places.preset)
     storage = h.config.get(StorageSettings) if h.config.has(StorageSettings) else None
     return {
+        "index": _index(h) if h.kind == "index-shard" else None,
         "kind": h.kind,
         "wire_kind": int(h.wire_kind),
         "swarm": bus.swarm,
@@ -121,8 +158,12 @@ def _service(h: Hosted) -> dict[str, Any]:
     }
 
 
-def host_spec(hosted: Sequence[Hosted]) -> dict[str, Any]:
-    """What ``swarmrec-dataplane host --spec-json`` takes for ``hosted`` (one session)."""
+def host_spec(
+    hosted: Sequence[Hosted], *, coordinator: Sequence[str] = (), die_with_parent: bool = False
+) -> dict[str, Any]:
+    """What ``swarmrec-dataplane host --spec-json`` takes for ``hosted`` (one session);
+    ``coordinator``: the command of the Python process the host runs beside it for its
+    index shards' coordinators; ``die_with_parent``: the host is a Python host's child."""
     if not hosted:
         raise ConfigError("a host runs at least one service")
     bus = session_bus(hosted)
@@ -136,17 +177,43 @@ def host_spec(hosted: Sequence[Hosted]) -> dict[str, Any]:
         "log_level": bus.log_level,
         "version": swarmrec.__version__,
         "services": [_service(h) for h in hosted],
+        "coordinator": list(coordinator),
+        "die_with_parent": die_with_parent,
     }
 
 
-def _argv(hosted: Sequence[Hosted]) -> list[str]:
+def _argv(
+    hosted: Sequence[Hosted], *, coordinator: Sequence[str] = (), die_with_parent: bool = False
+) -> list[str]:
     exe = str(binary())
-    return [exe, "host", "--spec-json", json.dumps(host_spec(hosted))]
+    spec = host_spec(hosted, coordinator=coordinator, die_with_parent=die_with_parent)
+    return [exe, "host", "--spec-json", json.dumps(spec)]
+
+
+def coordinator_command(argv: Sequence[str] | None = None) -> list[str]:
+    """This command line again (``argv``: ``sys.argv``), run with :data:`COORDINATORS_ONLY`
+    set: it resolves the same settings and runs only the coordinators of the compiled index
+    shards it names (:func:`swarmrec.services.registry.serve_many`)."""
+    args = list(sys.argv if argv is None else argv)
+    return ["env", f"{COORDINATORS_ONLY}=1", sys.executable, "-m", "swarmrec", *args[1:]]
+
+
+def needs_python(hosted: Sequence[Hosted]) -> bool:
+    """Whether compiled ``hosted`` need a Python process beside them: an index shard's
+    coordinator runs in Python (:mod:`swarmrec.services.shard_coordinator`)."""
+    return any(h.kind == "index-shard" for h in hosted)
+
+
+def stop_timeout_s(hosted: Sequence[Hosted]) -> float:
+    """How long the compiled host may take to stop: an index shard drains first."""
+    drains = [_index_settings(h).drain_timeout_s for h in hosted if h.kind == "index-shard"]
+    return 10.0 + max(drains, default=0.0)
 
 
 def exec_host(hosted: Sequence[Hosted]) -> NoReturn:
-    """Become the compiled host of ``hosted`` (this process is replaced)."""
-    argv = _argv(hosted)
+    """Become the compiled host of ``hosted`` (this process is replaced); with index
+    shards, the host runs their coordinators beside it (:func:`coordinator_command`)."""
+    argv = _argv(hosted, coordinator=coordinator_command() if needs_python(hosted) else ())
     sys.stdout.flush()
     sys.stderr.flush()
     os.execv(argv[0], argv)
@@ -156,8 +223,11 @@ class CompiledHost:
     """The compiled kinds of a mixed ``swarmrec host``, in a child process."""
 
     def __init__(self, hosted: Sequence[Hosted]) -> None:
-        self.proc = subprocess.Popen(_argv(hosted), stdout=subprocess.PIPE, text=True)
+        argv = _argv(hosted, die_with_parent=True)
+        self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, text=True)
         self.services: list[dict[str, Any]] = []
+        #: The host's readiness line as it printed it.
+        self.ready_line: dict[str, Any] = {}
         ready = threading.Event()
         thread = threading.Thread(target=self._read, args=(ready,), name="compiled-host-stdout", daemon=True)
         thread.start()
@@ -172,6 +242,7 @@ class CompiledHost:
         assert self.proc.stdout is not None
         for msg in ready_events(self.proc.stdout):
             if not ready.is_set():
+                self.ready_line = msg
                 keep = ("service", "robot", "metrics_url")
                 self.services = [{k: e[k] for k in keep if k in e} for e in ready_entries(msg)]
                 ready.set()

@@ -114,6 +114,8 @@ class Shard(Protocol):
 
     def follow(self, placement: Placement, *, confirm: bool = True) -> bool: ...
 
+    def follow_own(self, placement: Placement) -> None: ...
+
 
 __all__ = ["Coordinator", "Shard", "present_members", "served_load"]
 
@@ -305,8 +307,7 @@ class Coordinator:
     def publish(self, placement: Placement, live: set[int]) -> None:
         """Follow ``placement`` here, then send it to every other live shard."""
         s = self.shard
-        s.follow(placement)
-        s.metrics.placements_published.inc()
+        s.follow_own(placement)
         fields = {
             "version": placement.version,
             "owners": [list(o) for o in placement.owners],

@@ -260,6 +260,11 @@ class IndexShard(ServiceBase):
             threading.Thread(target=self._copy_group, args=(g,), name=f"copy-group-{g}", daemon=True).start()
         return True
 
+    def follow_own(self, placement: Placement) -> None:
+        """Follow a placement this shard's coordinator computed, counted as published."""
+        self.follow(placement)
+        self.metrics.placements_published.inc()
+
     # --- copying a group (a learner) ----------------------------------------------------
 
     def _copy_group(self, group: int) -> None:

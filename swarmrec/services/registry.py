@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import importlib
 import importlib.metadata
+import json
+import os
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -187,6 +189,7 @@ for _entry in (
         stateful=True,
         components=_INDEXED,
         metrics=ShardMetrics,
+        compiled=True,
     ),
     ServiceSpec(
         "verifier",
@@ -352,18 +355,35 @@ def serve_many(
         (native if compiled.is_compiled(h.config, spec(kind).compiled) else python).append(h)
     if not native:
         return run_services(python, stop=stop, on_ready=on_ready)
+    shards = [h for h in native if h.kind == "index-shard"]
+    if os.environ.get(compiled.COORDINATORS_ONLY) == "1":
+        # Started by a compiled host for its index shards: their coordinators, nothing else.
+        from swarmrec.services.shard_coordinator import run_coordinators
+
+        return run_coordinators(shards, stop=stop)
     if not python and stop is None and on_ready is None:
         compiled.exec_host(native)
     child = compiled.CompiledHost(native)
+    coordinators = None
     try:
+        # Compiled shards' coordinators run here, and outlive the compiled host's stop: a
+        # shard drains then, and its groups move only while a coordinator acts.
+        if shards:
+            from swarmrec.services.shard_coordinator import ShardCoordinators  # only with compiled shards
+
+            coordinators = ShardCoordinators(shards)
         if not python:
             wait = stop or threading.Event()
             install_signals(wait)
+            # Said once the coordinators run: the compiled host's own readiness line.
+            print(json.dumps(child.ready_line), flush=True)
             wait.wait()
             return 0
         return run_services(python, stop=stop, on_ready=on_ready, also_ready=child.services)
     finally:
-        child.stop()
+        child.stop(compiled.stop_timeout_s(native))
+        if coordinators is not None:
+            coordinators.stop()
 
 
 def missing_components(kind: str, parts: Sequence[Component]) -> list[str]:

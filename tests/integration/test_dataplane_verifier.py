@@ -177,22 +177,23 @@ def test_a_host_mixing_python_and_compiled_kinds_serves_both(
         swarm_name(request),
         PlaceSettings(n_labels=N_LABELS),
         robots=N_ROBOTS,
-        kinds=("index-shard", "verifier"),
+        kinds=("index-shard", "verifier", "descriptor"),
         swarm_kinds=(),
         hosting="robots:2",
         data_plane="compiled",
     ) as swarm:
         host = swarm.procs[0]
-        assert set(host.urls) == {(k, r) for k in ("index-shard", "verifier") for r in range(N_ROBOTS)}
-        # The compiled verifiers' metrics are the child's; the shards' the host's own.
-        assert (
-            host.urls[("verifier", 0)].split("/metrics")[0]
-            != host.urls[("index-shard", 0)].split("/metrics")[0]
-        )
+        kinds = ("index-shard", "verifier", "descriptor")
+        assert set(host.urls) == {(k, r) for k in kinds for r in range(N_ROBOTS)}
+        # The compiled kinds' metrics are the child's; the descriptors' the host's own.
+        server = {k: host.urls[(k, 0)].split("/metrics")[0] for k in kinds}
+        assert server["verifier"] == server["index-shard"] != server["descriptor"]
         with swarm.client(5.0) as client:
-            client.wait_for({(k, r) for k in ("index-shard", "verifier") for r in range(N_ROBOTS)}, 30)
+            client.wait_for({(k, r) for k in kinds for r in range(N_ROBOTS)}, 30)
+            # The compiled shards' coordinators run in the host (Python): the placement is confirmed.
+            assert client.wait_index_settled(30.0).placement is not None
         for r in range(N_ROBOTS):
-            assert metric(host.urls[("verifier", r)], "swarmrec_service_ready") == 1
-            assert metric(host.urls[("index-shard", r)], "swarmrec_service_ready") == 1
+            for k in kinds:
+                assert metric(host.urls[(k, r)], "swarmrec_service_ready") == 1
         codes = swarm.stop()
         assert set(codes.values()) == {0}, codes

@@ -3,6 +3,7 @@ the binary is told, where it is found, and the clear error when it is not built.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import stat
@@ -10,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from swarmrec.core.placement import ring
+from swarmrec.core.presets import get_preset
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.settings import (
     SINGLE_RUNTIME_TX_QUEUE,
@@ -19,7 +22,9 @@ from swarmrec.runtime.settings import (
     StorageSettings,
 )
 from swarmrec.services import compiled, registry
-from swarmrec.services.settings import PlaceSettings
+from swarmrec.services.settings import IndexSettings, PlaceSettings
+from swarmrec.wire import messages as pb
+from swarmrec.wire.placement import placement_from_proto
 
 
 def config(data_plane: str, **place: object) -> Config:
@@ -36,10 +41,32 @@ def config(data_plane: str, **place: object) -> Config:
 
 
 def test_only_kinds_with_a_compiled_implementation_go_and_only_when_the_setting_says_so() -> None:
-    assert [k for k, e in registry.REGISTRY.items() if e.compiled] == ["verifier"]
+    assert [k for k, e in registry.REGISTRY.items() if e.compiled] == ["index-shard", "verifier"]
     assert compiled.is_compiled(config("compiled"), registry.spec("verifier").compiled)
     assert not compiled.is_compiled(config("python"), registry.spec("verifier").compiled)
-    assert not compiled.is_compiled(config("compiled"), registry.spec("index-shard").compiled)
+    assert not compiled.is_compiled(config("compiled"), registry.spec("descriptor").compiled)
+
+
+def test_compiled_shards_keep_a_python_process_for_their_coordinator_and_time_to_drain() -> None:
+    verifier = registry.hosted("verifier", config("compiled"))
+    shard = registry.hosted("index-shard", config("compiled"))
+    assert not compiled.needs_python([verifier]) and compiled.needs_python([verifier, shard])
+    assert compiled.stop_timeout_s([verifier]) == 10.0
+    assert compiled.stop_timeout_s([shard]) == 10.0 + IndexSettings().drain_timeout_s
+
+
+def test_a_shard_is_told_its_groups_and_the_placement_it_starts_from() -> None:
+    bounds = (0, 10, 20, 30, 45, 60)
+    (service,) = compiled.host_spec(
+        [registry.hosted("index-shard", config("compiled", n_labels=60, label_bounds=bounds))]
+    )["services"]
+    index = service["index"]
+    assert index["groups"] == [[0, 10], [10, 20], [20, 30], [30, 45], [45, 60]]
+    assert index["n_ret"] == get_preset("paper").n_ret and index["lockstep"] is False
+    first = placement_from_proto(pb.Placement.FromString(bytes(index["initial_placement"])), 60)
+    groups = tuple(itertools.pairwise(bounds))
+    assert first == ring(groups, range(5), replicas=IndexSettings().replicas)
+    assert first.version == 0
 
 
 def test_a_compiled_kind_is_hosted_without_loading_its_python_class() -> None:

@@ -66,10 +66,12 @@ class ShardState(_message.Message):
     def __init__(self, placement: _Optional[_Union[Placement, _Mapping]] = ..., shard_id: _Optional[int] = ..., ready_groups: _Optional[_Iterable[int]] = ..., confirmed: _Optional[bool] = ..., draining: _Optional[bool] = ..., query_calls: _Optional[int] = ..., query_cpu_s: _Optional[float] = ..., store_calls: _Optional[int] = ..., store_cpu_s: _Optional[float] = ..., placement_version: _Optional[int] = ..., served_groups: _Optional[_Iterable[int]] = ..., served_queries: _Optional[_Iterable[int]] = ...) -> None: ...
 
 class AdoptRequest(_message.Message):
-    __slots__ = ("placement",)
+    __slots__ = ("placement", "publish")
     PLACEMENT_FIELD_NUMBER: _ClassVar[int]
+    PUBLISH_FIELD_NUMBER: _ClassVar[int]
     placement: Placement
-    def __init__(self, placement: _Optional[_Union[Placement, _Mapping]] = ...) -> None: ...
+    publish: bool
+    def __init__(self, placement: _Optional[_Union[Placement, _Mapping]] = ..., publish: _Optional[bool] = ...) -> None: ...
 
 class ShardStore(_message.Message):
     __slots__ = ("descriptor", "placement_version")
