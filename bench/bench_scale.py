@@ -7,7 +7,8 @@ frames) in lock-step, many robots per process (``--hosting robots:K``: every rob
 keeps its own services, endpoints, liveliness and metrics; they share a zenoh session
 and an interpreter), and checks its pair scores against the offline evaluation. For
 each size it writes the wall time (start, replay), the memory of the processes (their
-resident sets at the last step, in total and per robot), bytes per query measured on
+resident sets at the last step, children included: compiled hosts and shard
+coordinators, in total and per robot), bytes per query measured on
 the wire, the worst shard balance, whether the scores are identical, and how the processes
 stopped (seconds after SIGTERM, exit codes).
 
@@ -24,6 +25,7 @@ docs/elastic-index.md ("Limits, honestly") has its figures.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -52,6 +54,23 @@ def rss_mb(pid: int) -> float:
     return 0.0
 
 
+def tree(pid: int) -> list[int]:
+    """``pid`` and its descendants: a service's compiled host and its coordinator are
+    processes of their own under the one the deployment started."""
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        for task in Path(f"/proc/{p}/task").glob("*/children"):
+            with contextlib.suppress(OSError):  # the process ended meanwhile
+                todo.extend(int(c) for c in task.read_text().split())
+    return out
+
+
+def tree_rss_mb(pid: int) -> float:
+    return sum(rss_mb(p) for p in tree(pid))
+
+
 def run(robots: int, hosting: str, work: Path, rebalance_target: float) -> dict[str, Any]:
     held: list[LocalDeployment] = []
     memory: dict[str, float] = {}
@@ -65,9 +84,9 @@ def run(robots: int, hosting: str, work: Path, rebalance_target: float) -> dict[
         if t == steps - 1:  # the last step: every process holds all it will hold
             d = held[0]
             procs = [sp for sp in d.procs if sp.proc.poll() is None]
-            memory["services_mb"] = sum(rss_mb(sp.proc.pid) for sp in procs)
+            memory["services_mb"] = sum(tree_rss_mb(sp.proc.pid) for sp in procs)
             memory["router_mb"] = rss_mb(d.router.proc.pid) if d.router else 0.0
-            memory["processes"] = len(procs) + 1
+            memory["processes"] = sum(len(tree(sp.proc.pid)) for sp in procs) + 1
 
     name = f"{robots}-{hosting.replace(':', '-')}"
     settings = PlacesSettings(
@@ -110,6 +129,8 @@ def run(robots: int, hosting: str, work: Path, rebalance_target: float) -> dict[
         "index_control_bytes_per_query": s.bytes.index_control_per_query,
         "store_weight": s.index.store_weight if s.index else None,
         "query_p50_ms": s.queries.latency_ms.get("p50"),
+        # A lock-step step: from the step's start until every robot's query of it is answered.
+        "step_p50_ms": s.queries.step_latency_ms.get("p50"),
         "missing_slots": s.queries.missing_slots,
         "identical_to_offline": s.offline_check.identical if s.offline_check else None,
     }

@@ -375,7 +375,7 @@ class ZenohClient(SwarmClient):
         pending = sum(m.pending_items for m in self.members(timeout_s) if m.kind == "descriptor")
         versions = {st.shard_id: (version_of(st) if st.confirmed else -1) for st in states}
         newest = newest_placement(states)
-        # A shard leaves the placement out only when it is confirmed on ``known``'s version.
+        # A confirmed shard leaving the placement out follows ``known``'s version.
         omitted = any(not st.HasField("placement") and st.confirmed for st in states)
         if known is not None and omitted and (newest is None or newest.version < known.version):
             newest = known

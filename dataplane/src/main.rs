@@ -1,7 +1,7 @@
 //! `swarmrec-dataplane`: the compiled host of swarmrec's per-message services.
 //!
 //! Started by `swarmrec serve <kind>` / `swarmrec host` (never by hand: the Python CLI
-//! resolves every setting and hands them over whole, `--spec-json`), it runs any set
+//! resolves every setting and hands them over whole, `--spec-file`), it runs any set
 //! of compiled services, of one robot or many, on one zenoh session, and behaves
 //! towards the swarm as the Python runner does: the readiness line on stdout, JSON
 //! log lines on stderr, Prometheus and probe pages over HTTP, a liveliness token per
@@ -49,7 +49,7 @@ const KINDS: &[&str] = &["index-shard", "verifier"];
 
 fn usage() -> ! {
     eprintln!(
-        "usage: swarmrec-dataplane host --spec-json JSON\n       swarmrec-dataplane kinds\n       \
+        "usage: swarmrec-dataplane host --spec-json JSON | --spec-file PATH\n       swarmrec-dataplane kinds\n       \
          swarmrec-dataplane compute   (JSON lines on stdin: the exactness tests' entry)\n\n\
          Started by `swarmrec serve`/`swarmrec host` for the kinds it implements ({}).",
         KINDS.join(", ")
@@ -67,14 +67,11 @@ fn main() {
                 std::process::exit(1);
             }
         }
-        Some("host") if args.len() == 3 && args[1] == "--spec-json" => {
+        Some("host") if args.len() == 3 && (args[1] == "--spec-json" || args[1] == "--spec-file") => {
             if std::env::var_os("ZENOH_RUNTIME").is_none() {
                 std::env::set_var("ZENOH_RUNTIME", SINGLE_THREAD_RUNTIME);
             }
-            match serde_json::from_str::<HostSpec>(&args[2])
-                .context("--spec-json")
-                .and_then(host)
-            {
+            match read_spec(&args[1], &args[2]).and_then(host) {
                 Ok(()) => {}
                 Err(e) => {
                     eprintln!(
@@ -87,6 +84,20 @@ fn main() {
         }
         _ => usage(),
     }
+}
+
+/// The host's spec: the JSON itself, or a file holding it (a host of many services has a
+/// spec longer than one command-line argument may be), which is removed once read: it was
+/// written for this process alone.
+fn read_spec(flag: &str, value: &str) -> anyhow::Result<HostSpec> {
+    let text = if flag == "--spec-file" {
+        let text = std::fs::read_to_string(value).with_context(|| format!("--spec-file {value}"))?;
+        let _ = std::fs::remove_file(value);
+        text
+    } else {
+        value.to_string()
+    };
+    serde_json::from_str::<HostSpec>(&text).with_context(|| flag.to_string())
 }
 
 /// zenoh's own warnings and errors (a link closed, a message it could not send) as JSON log
@@ -152,7 +163,9 @@ impl Sidecar {
                     "the shards' coordinator ended: starting it again",
                     serde_json::json!({"status": status.to_string()}),
                 ),
-                Err(e) => self.log.warning(&format!("the shards' coordinator: {e}"), serde_json::json!({})),
+                Err(e) => self
+                    .log
+                    .warning(&format!("the shards' coordinator: {e}"), serde_json::json!({})),
             }
             self.child = None;
             self.next_start = std::time::Instant::now() + std::time::Duration::from_secs(1);
@@ -172,8 +185,11 @@ impl Sidecar {
         match cmd.spawn() {
             Ok(child) => self.child = Some(child),
             Err(e) => {
-                self.log
-                    .emit(40, &format!("the shards' coordinator did not start: {e}"), serde_json::json!({}));
+                self.log.emit(
+                    40,
+                    &format!("the shards' coordinator did not start: {e}"),
+                    serde_json::json!({}),
+                );
                 self.next_start = std::time::Instant::now() + std::time::Duration::from_secs(5);
             }
         }
@@ -330,6 +346,9 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
     for h in &hosted {
         h.service.attach(&session)?;
     }
+    // The coordinators start now: their interpreter's start overlaps the declarations, and a
+    // shard restarted from its disk answers only once its coordinator has confirmed it.
+    let mut coordinator = Sidecar::new(spec.coordinator.clone(), host_log.clone());
     let mut queryables = Vec::new();
     let mut tokens = Vec::new();
     for (h, s) in hosted.iter().zip(&spec.services) {
@@ -408,7 +427,6 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
     ready["dispatch"] = "compiled".into();
     host_log.info("ready", serde_json::json!({"services": entries}));
     println!("{ready}");
-    let mut coordinator = Sidecar::new(spec.coordinator.clone(), host_log.clone());
     while !STOP.load(Ordering::SeqCst) {
         coordinator.keep_up();
         std::thread::sleep(std::time::Duration::from_millis(50));

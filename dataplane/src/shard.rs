@@ -436,7 +436,9 @@ impl IndexShard {
         let (query_calls, query_cpu_s) = self.metrics.cost("query");
         let (store_calls, store_cpu_s) = self.metrics.cost("store");
         let st = lock(&self.state);
-        let known = st.confirmed && known_version == Some(st.placement.version);
+        // Left out when the asker has it, confirmed or not (no one follows an unconfirmed
+        // shard's placement): as a swarm starts, every shard asks every other.
+        let known = known_version == Some(st.placement.version);
         pb::ShardState {
             placement: if known { None } else { Some(st.placement.to_proto()) },
             placement_version: st.placement.version,

@@ -4,9 +4,9 @@ A kind whose registry entry says ``compiled`` has a second implementation in Rus
 (``dataplane/``), on the same keys, messages, error codes, metrics, logs and record
 logs. The ``data_plane`` setting picks it: ``swarmrec serve`` and ``swarmrec host``
 resolve every setting here, as for a Python service, and hand them to the binary
-whole (``--spec-json``), so the two implementations never read settings differently;
-the zenoh configuration travels as the Python binding prints it (TLS files, access
-control, endpoints). Then:
+whole (``--spec-file``, a JSON file the binary removes once read), so the two
+implementations never read settings differently; the zenoh configuration travels as
+the Python binding prints it (TLS files, access control, endpoints). Then:
 
 * ``swarmrec serve <kind>``: the process becomes the compiled host (``exec``): no
   Python stays behind it. An index shard's coordinator, which computes placements, is
@@ -30,6 +30,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import threading
 from collections.abc import Sequence
 from pathlib import Path
@@ -161,7 +162,7 @@ def _service(h: Hosted) -> dict[str, Any]:
 def host_spec(
     hosted: Sequence[Hosted], *, coordinator: Sequence[str] = (), die_with_parent: bool = False
 ) -> dict[str, Any]:
-    """What ``swarmrec-dataplane host --spec-json`` takes for ``hosted`` (one session);
+    """What ``swarmrec-dataplane host --spec-file`` reads for ``hosted`` (one session);
     ``coordinator``: the command of the Python process the host runs beside it for its
     index shards' coordinators; ``die_with_parent``: the host is a Python host's child."""
     if not hosted:
@@ -187,7 +188,12 @@ def _argv(
 ) -> list[str]:
     exe = str(binary())
     spec = host_spec(hosted, coordinator=coordinator, die_with_parent=die_with_parent)
-    return [exe, "host", "--spec-json", json.dumps(spec)]
+    # In a file, not in an argument: Linux takes at most 128 kB an argument, and a host of
+    # fifty shards says more. The host removes the file once it has read it.
+    fd, path = tempfile.mkstemp(prefix="swarmrec-host-", suffix=".json")
+    with os.fdopen(fd, "w") as f:
+        json.dump(spec, f)
+    return [exe, "host", "--spec-file", path]
 
 
 def coordinator_command(argv: Sequence[str] | None = None) -> list[str]:

@@ -50,7 +50,15 @@ import time
 from collections.abc import Iterable
 from typing import Protocol
 
-from swarmrec.core.placement import Placement, follow_members, promote, rebalance, shard_loads, transition
+from swarmrec.core.placement import (
+    Placement,
+    follow_members,
+    groups_from_bounds,
+    promote,
+    rebalance,
+    shard_loads,
+    transition,
+)
 from swarmrec.errors import CallError, WireError
 from swarmrec.runtime import ServiceContext, keys
 from swarmrec.runtime.settings import BusSettings
@@ -96,6 +104,20 @@ def store_weight(states: Iterable[pb.ShardState]) -> float:
     return min(MAX_STORE_WEIGHT, (s_s / s_n) / (q_s / q_n))
 
 
+class ShardSettings:
+    """What a shard reads from its settings, and the coordinator's view of one with it:
+    the Python shard and a compiled shard's coordinator (``shard_coordinator``) alike."""
+
+    def read_settings(self, ctx: ServiceContext) -> None:
+        self.ctx = ctx
+        self.bus = ctx.bus
+        self.places = ctx.settings(PlaceSettings)
+        self.index_settings = ctx.settings(IndexSettings)
+        self.metrics = ctx.metric_set(ShardMetrics)
+        self.shard = self.bus.robot
+        self.groups = groups_from_bounds(self.places.bounds(self.bus).tolist())
+
+
 class Shard(Protocol):
     """What the coordinator needs of the shard it runs in (an IndexShard)."""
 
@@ -117,7 +139,7 @@ class Shard(Protocol):
     def follow_own(self, placement: Placement) -> None: ...
 
 
-__all__ = ["Coordinator", "Shard", "present_members", "served_load"]
+__all__ = ["Coordinator", "Shard", "ShardSettings", "present_members", "served_load"]
 
 
 def present_members(

@@ -51,7 +51,7 @@ import numpy.typing as npt
 import zenoh
 
 from swarmrec.core.index import RangeIndex
-from swarmrec.core.placement import Placement, groups_from_bounds, ring
+from swarmrec.core.placement import Placement, ring
 from swarmrec.core.presets import get_preset
 from swarmrec.errors import (
     AlreadyExists,
@@ -64,10 +64,8 @@ from swarmrec.errors import (
 )
 from swarmrec.runtime import Endpoint, RequestContext, ServiceBase, ServiceContext, keys
 from swarmrec.runtime.settings import StorageSettings
-from swarmrec.services.coordinator import Coordinator
+from swarmrec.services.coordinator import Coordinator, ShardSettings
 from swarmrec.services.limits import MAX_FRAME_GAP, MAX_FRAME_INDEX, MAX_N_RET
-from swarmrec.services.metrics import ShardMetrics
-from swarmrec.services.settings import IndexSettings, PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import (
     Candidate,
@@ -88,15 +86,9 @@ _MAX_ROW = 1 << 40
 BEHIND_WAIT_S = 1.0
 
 
-class IndexShard(ServiceBase):
+class IndexShard(ServiceBase, ShardSettings):
     def __init__(self, ctx: ServiceContext) -> None:
-        self.ctx = ctx
-        self.bus = ctx.bus
-        self.places = ctx.settings(PlaceSettings)
-        self.index_settings = ctx.settings(IndexSettings)
-        self.metrics = ctx.metric_set(ShardMetrics)
-        self.shard = self.bus.robot
-        self.groups = groups_from_bounds(self.places.bounds(self.bus).tolist())
+        self.read_settings(ctx)
         self.n_ret = get_preset(self.places.preset).n_ret
         self.limits = self.places.frame_limits()
         # One lock for the placement, the indexes and the log: a version switch happens
@@ -203,12 +195,14 @@ class IndexShard(ServiceBase):
 
     def state(self, known_version: int | None = None) -> pb.ShardState:
         """What this shard follows and holds; the placement itself is left out when it is
-        the confirmed ``known_version`` (the asker has it: a hundred shards' placements at
-        every coordinator tick would be most of the index's traffic)."""
+        ``known_version`` (the asker has it: a hundred shards' placements at every
+        coordinator tick, or from every shard to every other as a swarm starts, would be
+        most of the index's traffic). Confirmed or not: no one follows the placement of a
+        shard that is not confirmed, and ``confirmed`` says which it is."""
         query_calls, query_cpu_s = self.ctx.metrics.cost("query").snapshot()
         store_calls, store_cpu_s = self.ctx.metrics.cost("store").snapshot()
         with self.lock:
-            known = self.confirmed and known_version == self.placement.version
+            known = known_version == self.placement.version
             return pb.ShardState(
                 placement=None if known else placement_to_proto(self.placement),
                 placement_version=self.placement.version,

@@ -7,7 +7,8 @@ implementation of the placement rules (:mod:`swarmrec.core.placement`): the
 shard through the shard's own endpoints instead of in-process calls:
 
 * its view of the shard (placement, confirmed, groups held) is the shard's
-  ``placement`` answer, read again at every tick;
+  ``placement`` answer, read again at every tick (the placement itself only when the
+  shard follows another one than the view's);
 * following a placement is an ``adopt`` to the shard, which accepts it from its own
   robot as from the lowest live shard (``publish`` set when the coordinator computed
   it, so the shard counts it as published).
@@ -25,7 +26,7 @@ from collections.abc import Sequence
 
 import zenoh
 
-from swarmrec.core.placement import Placement, groups_from_bounds, ring
+from swarmrec.core.placement import Placement, ring
 from swarmrec.errors import CallError, ErrorCode, RemoteError
 from swarmrec.runtime import ServiceContext, keys
 from swarmrec.runtime.metrics import ServiceMetrics
@@ -39,27 +40,20 @@ from swarmrec.runtime.runner import (
     session_identity,
     zenoh_config,
 )
-from swarmrec.services.coordinator import Coordinator
+from swarmrec.services.coordinator import Coordinator, ShardSettings
 from swarmrec.services.metrics import ShardMetrics
-from swarmrec.services.settings import IndexSettings, PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.placement import placement_from_proto, placement_to_proto
 
 __all__ = ["CompiledShard", "CompiledShardCoordinator", "ShardCoordinators", "run_coordinators"]
 
 
-class CompiledShard:
+class CompiledShard(ShardSettings):
     """The coordinator's :class:`~swarmrec.services.coordinator.Shard`, over a compiled
     shard's ``placement`` and ``adopt`` endpoints."""
 
     def __init__(self, ctx: ServiceContext) -> None:
-        self.ctx = ctx
-        self.bus = ctx.bus
-        self.places = ctx.settings(PlaceSettings)
-        self.index_settings = ctx.settings(IndexSettings)
-        self.metrics = ctx.metric_set(ShardMetrics)
-        self.shard = self.bus.robot
-        self.groups = groups_from_bounds(self.places.bounds(self.bus).tolist())
+        self.read_settings(ctx)
         # What the shard starts from with nothing on disk, until it has answered.
         self.placement: Placement = ring(
             self.groups, range(self.bus.n_robots), replicas=self.index_settings.replicas
@@ -137,7 +131,10 @@ class CompiledShardCoordinator(Coordinator):
 
     def tick(self) -> None:
         try:
-            self.compiled.state()
+            # The placement only when it changed: a hundred shards' placements a second were
+            # most of a large swarm's index traffic (the coordinator asks every shard the same).
+            known = self.compiled.placement.version if self.compiled.confirmed else None
+            self.compiled.state(known)
         except CallError as e:
             self.log.info(f"the compiled shard did not answer: {e}")
             return

@@ -84,7 +84,14 @@ class Robot0:
     def start(self) -> list[ServiceProcess]:
         procs = self.swarm.start_robot(0, kinds=KINDS)
         self.swarm.wait_started(procs, 60)
+        # A shard answers once its coordinator confirmed the placement it loaded (the
+        # readiness line comes first: the compiled shard's coordinator is a process it starts).
+        wait_until(self.confirmed, 30, "shard 0's placement confirmed")
         return procs
+
+    def confirmed(self) -> bool:
+        answer = answering(self.client.session, self.key("index-shard", "placement"), pb.PlacementRequest())
+        return answer.ok is not None and pb.ShardState.FromString(answer.ok).confirmed
 
     def store_frame(self, frame: pb.Constellation) -> None:
         stored = reply_of(request(self.client.session, self.key("verifier", "store"), frame), pb.StoreReply)

@@ -106,6 +106,27 @@ def test_the_binary_is_told_every_resolved_setting_and_the_zenoh_configuration()
     assert spec["zenoh"]["transport"]["link"]["tx"]["queue"]["size"]["data"] == SINGLE_RUNTIME_TX_QUEUE
 
 
+def test_a_host_of_fifty_shards_is_handed_its_spec_in_a_file(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Linux takes at most 128 kB an argument: fifty shards' settings are more."""
+    monkeypatch.setattr(compiled, "binary", lambda: Path("/usr/bin/true"))
+    base = config("compiled")
+    hosted = [
+        registry.hosted("index-shard", base.replace(base.bus.with_(robot=r, n_robots=100)))
+        for r in range(50)
+    ]
+    argv = compiled._argv(hosted)
+    assert argv[:3] == ["/usr/bin/true", "host", "--spec-file"]
+    path = Path(argv[3])
+    try:
+        text = path.read_text()
+        assert len(text) > 128 * 1024
+        spec = json.loads(text)
+        assert [s["robot"] for s in spec["services"]] == list(range(50))
+        assert spec["coordinator"] == [] and spec["die_with_parent"] is False
+    finally:
+        path.unlink()
+
+
 def test_the_binary_is_found_where_named_and_a_missing_one_says_how_to_build_it(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
