@@ -15,7 +15,9 @@ slice, counts of 1 to 3, so equal partial scores straddle ``n_ret`` all the time
 
 from __future__ import annotations
 
+import os
 import random
+import signal
 from contextlib import AbstractContextManager
 from pathlib import Path
 
@@ -23,11 +25,12 @@ import numpy as np
 import pytest
 
 from swarmrec.deployments.local import LocalDeployment
+from swarmrec.services.compiled import COORDINATORS_ONLY
 from swarmrec.services.settings import IndexSettings, PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import partial_descriptor_to_proto
 from tests.integration.conftest import running_swarm, swarm_name
-from tests.integration.support import endpoint_key
+from tests.integration.support import endpoint_key, wait_until
 from tests.integration.support import request as ask
 
 N_ROBOTS, N_LABELS = 2, 40
@@ -178,3 +181,40 @@ def test_a_shards_log_and_placement_state_move_between_the_implementations(
     with shards(tmp_path, name, then) as swarm:
         after = look(swarm, then)
     assert after == before
+
+
+def _children(pid: int) -> list[int]:
+    return [int(c) for t in Path(f"/proc/{pid}/task").glob("*/children") for c in t.read_text().split()]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_a_compiled_shards_coordinator_is_started_again_and_dies_with_its_host(
+    tmp_path: Path, request: pytest.FixtureRequest
+) -> None:
+    """`swarmrec serve index-shard` becomes the compiled host, which runs the shard's
+    coordinator (Python) as its child: one that ends is started again, and a host killed
+    takes it along (nothing of a killed shard goes on acting in the swarm)."""
+    with shards(tmp_path, swarm_name(request), "compiled") as swarm:
+        sp = swarm.find("index-shard", 1)
+        (first,) = wait_until(lambda: _children(sp.proc.pid) or None, 30, "the coordinator started")
+        environ = Path(f"/proc/{first}/environ").read_bytes().split(b"\0")
+        assert f"{COORDINATORS_ONLY}=1".encode() in environ
+        assert b"index-shard" in Path(f"/proc/{first}/cmdline").read_bytes()  # the same command line
+        os.kill(first, signal.SIGKILL)
+        (second,) = wait_until(
+            lambda: [c for c in _children(sp.proc.pid) if c != first] or None, 30, "the coordinator again"
+        )
+        wait_until(lambda: "starting it again" in sp.log_path.read_text(), 10, "the restart logged")
+        # The coordinator again confirms and acts: a placement request still finds it all well.
+        with swarm.client(5.0) as client:
+            assert client.wait_index_settled(30.0).placement is not None
+        sp.proc.send_signal(signal.SIGKILL)
+        sp.proc.wait(timeout=10)
+        wait_until(lambda: not _alive(second), 10, "the coordinator gone with its host")
