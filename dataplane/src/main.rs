@@ -138,6 +138,9 @@ struct Sidecar {
     child: Option<std::process::Child>,
     log: Log,
     next_start: std::time::Instant,
+    /// Set once the coordinators said they checked their shards' placements (a JSON line
+    /// `{"event": "checked"}` on their stdout): the shards are declared ready then.
+    checked: Arc<AtomicBool>,
 }
 
 impl Sidecar {
@@ -147,6 +150,7 @@ impl Sidecar {
             child: None,
             log,
             next_start: std::time::Instant::now(),
+            checked: Arc::new(AtomicBool::new(false)),
         };
         s.keep_up();
         s
@@ -174,7 +178,9 @@ impl Sidecar {
             return;
         }
         let mut cmd = std::process::Command::new(&self.argv[0]);
-        cmd.args(&self.argv[1..]).stdin(std::process::Stdio::null());
+        cmd.args(&self.argv[1..])
+            .stdin(std::process::Stdio::null())
+            .stdout(std::process::Stdio::piped());
         // SAFETY: the closure only calls prctl, which is async-signal-safe.
         unsafe {
             std::os::unix::process::CommandExt::pre_exec(&mut cmd, || {
@@ -183,7 +189,25 @@ impl Sidecar {
             });
         }
         match cmd.spawn() {
-            Ok(child) => self.child = Some(child),
+            Ok(mut child) => {
+                if let Some(out) = child.stdout.take() {
+                    let checked = self.checked.clone();
+                    let _ = std::thread::Builder::new()
+                        .name("coordinator-stdout".into())
+                        .spawn(move || {
+                            use std::io::BufRead;
+                            for line in std::io::BufReader::new(out).lines().map_while(Result::ok) {
+                                let event = serde_json::from_str::<serde_json::Value>(&line).ok();
+                                if event.as_ref().and_then(|e| e.get("event")).and_then(|e| e.as_str())
+                                    == Some("checked")
+                                {
+                                    checked.store(true, Ordering::SeqCst);
+                                }
+                            }
+                        });
+                }
+                self.child = Some(child);
+            }
             Err(e) => {
                 self.log.emit(
                     40,
@@ -193,6 +217,27 @@ impl Sidecar {
                 self.next_start = std::time::Instant::now() + std::time::Duration::from_secs(5);
             }
         }
+    }
+
+    /// Waits (at most `timeout`, and while not stopped) until the coordinators checked their
+    /// shards' placements; false when they did not say so in time.
+    fn wait_checked(&mut self, timeout: std::time::Duration) -> bool {
+        if self.argv.is_empty() {
+            return true;
+        }
+        let deadline = std::time::Instant::now() + timeout;
+        while std::time::Instant::now() < deadline && !STOP.load(Ordering::SeqCst) {
+            if self.checked.load(Ordering::SeqCst) {
+                return true;
+            }
+            self.keep_up();
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        self.log.warning(
+            "the shards' coordinator did not check their placements in time: ready anyway",
+            serde_json::json!({}),
+        );
+        false
     }
 
     /// SIGTERM, up to 5 s, then SIGKILL.
@@ -397,6 +442,9 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
             .map_err(|e| anyhow::anyhow!("queryable {key}: {e}"))?;
         queryables.push(q);
     }
+    // A shard restarted from its disk answers once its coordinator confirmed its placement:
+    // it is declared ready after that check, as the Python shard is (within a moment).
+    coordinator.wait_checked(std::time::Duration::from_secs(30));
     // Last: once the tokens are up, peers may route to these services.
     for h in &hosted {
         let key = runtime::alive_key(&h.swarm, &h.kind, h.robot);

@@ -369,9 +369,14 @@ def serve_many(
         # Compiled shards' coordinators run here, and outlive the compiled host's stop: a
         # shard drains then, and its groups move only while a coordinator acts.
         if shards:
-            from swarmrec.services.shard_coordinator import ShardCoordinators  # only with compiled shards
+            from swarmrec.services.shard_coordinator import (  # only with compiled shards
+                CHECK_TIMEOUT_S,
+                ShardCoordinators,
+            )
 
             coordinators = ShardCoordinators(shards)
+            # Ready once the shards' placements are checked (a caller would meet them unconfirmed).
+            coordinators.wait_checked(CHECK_TIMEOUT_S, stop)
         if not python:
             wait = stop or threading.Event()
             install_signals(wait)

@@ -21,7 +21,9 @@ host first, so a draining shard still has its coordinator while it hands its gro
 
 from __future__ import annotations
 
+import json
 import threading
+import time
 from collections.abc import Sequence
 
 import zenoh
@@ -112,22 +114,30 @@ class CompiledShard(ShardSettings):
 
 
 class CompiledShardCoordinator(Coordinator):
-    """The coordinator loop for a :class:`CompiledShard`: its view is refreshed first."""
+    """The coordinator loop for a :class:`CompiledShard`: its view is refreshed first.
+
+    ``checked`` is set once the start-up check is done (the shard confirmed, or the swarm
+    found further along and the coordinator's adoption awaited): the process running the
+    shard declares it ready then, so that no caller meets a shard still unconfirmed."""
 
     def __init__(self, shard: CompiledShard) -> None:
         super().__init__(shard)
         self.compiled = shard
+        self.checked = threading.Event()
 
     def confirm_on_start(self) -> None:
-        # The shard may have loaded a newer placement from its disk than the one assumed.
-        while not self._stop.is_set():
-            try:
-                self.compiled.state()
-                break
-            except CallError as e:
-                self.log.info(f"waiting for the compiled shard to answer: {e}")
-                self._stop.wait(self.settings.placement_tick_s)
-        super().confirm_on_start()
+        try:
+            while not self._stop.is_set():
+                try:
+                    # The shard may have loaded a newer placement from its disk than assumed.
+                    self.compiled.state()
+                    super().confirm_on_start()
+                    return
+                except CallError as e:  # the shard not answering yet, or a call lost: again
+                    self.log.info(f"confirming the compiled shard's placement: {e}")
+                    self._stop.wait(self.settings.placement_tick_s)
+        finally:
+            self.checked.set()
 
     def tick(self) -> None:
         try:
@@ -167,6 +177,16 @@ class ShardCoordinators:
             coordinator.start()
             self.coordinators.append(coordinator)
 
+    def wait_checked(self, timeout_s: float, stop: threading.Event | None = None) -> bool:
+        """Wait until every coordinator has done its start-up check; False on timeout or stop."""
+        deadline = time.monotonic() + timeout_s
+        for c in self.coordinators:
+            while not c.checked.wait(0.05):
+                if time.monotonic() > deadline or (stop is not None and stop.is_set()):
+                    self.log.warning("shard coordinators still checking their placements: ready anyway")
+                    return False
+        return True
+
     def stop(self) -> None:
         self.stop_event.set()
         for c in self.coordinators:
@@ -176,15 +196,27 @@ class ShardCoordinators:
             self.session = None
 
 
+#: How long a process waits for its shards' coordinators to check their placements
+#: before it declares the shards ready anyway.
+CHECK_TIMEOUT_S = 30.0
+
+
 def run_coordinators(hosted: Sequence[Hosted], *, stop: threading.Event | None = None) -> int:
     """The coordinators of ``hosted`` (compiled index shards served by another process, the
-    compiled host that started this one) until SIGTERM/SIGINT or ``stop``; an exit code."""
+    compiled host that started this one) until SIGTERM/SIGINT or ``stop``; an exit code.
+
+    Says on stdout, one JSON line, once every coordinator has done its start-up check
+    (``{"event": "checked", "robots": [...]}``): the compiled host declares its shards
+    ready then."""
     if not hosted:
         return 0
     stop = stop or threading.Event()
     install_signals(stop)
     coordinators = ShardCoordinators(hosted)
     try:
+        if coordinators.wait_checked(CHECK_TIMEOUT_S, stop):
+            robots = [c.shard.shard for c in coordinators.coordinators]
+            print(json.dumps({"event": "checked", "robots": robots}), flush=True)
         stop.wait()
     finally:
         coordinators.stop()
