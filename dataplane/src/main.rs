@@ -49,7 +49,7 @@ const KINDS: &[&str] = &["index-shard", "verifier"];
 
 fn usage() -> ! {
     eprintln!(
-        "usage: swarmrec-dataplane host --spec-json JSON | --spec-file PATH\n       swarmrec-dataplane kinds\n       \
+        "usage: swarmrec-dataplane host --spec-file PATH\n       swarmrec-dataplane kinds\n       \
          swarmrec-dataplane compute   (JSON lines on stdin: the exactness tests' entry)\n\n\
          Started by `swarmrec serve`/`swarmrec host` for the kinds it implements ({}).",
         KINDS.join(", ")
@@ -67,11 +67,11 @@ fn main() {
                 std::process::exit(1);
             }
         }
-        Some("host") if args.len() == 3 && (args[1] == "--spec-json" || args[1] == "--spec-file") => {
+        Some("host") if args.len() == 3 && args[1] == "--spec-file" => {
             if std::env::var_os("ZENOH_RUNTIME").is_none() {
                 std::env::set_var("ZENOH_RUNTIME", SINGLE_THREAD_RUNTIME);
             }
-            match read_spec(&args[1], &args[2]).and_then(host) {
+            match read_spec(&args[2]).and_then(host) {
                 Ok(()) => {}
                 Err(e) => {
                     eprintln!(
@@ -86,18 +86,12 @@ fn main() {
     }
 }
 
-/// The host's spec: the JSON itself, or a file holding it (a host of many services has a
-/// spec longer than one command-line argument may be), which is removed once read: it was
-/// written for this process alone.
-fn read_spec(flag: &str, value: &str) -> anyhow::Result<HostSpec> {
-    let text = if flag == "--spec-file" {
-        let text = std::fs::read_to_string(value).with_context(|| format!("--spec-file {value}"))?;
-        let _ = std::fs::remove_file(value);
-        text
-    } else {
-        value.to_string()
-    };
-    serde_json::from_str::<HostSpec>(&text).with_context(|| flag.to_string())
+/// The host's spec, from the file Python wrote for this process alone (a host of many
+/// services has a spec longer than one command-line argument may be); removed once read.
+fn read_spec(path: &str) -> anyhow::Result<HostSpec> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("--spec-file {path}"))?;
+    let _ = std::fs::remove_file(path);
+    serde_json::from_str::<HostSpec>(&text).context("--spec-file")
 }
 
 /// zenoh's own warnings and errors (a link closed, a message it could not send) as JSON log

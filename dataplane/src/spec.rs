@@ -20,8 +20,9 @@ pub struct HostSpec {
     pub version: String,
     pub services: Vec<ServiceSpec>,
     /// The command of the Python process that runs the index shards' coordinators beside
-    /// this host (empty: none). Started once the host is ready, stopped after the shards
-    /// drained, and it dies with the host (`PR_SET_PDEATHSIG`).
+    /// this host (empty: none). Started once the session is open (the shards are declared
+    /// ready when it has checked their placements), stopped after the shards drained, and it
+    /// dies with the host (`PR_SET_PDEATHSIG`).
     #[serde(default)]
     pub coordinator: Vec<String>,
     /// The host is the child of a Python host (a host mixing both kinds): it dies with it.

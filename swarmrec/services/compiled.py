@@ -63,8 +63,8 @@ __all__ = [
     "coordinator_command",
     "exec_host",
     "host_spec",
+    "index_shards",
     "is_compiled",
-    "needs_python",
     "stop_timeout_s",
 ]
 
@@ -204,22 +204,22 @@ def coordinator_command(argv: Sequence[str] | None = None) -> list[str]:
     return ["env", f"{COORDINATORS_ONLY}=1", sys.executable, "-m", "swarmrec", *args[1:]]
 
 
-def needs_python(hosted: Sequence[Hosted]) -> bool:
-    """Whether compiled ``hosted`` need a Python process beside them: an index shard's
-    coordinator runs in Python (:mod:`swarmrec.services.shard_coordinator`)."""
-    return any(h.kind == "index-shard" for h in hosted)
+def index_shards(hosted: Sequence[Hosted]) -> list[Hosted]:
+    """The index shards among compiled ``hosted``: each needs a Python process beside it for
+    its coordinator (:mod:`swarmrec.services.shard_coordinator`), and drains on stop."""
+    return [h for h in hosted if h.kind == "index-shard"]
 
 
 def stop_timeout_s(hosted: Sequence[Hosted]) -> float:
     """How long the compiled host may take to stop: an index shard drains first."""
-    drains = [_index_settings(h).drain_timeout_s for h in hosted if h.kind == "index-shard"]
+    drains = [_index_settings(h).drain_timeout_s for h in index_shards(hosted)]
     return 10.0 + max(drains, default=0.0)
 
 
 def exec_host(hosted: Sequence[Hosted]) -> NoReturn:
     """Become the compiled host of ``hosted`` (this process is replaced); with index
     shards, the host runs their coordinators beside it (:func:`coordinator_command`)."""
-    argv = _argv(hosted, coordinator=coordinator_command() if needs_python(hosted) else ())
+    argv = _argv(hosted, coordinator=coordinator_command() if index_shards(hosted) else ())
     sys.stdout.flush()
     sys.stderr.flush()
     os.execv(argv[0], argv)

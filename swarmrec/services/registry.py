@@ -355,7 +355,7 @@ def serve_many(
         (native if compiled.is_compiled(h.config, spec(kind).compiled) else python).append(h)
     if not native:
         return run_services(python, stop=stop, on_ready=on_ready)
-    shards = [h for h in native if h.kind == "index-shard"]
+    shards = compiled.index_shards(native)
     if os.environ.get(compiled.COORDINATORS_ONLY) == "1":
         # Started by a compiled host for its index shards: their coordinators, nothing else.
         from swarmrec.services.shard_coordinator import run_coordinators

@@ -50,7 +50,7 @@ def test_only_kinds_with_a_compiled_implementation_go_and_only_when_the_setting_
 def test_compiled_shards_keep_a_python_process_for_their_coordinator_and_time_to_drain() -> None:
     verifier = registry.hosted("verifier", config("compiled"))
     shard = registry.hosted("index-shard", config("compiled"))
-    assert not compiled.needs_python([verifier]) and compiled.needs_python([verifier, shard])
+    assert compiled.index_shards([verifier]) == [] and compiled.index_shards([verifier, shard]) == [shard]
     assert compiled.stop_timeout_s([verifier]) == 10.0
     assert compiled.stop_timeout_s([shard]) == 10.0 + IndexSettings().drain_timeout_s
 
@@ -111,8 +111,7 @@ def test_a_host_of_fifty_shards_is_handed_its_spec_in_a_file(monkeypatch: pytest
     monkeypatch.setattr(compiled, "binary", lambda: Path("/usr/bin/true"))
     base = config("compiled")
     hosted = [
-        registry.hosted("index-shard", base.replace(base.bus.with_(robot=r, n_robots=100)))
-        for r in range(50)
+        registry.hosted("index-shard", base.replace(base.bus.with_(robot=r, n_robots=100))) for r in range(50)
     ]
     argv = compiled._argv(hosted)
     assert argv[:3] == ["/usr/bin/true", "host", "--spec-file"]
