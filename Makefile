@@ -60,11 +60,13 @@ $(STAMP): pyproject.toml requirements.lock
 venv: $(STAMP)
 
 # --no-deps for swarmrec itself: training needs only its renderers (numpy, opencv,
-# numba, tqdm), which the pinned requirements already hold.
+# numba, tqdm), which the pinned requirements already hold. --no-cache-dir: torch and
+# its CUDA libraries are ~4 GB of wheels that would stay in pip's cache beside the
+# ~7 GB installed (a CI run once ran out of disk installing them).
 $(TRAIN_STAMP): $(TRAIN_REQS) pyproject.toml
 	@test -x $(TRAIN_VENV)/bin/python || $(PYTHON) -m venv $(TRAIN_VENV)
 	$(TRAIN_VENV)/bin/python -m pip install --quiet --upgrade pip
-	$(TRAIN_VENV)/bin/python -m pip install --quiet -r $(TRAIN_REQS)
+	$(TRAIN_VENV)/bin/python -m pip install --quiet --no-cache-dir -r $(TRAIN_REQS)
 	$(TRAIN_VENV)/bin/python -m pip install --quiet --no-deps -e .
 	@touch $(TRAIN_STAMP)
 
