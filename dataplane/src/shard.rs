@@ -1057,31 +1057,37 @@ impl Service for IndexShard {
                 name: "query",
                 request: "PartialQuery",
                 handler: handler(&self, "CandidatesReply", |s, d, _| s.query(d, false)),
+                blocking: false,
             },
             Endpoint {
                 name: "lookup",
                 request: "PartialQuery",
                 handler: handler(&self, "CandidatesReply", |s, d, _| s.query(d, true)),
+                blocking: false,
             },
             Endpoint {
                 name: "store",
                 request: "ShardStore",
                 handler: handler(&self, "StoreReply", |s, d, _| s.store(d)),
+                blocking: false,
             },
             Endpoint {
                 name: "placement",
                 request: "PlacementRequest",
                 handler: handler(&self, "ShardState", |s, d, _| s.placement_state(d)),
+                blocking: false,
             },
             Endpoint {
                 name: "adopt",
                 request: "AdoptRequest",
                 handler: handler(&self, "ShardState", |s, d, c| s.adopt(d, c)),
+                blocking: false,
             },
             Endpoint {
                 name: "transfer",
                 request: "TransferRequest",
                 handler: handler(&self, "TransferReply", |s, d, _| s.transfer(d)),
+                blocking: false,
             },
         ]
     }

@@ -396,6 +396,7 @@ impl Service for Verifier {
                 name: "store",
                 request: "Constellation",
                 handler: Box::new(move |data, _caller| a.store(data).map(|r| ("StoreReply", r.encode_to_vec()))),
+                blocking: false,
             },
             Endpoint {
                 name: "verify",
@@ -403,6 +404,7 @@ impl Service for Verifier {
                 handler: Box::new(move |data, _caller| {
                     b.verify_request(data).map(|r| ("VerifyReply", r.encode_to_vec()))
                 }),
+                blocking: false,
             },
         ]
     }
