@@ -847,7 +847,7 @@ impl Descriptor {
                         self.log
                             .warning(&format!("loop closure not logged: {e}"), serde_json::json!({}));
                     }
-                    mem.closures.push(c.clone());
+                    mem.closures.push(c);
                     mem.closed.insert(report.frame_index);
                     closure = Some(c);
                 }
