@@ -392,8 +392,8 @@ impl Descriptor {
 
     fn process(&self, data: &[u8]) -> Result<pb::QueryReport, RequestError> {
         let msg: pb::Constellation = decode(data, "swarmrec.v1.Constellation")?;
-        let robot_id = msg.robot_id.ok_or_else(|| missing("Constellation", "robot_id"))?;
-        let frame = msg.frame_index.ok_or_else(|| missing("Constellation", "frame_index"))?;
+        let robot_id = msg.robot_id.ok_or_else(|| missing("swarmrec.v1.Constellation", "robot_id"))?;
+        let frame = msg.frame_index.ok_or_else(|| missing("swarmrec.v1.Constellation", "frame_index"))?;
         let robot = self.robot;
         if robot_id != robot {
             return Err(RequestError::invalid(format!(
@@ -900,7 +900,7 @@ impl Descriptor {
         let req: pb::ExplainRequest = decode(data, "swarmrec.v1.ExplainRequest")?;
         let f = req
             .frame_index
-            .ok_or_else(|| missing("ExplainRequest", "frame_index"))?;
+            .ok_or_else(|| missing("swarmrec.v1.ExplainRequest", "frame_index"))?;
         if f >= MAX_FRAME_INDEX {
             return Err(RequestError::invalid(format!(
                 "frame index must be below {MAX_FRAME_INDEX}, got {f}"
