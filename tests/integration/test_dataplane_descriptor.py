@@ -32,14 +32,20 @@ N_ROBOTS, N_LABELS = 5, 30
 KINDS = ("descriptor", "verifier", "index-shard")
 
 
-def swarm(tmp: Path, name: str, plane: str, kinds: tuple[str, ...] = KINDS) -> AbstractContextManager[LocalDeployment]:
+def swarm(
+    tmp: Path,
+    name: str,
+    plane: str,
+    kinds: tuple[str, ...] = KINDS,
+    index: IndexSettings | None = None,
+) -> AbstractContextManager[LocalDeployment]:
     """Every robot's services in one process (calls to a robot's own services stay in it,
     calls to others cross the router), plaintext, the shards in lock-step."""
     return running_swarm(
         tmp,
         name,
         PlaceSettings(n_labels=N_LABELS, lockstep=True),
-        IndexSettings(retry_interval_s=0.2),
+        index or IndexSettings(retry_interval_s=0.2),
         ExplainSettings(explain_reports=40),
         robots=N_ROBOTS,
         kinds=kinds,
@@ -55,7 +61,10 @@ def frames(seed: int, n: int = 240, first: int = 0) -> list[pb.Constellation]:
     dropped, positions jittered by a few cm), a few with too few objects, and bad ones."""
     rng = random.Random(seed)
     places = [
-        [(rng.randrange(N_LABELS), [rng.uniform(-4.0, 4.0) for _ in range(3)]) for _ in range(rng.randint(4, 9))]
+        [
+            (rng.randrange(N_LABELS), [rng.uniform(-4.0, 4.0) for _ in range(3)])
+            for _ in range(rng.randint(4, 9))
+        ]
         for _ in range(12)
     ]
     out: list[pb.Constellation] = []
@@ -112,7 +121,9 @@ def timeless(report: pb.QueryReport) -> pb.QueryReport:
     return report
 
 
-def answers(d: LocalDeployment, stream: list[pb.Constellation], plane: str) -> list[tuple[bytes | None, str, str]]:
+def answers(
+    d: LocalDeployment, stream: list[pb.Constellation], plane: str
+) -> list[tuple[bytes | None, str, str]]:
     with d.client(10.0) as client:
         client.wait_index_settled(30.0)
         for r in range(N_ROBOTS):
@@ -125,14 +136,20 @@ def answers(d: LocalDeployment, stream: list[pb.Constellation], plane: str) -> l
             ok = timeless(pb.QueryReport.FromString(a.ok)).SerializeToString() if a.ok is not None else None
             out.append((ok, a.code, a.error.message if a.error is not None else ""))
         for r in range(N_ROBOTS):
-            a = ask(client.session, endpoint_key(d, "descriptor", r, "loop_closures"), pb.LoopClosuresRequest())
+            a = ask(
+                client.session, endpoint_key(d, "descriptor", r, "loop_closures"), pb.LoopClosuresRequest()
+            )
             assert a.ok is not None, a.error
             closures = pb.LoopClosureList.FromString(a.ok)
             for c in closures.loop_closures:
                 c.unix_time_ns = 0
             out.append((closures.SerializeToString(), a.code, ""))
             for f in range(0, 60, 3):
-                a = ask(client.session, endpoint_key(d, "descriptor", r, "explain"), pb.ExplainRequest(frame_index=f))
+                a = ask(
+                    client.session,
+                    endpoint_key(d, "descriptor", r, "explain"),
+                    pb.ExplainRequest(frame_index=f),
+                )
                 assert a.ok is not None, a.error
                 reply = pb.ExplainReply.FromString(a.ok)
                 if reply.HasField("report"):
@@ -191,7 +208,9 @@ def test_slices_no_shard_acknowledged_wait_on_disk_and_the_other_implementation_
         with d.client(5.0) as client:
             queried: set[tuple[int, int]] = set()
             for msg in stream:
-                a = ask(client.session, endpoint_key(d, "descriptor", msg.robot_id % N_ROBOTS, "process"), msg)
+                a = ask(
+                    client.session, endpoint_key(d, "descriptor", msg.robot_id % N_ROBOTS, "process"), msg
+                )
                 if a.ok is not None:
                     report = pb.QueryReport.FromString(a.ok)
                     if report.queried:
@@ -204,3 +223,30 @@ def test_slices_no_shard_acknowledged_wait_on_disk_and_the_other_implementation_
         # Every slice on both owners of its group (2 replicas), none twice.
         wait_until(lambda: _stored(d) == 2 * waiting, 10.0, "every slice on each of its owners")
         assert _stored(d) == 2 * waiting
+
+
+def test_a_full_queue_of_pending_stores_refuses_new_frames_in_both_implementations(
+    tmp_path: Path, request: pytest.FixtureRequest
+) -> None:
+    """No shard at all and room for 12 waiting slices: each implementation takes frames
+    until fewer than a frame's worth of slices (one a group) fit, then refuses them alike."""
+    stream = [m for m in frames(11, n=60) if m.frame_index < 1 << 20 and m.HasField("frame_index")]
+    stream = [m for m in stream if m.robot_id == 0 and len(m.labels) >= 3]
+    got: dict[str, list[tuple[str, str]]] = {}
+    for plane in ("python", "compiled"):
+        index = IndexSettings(retry_interval_s=0.2, pending_capacity=12)
+        with (
+            swarm(
+                tmp_path / plane, swarm_name(request) + plane[0], plane, ("descriptor", "verifier"), index
+            ) as d,
+            d.client(5.0) as client,
+        ):
+            key = endpoint_key(d, "descriptor", 0, "process")
+            got[plane] = [
+                (a.code, a.error.message if a.error else "")
+                for a in (ask(client.session, key, m) for m in stream)
+            ]
+    assert got["python"] == got["compiled"]
+    refused = [message for code, message in got["python"] if code == "ERROR_CODE_UNAVAILABLE"]
+    assert refused and all("waiting for index shards" in m for m in refused)
+    assert got["python"][0] == ("", "")
