@@ -392,8 +392,12 @@ impl Descriptor {
 
     fn process(&self, data: &[u8]) -> Result<pb::QueryReport, RequestError> {
         let msg: pb::Constellation = decode(data, "swarmrec.v1.Constellation")?;
-        let robot_id = msg.robot_id.ok_or_else(|| missing("swarmrec.v1.Constellation", "robot_id"))?;
-        let frame = msg.frame_index.ok_or_else(|| missing("swarmrec.v1.Constellation", "frame_index"))?;
+        let robot_id = msg
+            .robot_id
+            .ok_or_else(|| missing("swarmrec.v1.Constellation", "robot_id"))?;
+        let frame = msg
+            .frame_index
+            .ok_or_else(|| missing("swarmrec.v1.Constellation", "frame_index"))?;
         let robot = self.robot;
         if robot_id != robot {
             return Err(RequestError::invalid(format!(
