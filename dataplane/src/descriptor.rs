@@ -168,7 +168,8 @@ fn match_scores(m: &pb::VerifyMatch) -> Option<(f64, f64)> {
 /// inconsistent reply.
 fn candidates_of(reply: &pb::CandidatesReply, n_labels: u32) -> Option<Vec<(u32, u32)>> {
     let n = reply.robot_ids.len();
-    if !(reply.label_lo < reply.label_hi && reply.label_hi <= n_labels)
+    let names_range = reply.label_lo != 0 || reply.label_hi != 0;
+    if (names_range && !(reply.label_lo < reply.label_hi && reply.label_hi <= n_labels))
         || reply.frame_indices.len() != n
         || !(reply.scores.is_empty() || reply.scores.len() == n)
         || reply.scores.iter().any(|s| !s.is_finite())
@@ -514,7 +515,15 @@ impl Descriptor {
         // Step 2: the full constellation to the chosen robots that have candidates.
         let robots: Vec<usize> = cand_robot.iter().map(|&r| r as usize).collect();
         let chosen = select_robots(&robots, self.spec.n_fq as usize, Some(robot as usize));
-        // The verifiers need the objects, not the frame's name; a robot or frame of 0 is left absent.
+        // The verifiers need the objects, not the frame's name; a robot or frame of 0 is left
+        // absent. Another robot's verifier gets the objects alone (it takes the query's robot
+        // from the caller's id, and with the robots differing the frame cannot matter).
+        let objects_only = pb::Constellation {
+            labels: wire.labels.clone(),
+            positions_mm: wire.positions_mm.clone(),
+            positions_m: wire.positions_m.clone(),
+            ..Default::default()
+        };
         let query = pb::Constellation {
             robot_id: Some(robot).filter(|&r| r != 0),
             frame_index: Some(frame).filter(|&f| f != 0),
@@ -538,7 +547,11 @@ impl Descriptor {
             report.verified_robot_ids.push(r);
             let request = pb::VerifyRequest {
                 query_id: 0,
-                query: Some(query.clone()),
+                query: Some(if r == robot {
+                    query.clone()
+                } else {
+                    objects_only.clone()
+                }),
                 candidate_frame_indices: frames.into_iter().collect(),
                 ..Default::default()
             };

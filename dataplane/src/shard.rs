@@ -837,10 +837,11 @@ impl IndexShard {
         let r = &self.metrics.registry;
         r.inc(self.ids.partial_queries, &[], 1.0);
         r.inc(self.ids.group_queries, &[&g.to_string()], 1.0);
+        // The label range is not echoed: zenoh pairs the reply with its request, which names it.
         Ok(pb::CandidatesReply {
             query_id: req.query_id,
-            label_lo: desc.label_lo,
-            label_hi: desc.label_hi,
+            label_lo: 0,
+            label_hi: 0,
             robot_ids: found.iter().map(|c| c.robot).collect(),
             frame_indices: found.iter().map(|c| c.frame as u32).collect(),
             scores: if req.include_scores {
