@@ -9,13 +9,10 @@ use std::collections::{BTreeSet, HashMap};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
-use zenoh::sample::SampleKind;
-use zenoh::Wait;
-
 use crate::caller::Caller;
 use crate::pb;
 use crate::placement::Placement;
-use crate::runtime::endpoint_key;
+use crate::runtime::{endpoint_key, watch_tokens};
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(PoisonError::into_inner)
@@ -93,29 +90,15 @@ impl Routing {
 
     /// Watches the swarm's index shards' liveliness tokens (those already declared too).
     pub fn watch(&self, session: &zenoh::Session) -> anyhow::Result<()> {
-        let key = format!("swarmrec/v1/{}/alive/index-shard/*", self.swarm);
         let live = self.live.clone();
-        let sub = session
-            .liveliness()
-            .declare_subscriber(&key)
-            .history(true)
-            .callback(move |sample| {
-                let id = sample
-                    .key_expr()
-                    .as_str()
-                    .rsplit('/')
-                    .next()
-                    .and_then(|s| s.parse::<u32>().ok());
-                let Some(id) = id else { return };
-                if sample.kind() == SampleKind::Put {
-                    lock(&live).insert(id);
-                } else {
-                    lock(&live).remove(&id);
-                }
-            })
-            .wait()
-            .map_err(|e| anyhow::anyhow!("liveliness subscriber {key}: {e}"))?;
-        *lock(&self.watcher) = Some(Box::new(sub));
+        let sub = watch_tokens(session, &self.swarm, "alive", "index-shard", move |id, declared| {
+            if declared {
+                lock(&live).insert(id);
+            } else {
+                lock(&live).remove(&id);
+            }
+        })?;
+        *lock(&self.watcher) = Some(sub);
         Ok(())
     }
 

@@ -38,6 +38,37 @@ pub fn alive_key(swarm: &str, kind: &str, robot: u32) -> String {
     format!("swarmrec/v1/{swarm}/alive/{kind}/{robot}")
 }
 
+/// A liveliness subscriber on `swarmrec/v1/<swarm>/<what>/<kind>/*` (the tokens already
+/// declared too) calling `on(robot, declared)` for each token that comes or goes; it lives
+/// as long as the returned handle.
+pub fn watch_tokens(
+    session: &zenoh::Session,
+    swarm: &str,
+    what: &str,
+    kind: &str,
+    on: impl Fn(u32, bool) + Send + Sync + 'static,
+) -> anyhow::Result<Box<dyn std::any::Any + Send>> {
+    let key = format!("swarmrec/v1/{swarm}/{what}/{kind}/*");
+    let sub = session
+        .liveliness()
+        .declare_subscriber(&key)
+        .history(true)
+        .callback(move |sample| {
+            let id = sample
+                .key_expr()
+                .as_str()
+                .rsplit('/')
+                .next()
+                .and_then(|s| s.parse::<u32>().ok());
+            if let Some(id) = id {
+                on(id, sample.kind() == zenoh::sample::SampleKind::Put);
+            }
+        })
+        .wait()
+        .map_err(|e| anyhow::anyhow!("liveliness subscriber {key}: {e}"))?;
+    Ok(Box::new(sub))
+}
+
 /// A refusal: the `swarmrec.v1.ErrorCode` to answer with, and why.
 #[derive(Debug, Clone)]
 pub struct RequestError {
