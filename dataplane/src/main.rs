@@ -13,12 +13,16 @@
 
 mod argsort;
 mod association;
+mod caller;
 mod compute;
+mod descriptor;
 mod index;
 mod metrics;
 mod pb;
+mod pending;
 mod placement;
 mod recordlog;
+mod routing;
 mod runtime;
 mod selection;
 mod shard;
@@ -33,7 +37,7 @@ use anyhow::{bail, Context};
 use zenoh::Wait;
 
 use crate::metrics::{MetricsServer, ServiceMetrics};
-use crate::runtime::{Dispatcher, Log, Service};
+use crate::runtime::{Dispatcher, LocalEndpoints, Log, Service};
 use crate::spec::HostSpec;
 
 /// zenoh's runtime on the process's one thread, every pool handed over to it (ZENOH.md).
@@ -45,7 +49,10 @@ const SINGLE_THREAD_RUNTIME: &str =
     "(app:(worker_threads:1),rx:(handover:app),tx:(handover:app),net:(handover:app),acc:(handover:app))";
 
 /// The kinds this binary implements.
-const KINDS: &[&str] = &["index-shard", "verifier"];
+/// Requests a blocking endpoint holds waiting for its thread before it refuses more.
+const BLOCKING_QUEUE: usize = 1024;
+
+const KINDS: &[&str] = &["descriptor", "index-shard", "verifier"];
 
 fn usage() -> ! {
     eprintln!(
@@ -318,12 +325,14 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
         &spec.log_level,
     );
     let mut hosted: Vec<Hosted> = Vec::new();
+    let local = Arc::new(LocalEndpoints::default());
     for s in &spec.services {
         let metrics = Arc::new(ServiceMetrics::new(&s.kind, s.robot, &s.swarm));
         let log = Log::new(&s.kind, s.robot, &spec.log_level);
         let service: Arc<dyn Service> = match s.kind.as_str() {
             "verifier" => Arc::new(verifier::Verifier::new(s, metrics.clone(), log.clone())?),
             "index-shard" => shard::IndexShard::new(s, metrics.clone(), log.clone())?,
+            "descriptor" => descriptor::Descriptor::new(s, metrics.clone(), log.clone(), local.clone())?,
             other => bail!("{other} has no compiled implementation"),
         };
         let path = if single {
@@ -393,19 +402,45 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
     for (h, s) in hosted.iter().zip(&spec.services) {
         for endpoint in h.service.clone().endpoints() {
             let key = runtime::endpoint_key(&h.swarm, &h.kind, h.robot, endpoint.name);
-            let d = Dispatcher {
+            let blocking = endpoint.blocking;
+            let d = Arc::new(Dispatcher {
                 endpoint,
                 key: key.clone(),
                 robot: h.robot,
                 max_message_bytes: s.max_message_bytes,
                 metrics: h.metrics.clone(),
                 log: h.log.clone(),
-            };
-            let q = session
-                .declare_queryable(&key)
-                .callback(move |query| d.serve(query))
-                .wait()
-                .map_err(|e| anyhow::anyhow!("queryable {key}: {e}"))?;
+            });
+            local.add(&key, h.robot, d.clone());
+            let q = if blocking {
+                // Served on a thread of its own, in the order the queries came: zenoh's
+                // one thread stays free to deliver the replies the handler waits for.
+                let (tx, rx) = std::sync::mpsc::sync_channel::<zenoh::query::Query>(BLOCKING_QUEUE);
+                let worker = d.clone();
+                std::thread::Builder::new()
+                    .name(format!("{}-{}", h.kind, worker.endpoint.name))
+                    .spawn(move || {
+                        while let Ok(query) = rx.recv() {
+                            worker.serve(query);
+                        }
+                    })
+                    .context("a thread for a blocking endpoint")?;
+                let busy = d.clone();
+                session
+                    .declare_queryable(&key)
+                    .callback(move |query| {
+                        if let Err(std::sync::mpsc::TrySendError::Full(query)) = tx.try_send(query) {
+                            busy.refuse_busy(query, BLOCKING_QUEUE);
+                        }
+                    })
+                    .wait()
+            } else {
+                session
+                    .declare_queryable(&key)
+                    .callback(move |query| d.serve(query))
+                    .wait()
+            }
+            .map_err(|e| anyhow::anyhow!("queryable {key}: {e}"))?;
             queryables.push(q);
         }
         // `info`: what the service says of itself (asked once per member: no counting).
@@ -451,6 +486,9 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
         );
         h.metrics.registry.set(h.metrics.ready, &[], 1.0);
     }
+    for h in &hosted {
+        h.service.clone().serving();
+    }
     host_metrics.set(host_ready, &[], 1.0);
     if let Some(s) = &server {
         s.set_ready(true);
@@ -495,6 +533,7 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
     for q in queryables {
         let _ = q.undeclare().wait();
     }
+    local.clear();
     for h in &hosted {
         h.service.close();
     }

@@ -80,6 +80,35 @@ impl RecordLog {
         Ok(scan(&data).0.into_iter().map(<[u8]>::to_vec).collect())
     }
 
+    /// Replaces every record with `records` (compaction): written to a new file, synced,
+    /// then renamed over the log, so a crash leaves the old log or the new one whole.
+    pub fn rewrite(&mut self, records: &[Vec<u8>]) -> std::io::Result<()> {
+        let Some(path) = self.path.clone() else { return Ok(()) };
+        let mut name = path.file_name().unwrap_or_default().to_os_string();
+        name.push(".tmp");
+        let tmp = path.with_file_name(name);
+        {
+            let mut f = File::create(&tmp)?;
+            let mut buf = Vec::new();
+            for r in records {
+                if r.len() > MAX_RECORD_BYTES {
+                    return Err(std::io::Error::other(format!(
+                        "record of {} bytes is over {MAX_RECORD_BYTES}",
+                        r.len()
+                    )));
+                }
+                buf.extend_from_slice(&(r.len() as u32).to_le_bytes());
+                buf.extend_from_slice(r);
+            }
+            f.write_all(&buf)?;
+            f.sync_all()?;
+        }
+        self.file = None;
+        std::fs::rename(&tmp, &path)?;
+        self.file = Some(OpenOptions::new().create(true).append(true).open(&path)?);
+        Ok(())
+    }
+
     /// Appends one record; it is in the file (and synced if asked) on return.
     pub fn append(&mut self, record: &[u8]) -> std::io::Result<()> {
         if record.len() > MAX_RECORD_BYTES {

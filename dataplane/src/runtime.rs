@@ -38,6 +38,37 @@ pub fn alive_key(swarm: &str, kind: &str, robot: u32) -> String {
     format!("swarmrec/v1/{swarm}/alive/{kind}/{robot}")
 }
 
+/// A liveliness subscriber on `swarmrec/v1/<swarm>/<what>/<kind>/*` (the tokens already
+/// declared too) calling `on(robot, declared)` for each token that comes or goes; it lives
+/// as long as the returned handle.
+pub fn watch_tokens(
+    session: &zenoh::Session,
+    swarm: &str,
+    what: &str,
+    kind: &str,
+    on: impl Fn(u32, bool) + Send + Sync + 'static,
+) -> anyhow::Result<Box<dyn std::any::Any + Send>> {
+    let key = format!("swarmrec/v1/{swarm}/{what}/{kind}/*");
+    let sub = session
+        .liveliness()
+        .declare_subscriber(&key)
+        .history(true)
+        .callback(move |sample| {
+            let id = sample
+                .key_expr()
+                .as_str()
+                .rsplit('/')
+                .next()
+                .and_then(|s| s.parse::<u32>().ok());
+            if let Some(id) = id {
+                on(id, sample.kind() == zenoh::sample::SampleKind::Put);
+            }
+        })
+        .wait()
+        .map_err(|e| anyhow::anyhow!("liveliness subscriber {key}: {e}"))?;
+    Ok(Box::new(sub))
+}
+
 /// A refusal: the `swarmrec.v1.ErrorCode` to answer with, and why.
 #[derive(Debug, Clone)]
 pub struct RequestError {
@@ -74,6 +105,10 @@ pub struct Endpoint {
     pub name: &'static str,
     pub request: &'static str,
     pub handler: Handler,
+    /// The handler waits on peers (a descriptor's two-step query): it is served on a
+    /// thread of its own, never on zenoh's, whose one thread must stay free to receive
+    /// the replies it waits for.
+    pub blocking: bool,
 }
 
 /// A compiled service, as the runner drives it.
@@ -86,6 +121,9 @@ pub trait Service: Send + Sync {
     fn attach(&self, _session: &zenoh::Session) -> anyhow::Result<()> {
         Ok(())
     }
+    /// Called once the service serves (token declared): a descriptor learns the swarm's
+    /// placement and starts retrying its pending stores.
+    fn serving(self: Arc<Self>) {}
     /// Called on SIGTERM while the service still serves (token and endpoints up): an index
     /// shard hands its groups on first.
     fn drain(&self) {}
@@ -196,7 +234,7 @@ pub fn caller_robot(attachment: Option<&ZBytes>) -> Option<u32> {
         .and_then(|r| u32::try_from(r).ok())
 }
 
-fn schema_of(encoding: Option<&Encoding>) -> String {
+pub fn schema_of(encoding: Option<&Encoding>) -> String {
     let text = encoding.map(|e| e.to_string()).unwrap_or_default();
     text.split_once(';').map(|(_, s)| s.to_string()).unwrap_or_default()
 }
@@ -241,19 +279,78 @@ impl Dispatcher {
         (ep.handler)(data, caller)
     }
 
-    /// Serves one query on the thread that received it; never panics the runtime: a
-    /// handler's panic is answered INTERNAL.
+    /// Serves one query on the calling thread; never panics the runtime: a handler's
+    /// panic is answered INTERNAL.
     pub fn serve(&self, query: Query) {
         let (t0, c0) = (Instant::now(), thread_cpu_s());
         let caller = caller_robot(query.attachment());
         let scope = scope_between(self.robot, caller);
         let data = query.payload().map(|p| p.to_bytes().into_owned()).unwrap_or_default();
         let schema = schema_of(query.encoding());
+        let (name, payload, ok) = self.handle(&data, &schema, caller, scope);
+        let size = payload.len();
+        let sent = if ok {
+            query.reply(&self.key, payload).encoding(encoding(name)).wait()
+        } else {
+            query.reply_err(payload).encoding(encoding(name)).wait()
+        };
+        if sent.is_ok() {
+            self.metrics.count_sent(name, scope, size);
+        }
+        drop(query); // finishes the query: the caller need not wait for its timeout
+        self.observe(t0, c0);
+    }
+
+    /// Refuses `query` at once (UNAVAILABLE): `queued` requests wait for this endpoint's thread.
+    pub fn refuse_busy(&self, query: Query, queued: usize) {
+        let caller = caller_robot(query.attachment());
+        let scope = scope_between(self.robot, caller);
+        let size = query.payload().map_or(0, |p| p.len());
+        self.metrics.count_received(self.endpoint.request, scope, size);
+        let code = error_name(pb::ErrorCode::Unavailable);
+        let m = &self.metrics;
+        m.registry.inc(m.rejected, &[self.endpoint.name, code], 1.0);
+        let payload = pb::ErrorReply {
+            code: pb::ErrorCode::Unavailable as i32,
+            message: format!(
+                "{queued} requests are waiting for {}: try again later",
+                self.endpoint.name
+            ),
+        }
+        .encode_to_vec();
+        let size = payload.len();
+        if query.reply_err(payload).encoding(encoding("ErrorReply")).wait().is_ok() {
+            self.metrics.count_sent("ErrorReply", scope, size);
+        }
+    }
+
+    /// A call from a service of the same robot in this process (`LocalEndpoints`), served
+    /// on the caller's thread: (reply's short schema name, bytes, a reply or an ErrorReply).
+    pub fn serve_local(&self, data: &[u8], schema: &str, caller: u32) -> (&'static str, Vec<u8>, bool) {
+        let (t0, c0) = (Instant::now(), thread_cpu_s());
+        let scope = scope_between(self.robot, Some(caller));
+        let (name, payload, ok) = self.handle(data, schema, Some(caller), scope);
+        self.metrics.count_sent(name, scope, payload.len());
+        self.observe(t0, c0);
+        (name, payload, ok)
+    }
+
+    fn observe(&self, t0: Instant, c0: f64) {
+        let m = &self.metrics;
+        m.registry
+            .observe(m.request_seconds, &[self.endpoint.name], t0.elapsed().as_secs_f64());
+        let cpu = thread_cpu_s() - c0;
+        m.registry.inc(m.request_cpu_seconds, &[self.endpoint.name], cpu);
+        m.add_cost(self.endpoint.name, cpu);
+    }
+
+    /// The reply to one request: (short schema name, bytes, a reply or an ErrorReply).
+    fn handle(&self, data: &[u8], schema: &str, caller: Option<u32>, scope: &str) -> (&'static str, Vec<u8>, bool) {
         let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            self.answer(&data, &schema, caller, scope)
+            self.answer(data, schema, caller, scope)
         }))
         .unwrap_or_else(|_| Err(RequestError::new(pb::ErrorCode::Internal, "the handler panicked")));
-        let (name, payload, ok) = match outcome {
+        match outcome {
             Ok((name, payload)) => (name, payload, true),
             Err(e) => {
                 let code = error_name(e.code);
@@ -281,22 +378,34 @@ impl Dispatcher {
                     false,
                 )
             }
-        };
-        let size = payload.len();
-        let sent = if ok {
-            query.reply(&self.key, payload).encoding(encoding(name)).wait()
-        } else {
-            query.reply_err(payload).encoding(encoding(name)).wait()
-        };
-        if sent.is_ok() {
-            self.metrics.count_sent(name, scope, size);
         }
-        drop(query); // finishes the query: the caller need not wait for its timeout
-        let m = &self.metrics;
-        m.registry
-            .observe(m.request_seconds, &[self.endpoint.name], t0.elapsed().as_secs_f64());
-        let cpu = thread_cpu_s() - c0;
-        m.registry.inc(m.request_cpu_seconds, &[self.endpoint.name], cpu);
-        m.add_cost(self.endpoint.name, cpu);
+    }
+}
+
+/// The endpoints this process serves, by key, for calls within one robot
+/// (`LocalEndpoints` of the Python runner): a descriptor's calls to its own robot's
+/// verifier and shard are served on its thread, with no message.
+#[derive(Default)]
+pub struct LocalEndpoints {
+    served: std::sync::Mutex<std::collections::HashMap<String, (u32, Arc<Dispatcher>)>>,
+}
+
+impl LocalEndpoints {
+    pub fn add(&self, key: &str, robot: u32, d: Arc<Dispatcher>) {
+        let mut served = self.served.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        served.insert(key.to_string(), (robot, d));
+    }
+
+    pub fn clear(&self) {
+        self.served
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clear();
+    }
+
+    /// The endpoint at `key` when it belongs to `robot`.
+    pub fn find(&self, key: &str, robot: u32) -> Option<Arc<Dispatcher>> {
+        let served = self.served.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        served.get(key).filter(|(r, _)| *r == robot).map(|(_, d)| d.clone())
     }
 }

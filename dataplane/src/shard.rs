@@ -33,7 +33,6 @@ use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
 use std::time::{Duration, Instant};
 
 use prost::Message;
-use zenoh::sample::SampleKind;
 use zenoh::Wait;
 
 use crate::index::RangeIndex;
@@ -41,7 +40,7 @@ use crate::metrics::{Metric, ServiceMetrics};
 use crate::pb;
 use crate::placement::Placement;
 use crate::recordlog::RecordLog;
-use crate::runtime::{decode, encoding, endpoint_key, missing, Endpoint, Log, RequestError, Service};
+use crate::runtime::{decode, encoding, endpoint_key, missing, watch_tokens, Endpoint, Log, RequestError, Service};
 use crate::spec::{IndexSpec, PlaceSpec, ServiceSpec};
 
 /// `swarmrec.services.limits`: candidates a query may ask for, frame indices, and how far
@@ -837,10 +836,11 @@ impl IndexShard {
         let r = &self.metrics.registry;
         r.inc(self.ids.partial_queries, &[], 1.0);
         r.inc(self.ids.group_queries, &[&g.to_string()], 1.0);
+        // The label range is not echoed: zenoh pairs the reply with its request, which names it.
         Ok(pb::CandidatesReply {
             query_id: req.query_id,
-            label_lo: desc.label_lo,
-            label_hi: desc.label_hi,
+            label_lo: 0,
+            label_hi: 0,
             robot_ids: found.iter().map(|c| c.robot).collect(),
             frame_indices: found.iter().map(|c| c.frame as u32).collect(),
             scores: if req.include_scores {
@@ -969,32 +969,18 @@ impl IndexShard {
     }
 
     fn watch(&self, session: &zenoh::Session, what: &str) -> anyhow::Result<()> {
-        let key = format!("swarmrec/v1/{}/{what}/index-shard/*", self.swarm);
         let live = self.live.clone();
         let draining = what == "draining";
-        let sub = session
-            .liveliness()
-            .declare_subscriber(&key)
-            .history(true)
-            .callback(move |sample| {
-                let id = sample
-                    .key_expr()
-                    .as_str()
-                    .rsplit('/')
-                    .next()
-                    .and_then(|s| s.parse::<u32>().ok());
-                let Some(id) = id else { return };
-                let mut live = lock(&live);
-                let set = if draining { &mut live.draining } else { &mut live.alive };
-                if sample.kind() == SampleKind::Put {
-                    set.insert(id);
-                } else {
-                    set.remove(&id);
-                }
-            })
-            .wait()
-            .map_err(|e| anyhow::anyhow!("liveliness subscriber {key}: {e}"))?;
-        lock(&self.watchers).push(Box::new(sub));
+        let sub = watch_tokens(session, &self.swarm, what, "index-shard", move |id, declared| {
+            let mut live = lock(&live);
+            let set = if draining { &mut live.draining } else { &mut live.alive };
+            if declared {
+                set.insert(id);
+            } else {
+                set.remove(&id);
+            }
+        })?;
+        lock(&self.watchers).push(sub);
         Ok(())
     }
 }
@@ -1057,31 +1043,37 @@ impl Service for IndexShard {
                 name: "query",
                 request: "PartialQuery",
                 handler: handler(&self, "CandidatesReply", |s, d, _| s.query(d, false)),
+                blocking: false,
             },
             Endpoint {
                 name: "lookup",
                 request: "PartialQuery",
                 handler: handler(&self, "CandidatesReply", |s, d, _| s.query(d, true)),
+                blocking: false,
             },
             Endpoint {
                 name: "store",
                 request: "ShardStore",
                 handler: handler(&self, "StoreReply", |s, d, _| s.store(d)),
+                blocking: false,
             },
             Endpoint {
                 name: "placement",
                 request: "PlacementRequest",
                 handler: handler(&self, "ShardState", |s, d, _| s.placement_state(d)),
+                blocking: false,
             },
             Endpoint {
                 name: "adopt",
                 request: "AdoptRequest",
                 handler: handler(&self, "ShardState", |s, d, c| s.adopt(d, c)),
+                blocking: false,
             },
             Endpoint {
                 name: "transfer",
                 request: "TransferRequest",
                 handler: handler(&self, "TransferReply", |s, d, _| s.transfer(d)),
+                blocking: false,
             },
         ]
     }

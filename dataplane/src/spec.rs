@@ -46,6 +46,28 @@ pub struct ServiceSpec {
     /// An index shard's settings (absent for other kinds).
     #[serde(default)]
     pub index: Option<IndexSpec>,
+    /// A descriptor's settings (absent for other kinds).
+    #[serde(default)]
+    pub descriptor: Option<DescriptorSpec>,
+}
+
+/// What a descriptor reads beyond the place settings (its preset, PlaceSettings,
+/// IndexSettings, ExplainSettings and the bus's request timeout), resolved by Python.
+#[derive(Clone, Debug, Deserialize)]
+pub struct DescriptorSpec {
+    pub n_ret: u32,
+    pub n_fq: u32,
+    pub min_objects: u32,
+    pub exclusion: u32,
+    pub loop_closure_min_score: f64,
+    pub suspect_s: f64,
+    pub pending_capacity: usize,
+    pub retry_interval_s: f64,
+    pub explain_reports: u32,
+    pub request_timeout_s: f64,
+    /// The placement a querier routes with until it learns better (version 0, `ring`), as
+    /// serialized `swarmrec.v1.Placement` bytes, computed by the Python core.
+    pub initial_placement: Vec<u8>,
 }
 
 /// What an index shard reads beyond the place settings (IndexSettings, the label groups

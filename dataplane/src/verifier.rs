@@ -121,6 +121,18 @@ pub fn objects(msg: &pb::Constellation, places: &PlaceSpec) -> Result<(Vec<u32>,
     Ok((msg.labels.clone(), positions))
 }
 
+/// The query's robot, which orders the association's arguments with the stored frame's
+/// (robot, frame): the query's own when it names one, else the caller's when the caller is
+/// another robot of the swarm (a descriptor leaves robot and frame out of a request to
+/// another robot's verifier: the robots differ, so the frame cannot matter), else 0.
+pub fn query_robot(query: &pb::Constellation, caller: Option<u32>, own: u32) -> u32 {
+    match (query.robot_id, caller) {
+        (Some(r), _) => r,
+        (None, Some(c)) if c != own => c,
+        _ => 0,
+    }
+}
+
 impl Verifier {
     pub fn new(spec: &ServiceSpec, metrics: Arc<ServiceMetrics>, log: Log) -> anyhow::Result<Verifier> {
         let places = spec.places.clone();
@@ -286,7 +298,7 @@ impl Verifier {
         })
     }
 
-    fn verify_request(&self, data: &[u8]) -> Result<pb::VerifyReply, RequestError> {
+    fn verify_request(&self, data: &[u8], caller: Option<u32>) -> Result<pb::VerifyReply, RequestError> {
         let req: pb::VerifyRequest = decode(data, "swarmrec.v1.VerifyRequest")?;
         let Some(query_msg) = req.query.as_ref() else {
             return Err(missing("swarmrec.v1.VerifyRequest", "query"));
@@ -357,7 +369,7 @@ impl Verifier {
         }
         // Packed only now: a request over the bounds is refused before any work.
         let query = Frame::new(&labels, &positions);
-        let query_key = (query_msg.robot_id(), query_msg.frame_index());
+        let query_key = (query_robot(query_msg, caller, self.robot), query_msg.frame_index());
         let mut results: Vec<_> = verify(&query, query_key, self.robot, frames, knobs)
             .into_iter()
             .filter(|m| m.score > 0.0)
@@ -396,13 +408,16 @@ impl Service for Verifier {
                 name: "store",
                 request: "Constellation",
                 handler: Box::new(move |data, _caller| a.store(data).map(|r| ("StoreReply", r.encode_to_vec()))),
+                blocking: false,
             },
             Endpoint {
                 name: "verify",
                 request: "VerifyRequest",
-                handler: Box::new(move |data, _caller| {
-                    b.verify_request(data).map(|r| ("VerifyReply", r.encode_to_vec()))
+                handler: Box::new(move |data, caller| {
+                    b.verify_request(data, caller)
+                        .map(|r| ("VerifyReply", r.encode_to_vec()))
                 }),
+                blocking: false,
             },
         ]
     }

@@ -73,6 +73,22 @@ class GroundTruth:
     poses: PoseAssociation  # which pose each frame took, and how far in time
 
 
+#: Rows of the distance matrix computed at a time: the (rows, N, 3) differences of a
+#: block stay small (5000 frames at once took 600 MB).
+_ROWS = 256
+
+
+def _distances(scene: FloatArray) -> FloatArray:
+    """Euclidean distances between every two scene points, block of rows by block of rows:
+    each entry computed as the whole-matrix expression computes it, so the same doubles."""
+    n = scene.shape[0]
+    dist = np.empty((n, n))
+    for lo in range(0, n, _ROWS):
+        diff = scene[lo : lo + _ROWS, None, :] - scene[None, :, :]
+        dist[lo : lo + _ROWS] = np.sqrt((diff * diff).sum(-1))
+    return dist
+
+
 def ground_truth(
     seq: ConstellationSequence,
     trajectory: Trajectory,
@@ -89,8 +105,7 @@ def ground_truth(
     idx = associated.index
     poses = Trajectory(trajectory.timestamps[idx], trajectory.positions[idx], trajectory.quaternions[idx])
     scene = scene_points(seq, poses)
-    diff = scene[:, None, :] - scene[None, :, :]
-    dist = np.sqrt((diff * diff).sum(-1))
+    dist = _distances(scene)
     if rules == "tum-fr3-office":
         dist = _tum_fr3_office_filter(poses.positions, scene, dist)
     elif rules != "none":

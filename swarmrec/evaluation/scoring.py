@@ -211,12 +211,15 @@ def score_decentralized(
         act_q, act_k = np.nonzero(query_part > 0)
         selected: dict[tuple[int, int], IntArray] = {}
         if act_q.shape[0]:
-            # Only the bins some query holds can have a non-zero minimum.
-            bins = np.flatnonzero(sem[:, t].any(axis=0))
-            stored = sem[:, :t, bins]  # (n, t, m)
-            queries = sem[:, t, bins]  # (n, m)
-            common_all = np.minimum(stored[None], queries[:, None, None, :]) @ member[bins]
-            common = common_all[act_q, :, :, act_k]  # (A, n, t): one row per active (query, range)
+            # Only the bins the query holds in the range can have a non-zero minimum: one
+            # (active pair, bin) per such bin, the pairs in order (nonzero is row-major),
+            # each pair's minima summed. The counts are integers, so every sum is exact
+            # whatever its order: the same doubles as summing over every bin.
+            qvals = sem[act_q, t]  # (A, n_labels)
+            pa, pb = np.nonzero((qvals > 0) & (member[:, act_k].T > 0))
+            minima = np.minimum(sem[:, :t, pb], qvals[pa, pb])  # (n, t, P)
+            starts = np.flatnonzero(np.r_[True, pa[1:] != pa[:-1]])
+            common = np.moveaxis(np.add.reduceat(minima, starts, axis=2), 2, 0)  # (A, n, t)
             stored_part = np.moveaxis(sem_part[:, :t, act_k], 2, 0)  # (A, n, t)
             total = stored_part + query_part[act_q, act_k][:, None, None] - common
             values = (common / (total + PARTIAL_EPSILON)).reshape(act_q.shape[0], n_robots * t)

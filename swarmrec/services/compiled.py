@@ -50,7 +50,7 @@ from swarmrec.runtime.runner import (
     zenoh_config,
 )
 from swarmrec.runtime.settings import Config, StorageSettings
-from swarmrec.services.settings import IndexSettings, PlaceSettings
+from swarmrec.services.settings import ExplainSettings, IndexSettings, PlaceSettings
 from swarmrec.wire.placement import placement_to_proto
 
 __all__ = [
@@ -130,6 +130,32 @@ def _index(h: Hosted) -> dict[str, Any]:
     }
 
 
+def _descriptor(h: Hosted) -> dict[str, Any]:
+    """A descriptor's settings beyond the place settings (dataplane/src/spec.rs,
+    DescriptorSpec), with the placement it routes with until it learns better (version 0,
+    as the Python descriptor starts from)."""
+    bus = h.config.bus
+    places = h.config.get(PlaceSettings)
+    preset = get_preset(places.preset)
+    index = _index_settings(h)
+    explain = h.config.get(ExplainSettings) if h.config.has(ExplainSettings) else ExplainSettings()
+    groups = groups_from_bounds(places.bounds(bus).tolist())
+    first = ring(groups, range(bus.n_robots), replicas=index.replicas)
+    return {
+        "n_ret": preset.n_ret,
+        "n_fq": preset.n_fq,
+        "min_objects": preset.min_objects,
+        "exclusion": preset.exclusion,
+        "loop_closure_min_score": float(places.loop_closure_min_score),
+        "suspect_s": index.suspect_s,
+        "pending_capacity": index.pending_capacity,
+        "retry_interval_s": index.retry_interval_s,
+        "explain_reports": explain.explain_reports,
+        "request_timeout_s": bus.request_timeout_s,
+        "initial_placement": list(placement_to_proto(first).SerializeToString()),
+    }
+
+
 def _service(h: Hosted) -> dict[str, Any]:
     """One service's resolved settings, as the binary reads them (dataplane/src/spec.rs)."""
     bus = h.config.bus
@@ -138,6 +164,7 @@ def _service(h: Hosted) -> dict[str, Any]:
     storage = h.config.get(StorageSettings) if h.config.has(StorageSettings) else None
     return {
         "index": _index(h) if h.kind == "index-shard" else None,
+        "descriptor": _descriptor(h) if h.kind == "descriptor" else None,
         "kind": h.kind,
         "wire_kind": int(h.wire_kind),
         "swarm": bus.swarm,

@@ -482,8 +482,6 @@ class IndexShard(ServiceBase, ShardSettings):
         self.metrics.group_queries.labels(str(g)).inc()
         return candidates_to_proto(
             req.query_id,
-            part.lo,
-            part.hi,
             (Candidate(c.robot, c.frame, c.score) for c in found),
             include_scores=req.include_scores,
         )

@@ -179,6 +179,7 @@ for _entry in (
         stateful=True,
         components=(*_INDEXED, ExplainSettings),
         metrics=DescriptorMetrics,
+        compiled=True,
     ),
     ServiceSpec(
         "index-shard",

@@ -155,9 +155,15 @@ class Verifier(ServiceBase):
             )
         return frames
 
-    def verify(self, req: pb.VerifyRequest, _ctx: RequestContext) -> pb.VerifyReply:
-        # The query's robot and frame may be absent (0): they only order the association's arguments.
+    def verify(self, req: pb.VerifyRequest, ctx: RequestContext) -> pb.VerifyReply:
+        # The query's robot and frame may be absent: they only order the association's
+        # arguments, as (robot, frame) against the stored frame's. A descriptor leaves both
+        # out of a request to another robot's verifier (the robots differ, so the frame
+        # cannot matter): the query's robot is then the caller's; otherwise 0.
         check_fields(req, "query")
+        robot = req.query.robot_id
+        if not req.query.HasField("robot_id") and ctx.caller_robot not in (None, self.bus.robot):
+            robot = ctx.caller_robot
         query = self._constellation(req.query)
         preset = self.preset
         if req.HasField("distance_threshold_m"):
@@ -169,7 +175,7 @@ class Verifier(ServiceBase):
             frames = self._frames_to_check(req, len(query), preset.min_common)
         results = verify_tables(
             build_table([query], self.places.n_labels),
-            (req.query.robot_id, req.query.frame_index),
+            (robot, req.query.frame_index),
             self.bus.robot,
             frames,
             preset,

@@ -430,9 +430,10 @@ class Candidate:
 
 
 def candidates_to_proto(
-    query_id: int, lo: int, hi: int, candidates: Iterable[Candidate], *, include_scores: bool = True
+    query_id: int, candidates: Iterable[Candidate], *, include_scores: bool = True
 ) -> query_pb2.CandidatesReply:
-    """A shard's reply for labels ``[lo, hi)``; candidates keep their order (best first).
+    """A shard's reply; candidates keep their order (best first). The label range is
+    left out: zenoh pairs the reply with its request, which names it.
 
     Scores travel as float32 (about 7 significant digits), enough to rank,
     and only when ``include_scores``.
@@ -443,8 +444,6 @@ def candidates_to_proto(
         raise WireError(f"candidate {bad[0]} has a non-finite score")
     return query_pb2.CandidatesReply(
         query_id=_uint32("query id", query_id),
-        label_lo=_uint32("label_lo", lo),
-        label_hi=_uint32("label_hi", hi),
         robot_ids=[_uint32("robot id", c.robot_id) for c in items],
         frame_indices=[_uint32("frame index", c.frame_index) for c in items],
         scores=[c.score for c in items] if include_scores else [],
@@ -452,9 +451,11 @@ def candidates_to_proto(
 
 
 def candidates_from_proto(msg: query_pb2.CandidatesReply, n_labels: int) -> list[Candidate]:
-    """The candidates of a shard's reply, after checking the reply is consistent."""
+    """The candidates of a shard's reply, after checking the reply is consistent (its
+    label range too, when it names one: replies of this version leave it out)."""
     _check_n_labels(n_labels)
-    _check_range(msg.label_lo, msg.label_hi, n_labels)
+    if msg.label_lo or msg.label_hi:
+        _check_range(msg.label_lo, msg.label_hi, n_labels)
     n = len(msg.robot_ids)
     if len(msg.frame_indices) != n or len(msg.scores) not in (0, n):
         raise WireError(

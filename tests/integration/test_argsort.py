@@ -168,4 +168,3 @@ def test_python_reference_still_agrees_with_numpy_on_a_known_case() -> None:
     """The Python selection is what the compiled one is compared with: a hand-checked case."""
     assert select_candidates(np.array([0.0, 0.5, 0.5, 0.25]), 5).tolist() == [1, 2, 3]
     assert select_robots([2, 2, 0], 1, 4).tolist() == [2, 4]
-

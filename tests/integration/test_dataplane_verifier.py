@@ -177,17 +177,17 @@ def test_a_host_mixing_python_and_compiled_kinds_serves_both(
         swarm_name(request),
         PlaceSettings(n_labels=N_LABELS),
         robots=N_ROBOTS,
-        kinds=("index-shard", "verifier", "descriptor"),
+        kinds=("index-shard", "verifier", "descriptor", "slam"),
         swarm_kinds=(),
         hosting="robots:2",
         data_plane="compiled",
     ) as swarm:
         host = swarm.procs[0]
-        kinds = ("index-shard", "verifier", "descriptor")
+        kinds = ("index-shard", "verifier", "descriptor", "slam")
         assert set(host.urls) == {(k, r) for k in kinds for r in range(N_ROBOTS)}
-        # The compiled kinds' metrics are the child's; the descriptors' the host's own.
+        # The compiled kinds' metrics are the child's; the SLAM services' the host's own.
         server = {k: host.urls[(k, 0)].split("/metrics")[0] for k in kinds}
-        assert server["verifier"] == server["index-shard"] != server["descriptor"]
+        assert server["verifier"] == server["index-shard"] == server["descriptor"] != server["slam"]
         with swarm.client(5.0) as client:
             client.wait_for({(k, r) for k in kinds for r in range(N_ROBOTS)}, 30)
             # The compiled shards' coordinators run in the host (Python): the placement is confirmed.

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from swarmrec.core.types import ConstellationSequence, Trajectory
-from swarmrec.evaluation.groundtruth import ground_truth, quaternion_to_matrix
+from swarmrec.evaluation.groundtruth import _distances, ground_truth, quaternion_to_matrix
 from swarmrec.evaluation.pr import precision_recall
 from tests.conftest import make
 
@@ -94,3 +94,12 @@ def test_closures_with_an_ignored_frame_are_not_missed_closures() -> None:
     scores[2, 2] = -1.0
     curve = precision_recall(scores, TRUTH)
     assert curve.relevant == 2  # frame 2's closure with 0 no longer counts
+
+
+@pytest.mark.parametrize("n", [1, 255, 256, 257, 1300])
+def test_distances_by_blocks_of_rows_are_the_whole_matrix_expressions_doubles(n: int) -> None:
+    rng = np.random.default_rng(n)
+    scene = rng.normal(size=(n, 3)) * rng.uniform(0.1, 30.0, size=(n, 1))
+    diff = scene[:, None, :] - scene[None, :, :]
+    whole = np.sqrt((diff * diff).sum(-1))
+    assert _distances(scene).tobytes() == whole.tobytes()

@@ -401,20 +401,28 @@ FOUR_CANDIDATES = [
 
 
 def test_candidates_round_trip_in_order() -> None:
-    msg = candidates_to_proto(42, 20, 40, FOUR_CANDIDATES)
+    msg = candidates_to_proto(42, FOUR_CANDIDATES)
     msg = decode(encode(msg), pb.CandidatesReply)
-    assert (msg.query_id, msg.label_lo, msg.label_hi) == (42, 20, 40)
+    assert (msg.query_id, msg.label_lo, msg.label_hi) == (42, 0, 0)  # the request names the range
     # The scores are exact in float32, so equality holds.
     assert candidates_from_proto(msg, N_LABELS) == FOUR_CANDIDATES
 
 
-def test_candidates_reply_with_four_candidates_encodes_in_39_bytes() -> None:
-    # query_id 1234 (3) + lo 20 (2) + hi 40 (2) + robot_ids (tag, length, 4 x 1: 6)
+def test_candidates_reply_with_four_candidates_encodes_in_35_bytes() -> None:
+    # query_id 1234 (3) + robot_ids (tag, length, 4 x 1: 6)
     # + frame_indices 310, 12, 2047, 0 (tag, length, 2 + 1 + 2 + 1: 8)
-    # + scores (tag, length, 4 x 4: 18) = 39 bytes; frame indices below 2^14
-    # keep it at most 41. A sub-message per candidate would cost 12 bytes each
-    # (tag, length, robot 2, frame 3, score 5) against 7 here.
-    assert len(encode(candidates_to_proto(1234, 20, 40, FOUR_CANDIDATES))) == 39
+    # + scores (tag, length, 4 x 4: 18) = 35 bytes; frame indices below 2^14
+    # keep it at most 37. A sub-message per candidate would cost 12 bytes each
+    # (tag, length, robot 2, frame 3, score 5) against 7 here. The label range (4 bytes
+    # here) is not echoed: the request names it.
+    assert len(encode(candidates_to_proto(1234, FOUR_CANDIDATES))) == 35
+
+
+def test_a_reply_that_names_a_range_still_has_it_checked() -> None:
+    ok = pb.CandidatesReply(label_lo=20, label_hi=40, robot_ids=[1], frame_indices=[3])
+    assert [(c.robot_id, c.frame_index) for c in candidates_from_proto(ok, N_LABELS)] == [(1, 3)]
+    with pytest.raises(WireError, match="ends past the label list"):
+        candidates_from_proto(pb.CandidatesReply(label_lo=20, label_hi=N_LABELS + 1), N_LABELS)
 
 
 @pytest.mark.parametrize(
@@ -442,14 +450,14 @@ def test_candidates_decoding_rejects_an_inconsistent_reply(fields: dict[str, Any
 
 def test_candidates_encoding_rejects_a_non_finite_score() -> None:
     with pytest.raises(WireError, match="non-finite score"):
-        candidates_to_proto(1, 0, 10, [Candidate(0, 0, float("inf"))])
+        candidates_to_proto(1, [Candidate(0, 0, float("inf"))])
 
 
 def test_candidates_without_scores_send_no_score_bytes_and_decode_as_nan() -> None:
-    # The 39-byte reply above less its scores field (tag, length, 4 x 4 = 18): 21 bytes.
-    msg = candidates_to_proto(1234, 20, 40, FOUR_CANDIDATES, include_scores=False)
+    # The 35-byte reply above less its scores field (tag, length, 4 x 4 = 18): 17 bytes.
+    msg = candidates_to_proto(1234, FOUR_CANDIDATES, include_scores=False)
     data = encode(msg)
-    assert len(data) == 21
+    assert len(data) == 17
     back = candidates_from_proto(decode(data, pb.CandidatesReply), N_LABELS)
     assert [(c.robot_id, c.frame_index) for c in back] == [(1, 310), (0, 12), (7, 2047), (1, 0)]
     assert all(math.isnan(c.score) for c in back)
@@ -457,7 +465,7 @@ def test_candidates_without_scores_send_no_score_bytes_and_decode_as_nan() -> No
 
 def test_candidates_without_scores_still_refuse_a_non_finite_score_on_encoding() -> None:
     with pytest.raises(WireError, match="non-finite score"):
-        candidates_to_proto(1, 0, 10, [Candidate(0, 0, float("nan"))], include_scores=False)
+        candidates_to_proto(1, [Candidate(0, 0, float("nan"))], include_scores=False)
 
 
 def test_verify_reply_round_trips_matched_object_pairs() -> None:

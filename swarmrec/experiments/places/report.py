@@ -336,15 +336,26 @@ def _positive(matrix: ScoreMatrix) -> dict[tuple[int, int], float]:
     }
 
 
-def _compare_offline(
-    matrix: ScoreMatrix,
-    wire_seq: ConstellationSequence,
-    robots: int,
-    preset: Preset,
-    bounds: npt.NDArray[np.int64],
-) -> OfflineCheck:
-    run = score_decentralized(wire_seq, robots, preset, bounds=bounds)
-    ours, theirs = _positive(matrix), _positive(run.matrix)
+class _Offline:
+    """The offline decentralized evaluation of the run's frames as they went on the wire
+    and with exact positions, each computed once (the report asks for the first twice:
+    the identity check and what millimetres cost)."""
+
+    def __init__(self, run: RunRecord, robots: int) -> None:
+        self.run, self.robots = run, robots
+        # By sequence: with exact positions on the wire, both are the same frames.
+        self._done: dict[int, ScoreMatrix] = {}
+
+    def matrix(self, *, wire: bool) -> ScoreMatrix:
+        seq = self.run.wire_seq if wire else self.run.seq
+        if id(seq) not in self._done:
+            scored = score_decentralized(seq, self.robots, self.run.preset, bounds=self.run.bounds)
+            self._done[id(seq)] = scored.matrix
+        return self._done[id(seq)]
+
+
+def _compare_offline(matrix: ScoreMatrix, offline: ScoreMatrix) -> OfflineCheck:
+    ours, theirs = _positive(matrix), _positive(offline)
     differ = sum(1 for k in ours.keys() & theirs.keys() if ours[k] != theirs[k])
     only_swarm, only_offline = len(ours.keys() - theirs.keys()), len(theirs.keys() - ours.keys())
     return OfflineCheck(
@@ -357,9 +368,9 @@ def _compare_offline(
     )
 
 
-def _positions_effect(run: RunRecord, robots: int, truth: npt.NDArray[np.bool_]) -> PositionsEffect:
-    exact = score_decentralized(run.seq, robots, run.preset, bounds=run.bounds).matrix.dense()
-    carried = score_decentralized(run.wire_seq, robots, run.preset, bounds=run.bounds).matrix.dense()
+def _positions_effect(offline: _Offline, truth: npt.NDArray[np.bool_]) -> PositionsEffect:
+    exact = offline.matrix(wire=False).dense()
+    carried = offline.matrix(wire=True).dense()
     return PositionsEffect(
         auc_offline_exact_positions=precision_recall(exact, truth).auc,
         auc_offline_mm_positions=precision_recall(carried, truth).auc,
@@ -548,9 +559,10 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
     if run.index is not None:
         summary.index = _index_summary(run.index, metrics, settings.index.replicas)
     summary.funnel = funnel_stats(replay.reports, run.closures, metrics)
+    offline = _Offline(run, settings.robots)
     # Frames delivered late were stored after their step: the lock-step identity is off then.
     if settings.check_offline and settings.lockstep and not replay.missing and not replay.late:
-        summary.offline_check = _compare_offline(matrix, wire_seq, settings.robots, run.preset, run.bounds)
+        summary.offline_check = _compare_offline(matrix, offline.matrix(wire=True))
     dense = matrix.dense()
     curves: dict[str, PRCurve] = {}
     truth = None
@@ -561,7 +573,7 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
         summary.auc = curves[name].auc
         truth = gt.closures
         if run.wire_seq is not run.seq and settings.check_offline:
-            summary.positions_effect = _positions_effect(run, settings.robots, gt.closures)
+            summary.positions_effect = _positions_effect(offline, gt.closures)
     _write_pairs(out / "pairs.csv", matrix, wire_seq)
     _write_closures(out / "loop_closures.csv", run.closures, run.blocks, seq, truth)
     write_funnel(out, replay.reports, run.closures, run.blocks, seq)
