@@ -7,7 +7,10 @@ queries of the frozen steps must end at the verification stage, never scored, as
 ``verifier_timeout`` or, once the router has given up on the frozen process (its
 lease expired, or its queue to the process filled: CI saw this at the first frozen
 step), as ``verifier_unreachable``; a caller cannot tell such a process from a dead
-one, and the funnel reports what the caller saw. Robot 1's candidates after the
+one, and the funnel reports what the caller saw. The frozen window ends when robot 2's
+verifier answers again, not at SIGCONT: a process the router gave up on reconnects and
+declares its endpoints again first, and compiled services replay the steps after the
+thaw faster than that takes. Robot 1's candidates after the
 kill must be ``verifier_unreachable``; no
 candidate anywhere else fails verification, and the funnel still adds up. Robot 2's
 own frames of the frozen steps wait in its detector's outbox (its descriptor cannot
@@ -20,6 +23,7 @@ import contextlib
 import csv
 import os
 import signal
+import time
 from pathlib import Path
 
 import pytest
@@ -28,12 +32,23 @@ from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.experiments.places import PlacesSettings, main
+from tests.integration.support import endpoint_key
 
 ROBOTS, FRAMES = 3, 300
 FROZEN, THAWED, KILLED = 20, 24, 60  # after these steps
 STOPPED, DEAD = 2, 1  # whose verifier
 # Right after the kill the router may not have noticed yet: a query can still time out.
 SETTLED = KILLED + 3
+
+
+def _wait_answering(d: LocalDeployment, kind: str, robot: int, timeout_s: float = 30.0) -> None:
+    """Until the service answers its ``info`` endpoint (fails the test after ``timeout_s``)."""
+    key = endpoint_key(d, kind, robot, "info")
+    deadline = time.monotonic() + timeout_s
+    with d.client(1.0) as client:
+        while not any(r.ok is not None for r in client.session.get(key, timeout=1.0)):
+            assert time.monotonic() < deadline, f"{kind} {robot} did not answer again in {timeout_s:g} s"
+            time.sleep(0.05)
 
 
 def _rows(path: Path) -> list[dict[str, str]]:
@@ -67,6 +82,7 @@ def test_candidates_of_a_frozen_verifier_time_out_and_of_a_dead_one_are_unreacha
             os.kill(frozen[0], signal.SIGSTOP)
         elif t == THAWED:
             os.kill(frozen.pop(), signal.SIGCONT)
+            _wait_answering(held[0], "verifier", STOPPED)
         elif t == KILLED:
             proc = held[0].find("verifier", DEAD).proc
             proc.send_signal(signal.SIGKILL)
