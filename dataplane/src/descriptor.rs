@@ -22,7 +22,7 @@
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, OnceLock, PoisonError};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use prost::Message;
@@ -36,7 +36,9 @@ use crate::pending::PendingStores;
 use crate::placement::Placement;
 use crate::recordlog::RecordLog;
 use crate::routing::Routing;
-use crate::runtime::{decode, encoding, endpoint_key, missing, Endpoint, LocalEndpoints, Log, RequestError, Service};
+use crate::runtime::{
+    decode, encoding, endpoint_key, lock, missing, Endpoint, LocalEndpoints, Log, RequestError, Service,
+};
 use crate::selection::select_robots;
 use crate::spec::{DescriptorSpec, PlaceSpec, ServiceSpec};
 use crate::verifier::{objects, MAX_FRAME_INDEX};
@@ -46,44 +48,34 @@ const ROUTE_ATTEMPTS: usize = 3;
 /// Pending stores sent again per retry round.
 const RETRY_BATCH: usize = 256;
 
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(PoisonError::into_inner)
-}
+/// `swarmrec.core.funnel.Reason`: the wire's enum, whose numbers the Python one has.
+use crate::pb::FunnelReason as Reason;
 
-/// `swarmrec.core.funnel.Reason` (the wire's FunnelReason numbers).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-#[repr(i32)]
-enum Reason {
-    RobotNotChosen = 2,
-    VerifierUnreachable = 3,
-    VerifierTimeout = 4,
-    VerifierError = 5,
-    TooFewMatches = 6,
-    Matched = 7,
-    BelowScoreThreshold = 8,
-    OwnRecentFrame = 9,
-    Outranked = 10,
-    AlreadyClosed = 11,
-    Accepted = 12,
-}
-
-/// (stage label, reason label) of a wire reason, as `Reason.stage.label`/`Reason.label` name them.
-fn funnel_labels(reason: i32) -> (&'static str, &'static str) {
-    match reason {
-        1 => ("shard", "below_shard_cut"),
-        2 => ("selection", "robot_not_chosen"),
-        3 => ("verification", "verifier_unreachable"),
-        4 => ("verification", "verifier_timeout"),
-        5 => ("verification", "verifier_error"),
-        6 => ("verification", "too_few_matches"),
-        7 => ("verification", "matched"),
-        8 => ("closure", "below_score_threshold"),
-        9 => ("closure", "own_recent_frame"),
-        10 => ("closure", "outranked"),
-        11 => ("closure", "already_closed"),
-        12 => ("closure", "accepted"),
-        _ => ("unspecified", "unspecified"),
-    }
+/// (stage label, reason label) of a wire reason, as `Reason.stage.label`/`Reason.label`
+/// name them: the schema's name without its prefix, lowercase; a number this version does
+/// not know reads as unspecified.
+fn funnel_labels(reason: i32) -> (&'static str, String) {
+    let reason = Reason::try_from(reason).unwrap_or(Reason::Unspecified);
+    let stage = match reason {
+        Reason::Unspecified => "unspecified",
+        Reason::BelowShardCut => "shard",
+        Reason::RobotNotChosen => "selection",
+        Reason::VerifierUnreachable
+        | Reason::VerifierTimeout
+        | Reason::VerifierError
+        | Reason::TooFewMatches
+        | Reason::Matched => "verification",
+        Reason::BelowScoreThreshold
+        | Reason::OwnRecentFrame
+        | Reason::Outranked
+        | Reason::AlreadyClosed
+        | Reason::Accepted => "closure",
+    };
+    let name = reason.as_str_name();
+    (
+        stage,
+        name.strip_prefix("FUNNEL_REASON_").unwrap_or(name).to_lowercase(),
+    )
 }
 
 /// The reason for the candidates of a verifier that did not answer as asked.
@@ -327,7 +319,7 @@ impl Descriptor {
         for reason in 2..=12 {
             if reason != Reason::Matched as i32 {
                 let (stage, label) = funnel_labels(reason);
-                r.inc(ids.funnel, &[stage, label], 0.0);
+                r.inc(ids.funnel, &[stage, &label], 0.0);
             }
         }
         r.inc(ids.loop_closures, &[], 0.0);
@@ -465,7 +457,7 @@ impl Descriptor {
         }
         for o in &report.candidates {
             let (stage, label) = funnel_labels(o.reason);
-            reg.inc(self.ids.funnel, &[stage, label], 1.0);
+            reg.inc(self.ids.funnel, &[stage, &label], 1.0);
         }
         self.remember(&report);
         // Every frame's report, queried or not, so a listener can count frames.

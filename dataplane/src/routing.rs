@@ -6,17 +6,13 @@
 //! next, a shard that timed out last for `suspect_s` seconds.
 
 use std::collections::{BTreeSet, HashMap};
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use crate::caller::Caller;
 use crate::pb;
 use crate::placement::Placement;
-use crate::runtime::{endpoint_key, watch_tokens};
-
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(PoisonError::into_inner)
-}
+use crate::runtime::{endpoint_key, lock, watch_tokens};
 
 /// `swarmrec.core.placement.stable_hash`: one splitmix64 step per value, the value mixed
 /// into the state first; the same in every process and run.

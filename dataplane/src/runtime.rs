@@ -69,6 +69,12 @@ pub fn watch_tokens(
     Ok(Box::new(sub))
 }
 
+/// Locks `m`, and still when another thread panicked holding it: what it guards is kept
+/// consistent at every step, and a handler's panic is answered INTERNAL, not fatal.
+pub fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
 /// A refusal: the `swarmrec.v1.ErrorCode` to answer with, and why.
 #[derive(Debug, Clone)]
 pub struct RequestError {
@@ -392,20 +398,17 @@ pub struct LocalEndpoints {
 
 impl LocalEndpoints {
     pub fn add(&self, key: &str, robot: u32, d: Arc<Dispatcher>) {
-        let mut served = self.served.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        let mut served = lock(&self.served);
         served.insert(key.to_string(), (robot, d));
     }
 
     pub fn clear(&self) {
-        self.served
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner)
-            .clear();
+        lock(&self.served).clear();
     }
 
     /// The endpoint at `key` when it belongs to `robot`.
     pub fn find(&self, key: &str, robot: u32) -> Option<Arc<Dispatcher>> {
-        let served = self.served.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        let served = lock(&self.served);
         served.get(key).filter(|(r, _)| *r == robot).map(|(_, d)| d.clone())
     }
 }

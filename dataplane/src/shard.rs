@@ -29,7 +29,7 @@
 
 use std::collections::{BTreeSet, HashMap};
 use std::path::PathBuf;
-use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 use prost::Message;
@@ -40,7 +40,9 @@ use crate::metrics::{Metric, ServiceMetrics};
 use crate::pb;
 use crate::placement::Placement;
 use crate::recordlog::RecordLog;
-use crate::runtime::{decode, encoding, endpoint_key, missing, watch_tokens, Endpoint, Log, RequestError, Service};
+use crate::runtime::{
+    decode, encoding, endpoint_key, lock, missing, watch_tokens, Endpoint, Log, RequestError, Service,
+};
 use crate::spec::{IndexSpec, PlaceSpec, ServiceSpec};
 
 /// `swarmrec.services.limits`: candidates a query may ask for, frame indices, and how far
@@ -55,10 +57,6 @@ const TRANSFER_TIMEOUT: Duration = Duration::from_secs(10);
 
 fn failed(message: impl Into<String>) -> RequestError {
     RequestError::new(pb::ErrorCode::FailedPrecondition, message)
-}
-
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 /// A dense slice `[lo, hi)` from a PartialDescriptor, checked as
