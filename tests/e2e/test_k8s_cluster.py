@@ -23,10 +23,12 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
+import sys
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -110,6 +112,40 @@ def _api_answers() -> bool:
     return subprocess.run(probe, capture_output=True, timeout=20, check=False).returncode == 0
 
 
+#: The namespaces this module makes end in its test process's id.
+E2E_NAMESPACE = re.compile(r"^swarmrec-e2e-(?:[a-z]+-)?(\d+)$")
+
+
+def _test_process_alive(pid: int) -> bool:
+    """Whether ``pid`` is a running pytest (a number reused by another program is not)."""
+    try:
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return False
+    return b"pytest" in cmdline
+
+
+def stale_namespaces(names: Sequence[str], alive: Callable[[int], bool]) -> list[str]:
+    """Of ``names``, this module's namespaces whose test process is gone."""
+    stale = []
+    for name in names:
+        m = E2E_NAMESPACE.match(name)
+        if m and int(m.group(1)) != os.getpid() and not alive(int(m.group(1))):
+            stale.append(name)
+    return stale
+
+
+def _remove_stale_namespaces(kubectl: Kubectl) -> None:
+    """Delete what test runs that never finished left in a reused cluster. A cluster state
+    folder outlives a killed run (the machine stopped mid-test; cluster-up.sh then restarts
+    the cluster from it), and its swarms' pods still hold the node's CPU requests: a CI run
+    saw every descriptor pod of its own swarm Pending for "Insufficient cpu"."""
+    names = kubectl.run("get", "namespaces", "-o", "jsonpath={.items[*].metadata.name}").split()
+    for name in stale_namespaces(names, _test_process_alive):
+        print(f"k8s: removing {name}, left by a test run that is no longer running", file=sys.stderr)
+        kubectl.run("delete", "namespace", name, "--wait=true", "--timeout=240s", timeout_s=270)
+
+
 @pytest.fixture(scope="module")
 def cluster() -> Iterator[Cluster]:
     if os.geteuid() != 0:
@@ -118,11 +154,31 @@ def cluster() -> Iterator[Cluster]:
     t0 = time.monotonic()
     _run([str(REPO / "deploy/k8s/cluster-up.sh")], timeout_s=1800)
     c.timings["cluster_up_s"] = time.monotonic() - t0
+    _remove_stale_namespaces(_kubectl())
     try:
         yield c
     finally:
         if c.started_here and not KEEP:
             _run([str(REPO / "deploy/k8s/cluster-down.sh")], timeout_s=300)
+
+
+def test_only_namespaces_of_test_runs_that_are_gone_count_as_stale() -> None:
+    me = os.getpid()
+    names = [
+        "default",
+        "kube-system",
+        "swarmrec-e2e-111",  # gone
+        "swarmrec-e2e-live-222",  # still running
+        "swarmrec-e2e-broken-333",  # gone
+        f"swarmrec-e2e-{me}",  # this run's own
+        "swarmrec-e2e-notapid",
+        "swarmrec-probes-tls",  # a benchmark's, not this module's
+        "my-swarm-444",
+    ]
+    assert stale_namespaces(names, lambda pid: pid == 222) == ["swarmrec-e2e-111", "swarmrec-e2e-broken-333"]
+    # This process is a pytest: a namespace named after it is never taken for stale.
+    assert _test_process_alive(me)
+    assert not _test_process_alive(2**22 + 1)  # above pid_max's default: no such process
 
 
 @pytest.fixture(scope="module")
