@@ -22,6 +22,7 @@ import numpy.typing as npt
 from swarmrec.core.geometry import quaternion_to_matrix
 from swarmrec.core.types import ConstellationSequence, Trajectory
 from swarmrec.datasets.tum import POSE_MAX_DT, PoseAssociation, associate_poses
+from swarmrec.evaluation.band import fill_band
 
 __all__ = ["GroundTruth", "ground_truth", "quaternion_to_matrix", "scene_points"]
 
@@ -84,8 +85,15 @@ def _distances(scene: FloatArray) -> FloatArray:
     n = scene.shape[0]
     dist = np.empty((n, n))
     for lo in range(0, n, _ROWS):
-        diff = scene[lo : lo + _ROWS, None, :] - scene[None, :, :]
-        dist[lo : lo + _ROWS] = np.sqrt((diff * diff).sum(-1))
+        block = dist[lo : lo + _ROWS]
+        # (dx² + dy²) + dz², in place: what summing the last axis of 3 does, in that order.
+        for c in range(3):
+            d = scene[lo : lo + _ROWS, None, c] - scene[None, :, c]
+            if c == 0:
+                np.multiply(d, d, out=block)
+            else:
+                block += d * d
+        np.sqrt(block, out=block)
     return dist
 
 
@@ -110,7 +118,5 @@ def ground_truth(
         dist = _tum_fr3_office_filter(poses.positions, scene, dist)
     elif rules != "none":
         raise ValueError(f"unknown ground-truth rules {rules!r}")
-    n = len(seq)
-    k = np.arange(n)
-    dist[np.abs(k[:, None] - k[None, :]) <= exclusion] = np.inf
+    fill_band(dist, exclusion, np.inf)
     return GroundTruth(dist, dist < max_distance, scene, associated)

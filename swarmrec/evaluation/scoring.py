@@ -34,12 +34,14 @@ from swarmrec.core.ranges import label_bounds, validate_bounds
 from swarmrec.core.selection import select_candidates_many, select_robots
 from swarmrec.core.split import split_frames
 from swarmrec.core.types import ConstellationSequence
+from swarmrec.evaluation.band import fill_band
 
 __all__ = [
     "DecentralizedRun",
     "ScoreMatrix",
     "decentralized_marks",
     "label_frequency_prior",
+    "same_objects",
     "score_centralized",
     "score_decentralized",
     "split_frames",
@@ -77,9 +79,41 @@ class ScoreMatrix:
         marked = np.flatnonzero(self.ignored_marked)
         m[marked, :] = -2.0
         m[:, marked] = -2.0
-        idx = np.arange(n)
-        m[np.abs(idx[:, None] - idx[None, :]) <= self.exclusion] = -1.0
+        fill_band(m, self.exclusion, -1.0)  # the exclusion wins over "ignored"
         return m
+
+    def rescored(self, table: FrameTable, preset: Preset) -> ScoreMatrix:
+        """The same checked pairs with their full scores (Eq. 7) computed on ``table``:
+        what the evaluation gives a sequence of the same frames and objects at other
+        positions (the millimetres the wire carries, or exact ones). Which pairs are
+        checked depends on labels alone (the semantic descriptors and which frames have
+        enough objects), so it is not computed again; ``table`` must hold the same objects."""
+        if not (
+            self.n_frames == table.n_frames
+            and np.array_equal(np.diff(table.offsets) >= preset.min_objects, ~self.ignored)
+        ):
+            raise ValueError("rescored: the table's frames are not this matrix's")
+        scores = score_pairs(
+            table, self.pairs_i, self.pairs_j, d=preset.d, min_common=preset.min_common,
+            same_label_only=preset.same_label_only,
+        )  # fmt: skip
+        return ScoreMatrix(
+            self.pairs_i,
+            self.pairs_j,
+            scores,
+            self.n_frames,
+            self.exclusion,
+            self.ignored,
+            self.ignored_marked,
+        )
+
+
+def same_objects(a: FrameTable, b: FrameTable) -> bool:
+    """Whether two tables hold the same frames of the same labelled objects, in the same
+    order (their positions may differ): a decentralized run checks the same pairs of both."""
+    return bool(np.array_equal(a.offsets, b.offsets) and np.array_equal(a.labels, b.labels)) and (
+        a.desc.shape == b.desc.shape
+    )
 
 
 def _valid_frames(table: FrameTable, preset: Preset) -> npt.NDArray[np.bool_]:

@@ -9,9 +9,15 @@ import math
 import numpy as np
 import pytest
 
+from swarmrec.core.association import build_table
 from swarmrec.core.presets import Preset, get_preset
 from swarmrec.core.types import Constellation, ConstellationSequence
-from swarmrec.evaluation.scoring import score_centralized, score_decentralized, split_frames
+from swarmrec.evaluation.scoring import (
+    same_objects,
+    score_centralized,
+    score_decentralized,
+    split_frames,
+)
 from tests.conftest import make
 
 N_LABELS = 80
@@ -178,3 +184,58 @@ def test_dense_matrix_uses_the_published_sentinels() -> None:
     valid = [j for j in range(6, 30) if len(seq.constellations[j]) >= 3]
     assert len(seq.constellations[0]) >= 3 and 20 not in valid
     assert np.all(dense[0, valid] >= 0.0)  # checked pairs hold a score
+
+
+@pytest.mark.parametrize(("n_frames", "exclusion"), [(30, 5), (12, 0), (6, 10), (1, 3)])
+def test_dense_marks_exactly_the_band_within_the_exclusion(n_frames: int, exclusion: int) -> None:
+    seq = _random_sequence(n_frames, 4)
+    dense = score_centralized(seq, PRESET.with_(exclusion=exclusion)).dense()
+    band = [[abs(i - j) <= exclusion for j in range(n_frames)] for i in range(n_frames)]
+    assert ((dense == -1.0) == np.array(band)).all()
+
+
+def _moved(seq: ConstellationSequence, seed: int) -> ConstellationSequence:
+    """The same frames and objects, each object moved by a few millimetres."""
+    rng = np.random.default_rng(seed)
+    frames = tuple(
+        Constellation(c.labels, c.positions + rng.normal(0, 0.004, c.positions.shape))
+        for c in seq.constellations
+    )
+    return ConstellationSequence(seq.frame_ids, seq.timestamps, frames, seq.label_names)
+
+
+@pytest.mark.parametrize(("n_robots", "seed"), [(2, 0), (3, 5), (5, 6)])
+def test_the_pairs_of_one_run_rescored_on_moved_objects_equal_the_run_of_those_objects(
+    n_robots: int, seed: int
+) -> None:
+    seq = _random_sequence(45, seed)
+    moved = _moved(seq, seed)
+    table, moved_table = (
+        build_table(seq.constellations, N_LABELS),
+        build_table(moved.constellations, N_LABELS),
+    )
+    assert same_objects(table, moved_table)
+    first = score_decentralized(seq, n_robots, PRESET, table=table).matrix
+    again = first.rescored(moved_table, PRESET)
+    fresh = score_decentralized(moved, n_robots, PRESET).matrix
+    assert np.array_equal(again.pairs_i, fresh.pairs_i) and np.array_equal(again.pairs_j, fresh.pairs_j)
+    assert again.scores.tobytes() == fresh.scores.tobytes()  # the same doubles
+    assert not np.array_equal(again.scores, first.scores)  # the positions did change scores
+    assert np.array_equal(again.ignored_marked, fresh.ignored_marked)
+
+
+def test_tables_of_other_objects_are_not_rescored() -> None:
+    seq = _random_sequence(20, 7)
+    frames = list(seq.constellations)
+    c = frames[4]
+    frames[4] = Constellation(np.r_[c.labels[:-1], (c.labels[-1] + 1) % N_LABELS], c.positions)
+    relabelled = ConstellationSequence(seq.frame_ids, seq.timestamps, tuple(frames), seq.label_names)
+    table = build_table(seq.constellations, N_LABELS)
+    assert not same_objects(table, build_table(relabelled.constellations, N_LABELS))
+    fewer = ConstellationSequence(
+        seq.frame_ids[:19], seq.timestamps[:19], seq.constellations[:19], seq.label_names
+    )
+    with pytest.raises(ValueError, match="not this matrix's"):
+        score_decentralized(seq, 2, PRESET, table=table).matrix.rescored(
+            build_table(fewer.constellations, N_LABELS), PRESET
+        )

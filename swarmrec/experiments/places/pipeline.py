@@ -54,6 +54,7 @@ from swarmrec.experiments.places.replay import collect_loop_closures, replay
 from swarmrec.experiments.places.report import (
     DetectorFigures,
     LinkReport,
+    OfflineEvaluation,
     PlacesSummary,
     RunRecord,
     write_report,
@@ -139,6 +140,16 @@ def prepare(settings: PlacesSettings, *, dataset_dir: Path) -> Prepared:
     places = settings.places(n_labels, tuple(int(b) for b in bounds))
     spec = SwarmSpec(settings.bus(), WORKLOADS["places"], (places, settings.index, *parts), workload="places")
     return Prepared(spec, preset, bounds, split_frames(n_frames, settings.robots), seq, trajectory, px)
+
+
+def _offline(seq: ConstellationSequence, prepared: Prepared, settings: PlacesSettings) -> OfflineEvaluation:
+    """The offline evaluation of ``seq`` as the run's swarm saw it."""
+    places = prepared.spec.component(PlaceSettings)
+    assert isinstance(places, PlaceSettings)
+    wire_seq = as_on_the_wire(seq, exact=places.exact_positions)
+    return OfflineEvaluation(
+        seq, wire_seq, prepared.trajectory, prepared.preset, prepared.bounds, settings.robots
+    )
 
 
 def compose(settings: PlacesSettings, compose_settings: ComposeSettings) -> SwarmFile:
@@ -247,6 +258,7 @@ def main(
         warm_up()
     timings: dict[str, float] = {"prepare_s": time.perf_counter() - t_start}
     exit_codes: dict[str, int] = {}
+    offline: OfflineEvaluation | None = None
     try:
         t0 = time.perf_counter()
         deployment.start(spec, progress=settings.progress)
@@ -279,6 +291,10 @@ def main(
             before_step = _link_schedule(deployment, client, link_events)
             result = replay(client, prepared.blocks, settings, on_step, before_step)
             timings["replay_s"] = result.wall_s
+            if prepared.sequence is not None:  # (from pixels: the detections, read after the stop)
+                offline = _offline(prepared.sequence, prepared, settings).start(
+                    check_offline=settings.check_offline
+                )
             # Handoffs and retried stores finish before anything is counted, so the report
             # agrees with what the shards hold.
             t0 = time.perf_counter()
@@ -318,9 +334,11 @@ def main(
     assert isinstance(places, PlaceSettings)
     replayed = spec.component(DetectorSettings)
     assert isinstance(replayed, DetectorSettings)
+    offline = offline or _offline(seq, prepared, settings)
     record = RunRecord(
         seq=seq,
-        wire_seq=as_on_the_wire(seq, exact=places.exact_positions),
+        wire_seq=offline.wire_seq,
+        offline=offline,
         trajectory=prepared.trajectory,
         preset=prepared.preset,
         bounds=prepared.bounds,

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import json
+import threading
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -26,16 +27,17 @@ import numpy as np
 import numpy.typing as npt
 
 from swarmrec.client import IndexState
+from swarmrec.core.association import FrameTable, build_table
 from swarmrec.core.funnel import Reason, Stage, passed_stages
 from swarmrec.core.presets import Preset
 from swarmrec.core.types import ConstellationSequence, Trajectory
 from swarmrec.datasets.constellations import label_counts
 from swarmrec.deployments.metrics import Scrape
 from swarmrec.evaluation.bandwidth import HolderLoad
-from swarmrec.evaluation.groundtruth import ground_truth
+from swarmrec.evaluation.groundtruth import GroundTruth, ground_truth
 from swarmrec.evaluation.plots import plot_bytes, plot_funnel, plot_holder_load, plot_pr, plot_similarity
 from swarmrec.evaluation.pr import PRCurve, precision_recall
-from swarmrec.evaluation.scoring import ScoreMatrix, decentralized_marks, score_decentralized
+from swarmrec.evaluation.scoring import ScoreMatrix, decentralized_marks, same_objects, score_decentralized
 from swarmrec.experiments.places.replay import Replay
 from swarmrec.experiments.places.settings import PlacesSettings
 from swarmrec.wire import messages as pb
@@ -48,6 +50,7 @@ __all__ = [
     "DetectorFigures",
     "FunnelStats",
     "OfflineCheck",
+    "OfflineEvaluation",
     "PairStats",
     "PlacesSummary",
     "QueryStats",
@@ -336,22 +339,90 @@ def _positive(matrix: ScoreMatrix) -> dict[tuple[int, int], float]:
     }
 
 
-class _Offline:
+class OfflineEvaluation:
     """The offline decentralized evaluation of the run's frames as they went on the wire
-    and with exact positions, each computed once (the report asks for the first twice:
-    the identity check and what millimetres cost)."""
+    and with exact positions, and the ground truth: each computed once (the report asks
+    for the first twice: the identity check and what millimetres cost).
 
-    def __init__(self, run: RunRecord, robots: int) -> None:
-        self.run, self.robots = run, robots
+    The two evaluations differ only in positions, and which pairs a decentralized run
+    checks depends on labels alone: the second is the first's pairs scored again
+    (:meth:`ScoreMatrix.rescored`), the same doubles as evaluating it from scratch at a
+    third of the time.
+
+    None of it depends on what the swarm answered: :meth:`start` computes it on a thread
+    while the pipeline scrapes and stops the swarm (100 robots: 4 s of the report, done
+    while the processes exit), and the report's first question waits for it.
+    """
+
+    def __init__(
+        self,
+        seq: ConstellationSequence,
+        wire_seq: ConstellationSequence,
+        trajectory: Trajectory | None,
+        preset: Preset,
+        bounds: npt.NDArray[np.int64],
+        robots: int,
+    ) -> None:
+        self.seq, self.wire_seq, self.trajectory = seq, wire_seq, trajectory
+        self.preset, self.bounds, self.robots = preset, bounds, robots
         # By sequence: with exact positions on the wire, both are the same frames.
-        self._done: dict[int, ScoreMatrix] = {}
+        self._done: dict[int, tuple[FrameTable, ScoreMatrix]] = {}
+        self._truth: GroundTruth | None = None
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    def start(self, *, check_offline: bool) -> OfflineEvaluation:
+        """Compute, on a thread of their own, what the report of a run will ask: the ground
+        truth, and with ``check_offline`` the wire's evaluation and (with a trajectory, and
+        other positions on the wire) the exact one."""
+
+        def work() -> None:
+            try:
+                self._ground_truth()
+                if check_offline:
+                    self._matrix(wire=True)
+                    if self.trajectory is not None and self.wire_seq is not self.seq:
+                        self._matrix(wire=False)
+            except BaseException as e:  # handed to the report's thread, which raises it
+                self._error = e
+
+        self._thread = threading.Thread(target=work, name="offline-evaluation", daemon=True)
+        self._thread.start()
+        return self
+
+    def _join(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+            if self._error is not None:
+                raise self._error
 
     def matrix(self, *, wire: bool) -> ScoreMatrix:
-        seq = self.run.wire_seq if wire else self.run.seq
+        self._join()
+        return self._matrix(wire=wire)
+
+    def ground_truth(self) -> GroundTruth | None:
+        """The true closures of the wire's frames; None without a trajectory."""
+        self._join()
+        return self._ground_truth()
+
+    def _ground_truth(self) -> GroundTruth | None:
+        if self._truth is None and self.trajectory is not None:
+            self._truth = ground_truth(self.wire_seq, self.trajectory, exclusion=self.preset.exclusion)
+        return self._truth
+
+    def _matrix(self, *, wire: bool) -> ScoreMatrix:
+        seq = self.wire_seq if wire else self.seq
         if id(seq) not in self._done:
-            scored = score_decentralized(seq, self.robots, self.run.preset, bounds=self.run.bounds)
-            self._done[id(seq)] = scored.matrix
-        return self._done[id(seq)]
+            table = build_table(seq.constellations, seq.n_labels)
+            done = next((m for t, m in self._done.values() if same_objects(t, table)), None)
+            if done is not None:
+                matrix = done.rescored(table, self.preset)
+            else:
+                scored = score_decentralized(seq, self.robots, self.preset, table=table, bounds=self.bounds)
+                matrix = scored.matrix
+            self._done[id(seq)] = (table, matrix)
+        return self._done[id(seq)][1]
 
 
 def _compare_offline(matrix: ScoreMatrix, offline: ScoreMatrix) -> OfflineCheck:
@@ -368,7 +439,7 @@ def _compare_offline(matrix: ScoreMatrix, offline: ScoreMatrix) -> OfflineCheck:
     )
 
 
-def _positions_effect(offline: _Offline, truth: npt.NDArray[np.bool_]) -> PositionsEffect:
+def _positions_effect(offline: OfflineEvaluation, truth: npt.NDArray[np.bool_]) -> PositionsEffect:
     exact = offline.matrix(wire=False).dense()
     carried = offline.matrix(wire=True).dense()
     return PositionsEffect(
@@ -459,6 +530,9 @@ class RunRecord:
     #: Where the replayed constellations are on disk, and their label list (None: COCO).
     dataset_folder: Path | None = None
     labels_file: Path | None = None
+    #: The offline evaluation of ``seq``, started while the swarm stopped (None: the report
+    #: computes it).
+    offline: OfflineEvaluation | None = None
 
 
 def measured_store_weight(metrics: Scrape) -> float | None:
@@ -559,15 +633,17 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
     if run.index is not None:
         summary.index = _index_summary(run.index, metrics, settings.index.replicas)
     summary.funnel = funnel_stats(replay.reports, run.closures, metrics)
-    offline = _Offline(run, settings.robots)
+    offline = run.offline or OfflineEvaluation(
+        seq, wire_seq, run.trajectory, run.preset, run.bounds, settings.robots
+    )
     # Frames delivered late were stored after their step: the lock-step identity is off then.
     if settings.check_offline and settings.lockstep and not replay.missing and not replay.late:
         summary.offline_check = _compare_offline(matrix, offline.matrix(wire=True))
     dense = matrix.dense()
     curves: dict[str, PRCurve] = {}
     truth = None
-    if run.trajectory is not None:
-        gt = ground_truth(wire_seq, run.trajectory, exclusion=run.preset.exclusion)
+    gt = offline.ground_truth()
+    if gt is not None:
         name = f"swarm x{settings.robots}"
         curves[name] = precision_recall(dense, gt.closures)
         summary.auc = curves[name].auc
