@@ -23,7 +23,7 @@ use zenoh::Wait;
 
 use crate::metrics::{scope_between, ServiceMetrics};
 use crate::pb;
-use crate::runtime::{encoding, schema_of, Dispatcher, LocalEndpoints};
+use crate::runtime::{declared, encoding, schema_of, Dispatcher, LocalEndpoints};
 use crate::wirecheck::unknown_field;
 
 /// Why a request got no usable reply (`NoReply`, `ReplyTimeout`, `RemoteError`).
@@ -154,7 +154,7 @@ impl Caller {
                 payload,
                 schema: format!("swarmrec.v1.{schema}"),
             }
-        } else if let Some(session) = self.session.get() {
+        } else if let Some((session, key)) = self.session.get().and_then(|s| Some((s, declared(s, key)?))) {
             let mut get = session
                 .get(key)
                 .payload(payload)

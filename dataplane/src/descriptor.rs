@@ -37,7 +37,7 @@ use crate::placement::Placement;
 use crate::recordlog::RecordLog;
 use crate::routing::Routing;
 use crate::runtime::{
-    decode, encoding, endpoint_key, lock, missing, Endpoint, LocalEndpoints, Log, RequestError, Service,
+    declared, decode, encoding, endpoint_key, lock, missing, Endpoint, LocalEndpoints, Log, RequestError, Service,
 };
 use crate::selection::select_robots;
 use crate::spec::{DescriptorSpec, PlaceSpec, ServiceSpec};
@@ -374,8 +374,9 @@ impl Descriptor {
         let payload = msg.encode_to_vec();
         self.metrics.count_sent(schema, "client", payload.len());
         let key = format!("swarmrec/v1/{}/events/{name}/{}", self.swarm, self.robot);
+        let Some(key) = declared(session, &key) else { return };
         let _ = session
-            .put(&key, payload)
+            .put(key, payload)
             .encoding(encoding(schema))
             .congestion_control(CongestionControl::Block)
             .wait();

@@ -22,6 +22,7 @@ mod pb;
 mod pending;
 mod placement;
 mod recordlog;
+mod routes;
 mod routing;
 mod runtime;
 mod selection;
@@ -37,6 +38,7 @@ use anyhow::{bail, Context};
 use zenoh::Wait;
 
 use crate::metrics::{MetricsServer, ServiceMetrics};
+use crate::routes::Routes;
 use crate::runtime::{Dispatcher, LocalEndpoints, Log, Service};
 use crate::spec::HostSpec;
 
@@ -400,11 +402,15 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
     let mut queryables = Vec::new();
     let mut tokens = Vec::new();
     for (h, s) in hosted.iter().zip(&spec.services) {
+        // One queryable for the service's endpoints (routes.rs: zenoh matches a query
+        // against every queryable of the session, one per endpoint was 700 of them).
+        let mut routes: Routes<zenoh::query::Query> = Routes::new(&h.swarm, &h.kind, h.robot);
         for endpoint in h.service.clone().endpoints() {
             let key = runtime::endpoint_key(&h.swarm, &h.kind, h.robot, endpoint.name);
-            let blocking = endpoint.blocking;
+            let (name, blocking) = (endpoint.name, endpoint.blocking);
             let d = Arc::new(Dispatcher {
                 endpoint,
+                reply_key: runtime::declared(&session, &key),
                 key: key.clone(),
                 robot: h.robot,
                 max_message_bytes: s.max_message_bytes,
@@ -412,7 +418,7 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
                 log: h.log.clone(),
             });
             local.add(&key, h.robot, d.clone());
-            let q = if blocking {
+            if blocking {
                 // Served on a thread of its own, in the order the queries came: zenoh's
                 // one thread stays free to deliver the replies the handler waits for.
                 let (tx, rx) = std::sync::mpsc::sync_channel::<zenoh::query::Query>(BLOCKING_QUEUE);
@@ -425,23 +431,17 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
                         }
                     })
                     .context("a thread for a blocking endpoint")?;
-                let busy = d.clone();
-                session
-                    .declare_queryable(&key)
-                    .callback(move |query| {
+                routes.add(
+                    name,
+                    Box::new(move |query| {
                         if let Err(std::sync::mpsc::TrySendError::Full(query)) = tx.try_send(query) {
-                            busy.refuse_busy(query, BLOCKING_QUEUE);
+                            d.refuse_busy(query, BLOCKING_QUEUE);
                         }
-                    })
-                    .wait()
+                    }),
+                )?;
             } else {
-                session
-                    .declare_queryable(&key)
-                    .callback(move |query| d.serve(query))
-                    .wait()
+                routes.add(name, Box::new(move |query| d.serve(query)))?;
             }
-            .map_err(|e| anyhow::anyhow!("queryable {key}: {e}"))?;
-            queryables.push(q);
         }
         // `info`: what the service says of itself (asked once per member: no counting).
         let key = runtime::endpoint_key(&h.swarm, &h.kind, h.robot, "info");
@@ -453,9 +453,9 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
             h.url.clone(),
             spec.version.clone(),
         );
-        let q = session
-            .declare_queryable(&key)
-            .callback(move |query| {
+        routes.add(
+            "info",
+            Box::new(move |query| {
                 let mut info = service.member_info();
                 info.kind = wire_kind;
                 info.robot_id = robot;
@@ -466,7 +466,12 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
                     .reply(&reply_key, prost::Message::encode_to_vec(&info))
                     .encoding(runtime::encoding("MemberInfo"))
                     .wait();
-            })
+            }),
+        )?;
+        let key = routes.key();
+        let q = session
+            .declare_queryable(&key)
+            .callback(move |query| routes.serve(query))
             .wait()
             .map_err(|e| anyhow::anyhow!("queryable {key}: {e}"))?;
         queryables.push(q);

@@ -14,7 +14,8 @@
 //! scope, every refusal counted in `swarmrec_rejected_requests_total`, the `info`
 //! endpoint, and the liveliness token declared last and dropped first.
 
-use std::sync::Arc;
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use prost::Message;
@@ -30,6 +31,36 @@ use crate::wirecheck::unknown_field;
 /// (`swarmrec.runtime.keys.endpoint`).
 pub fn endpoint_key(swarm: &str, kind: &str, robot: u32, name: &str) -> String {
     format!("swarmrec/v1/{swarm}/{kind}/{robot}/{name}")
+}
+
+/// At most this many key expressions are declared (a swarm's endpoints: robots x a few);
+/// past it, keys are sent as strings.
+const DECLARED_KEYS: usize = 4096;
+
+/// `key`, declared to the router once per process (one session a process), for the
+/// requests and events this process sends.
+///
+/// Why: a query on a key no one declared is routed by matching it against the router's
+/// whole key tree, every time (`Resource::get_matches`); a declared key has a resource
+/// whose route the router computes once and keeps. The services declare one queryable
+/// per service (`.../<robot>/*`, routes.rs), so only their callers and publishers can
+/// make the keys they use. It also puts a number on the wire instead of the key.
+pub fn declared(session: &zenoh::Session, key: &str) -> Option<zenoh::key_expr::KeyExpr<'static>> {
+    type Keys = Mutex<HashMap<String, zenoh::key_expr::KeyExpr<'static>>>;
+    static KEYS: OnceLock<Keys> = OnceLock::new();
+    let mut keys = lock(KEYS.get_or_init(Keys::default));
+    if let Some(k) = keys.get(key) {
+        return Some(k.clone());
+    }
+    if keys.len() < DECLARED_KEYS {
+        if let Ok(k) = session.declare_keyexpr(key.to_owned()).wait() {
+            keys.insert(key.to_owned(), k.clone());
+            return Some(k);
+        }
+    }
+    // Not declared (too many keys, or the session is closing): the string goes; None for
+    // a string that is no key (the request is then not sent, as `get` refused it before).
+    zenoh::key_expr::KeyExpr::try_from(key.to_owned()).ok()
 }
 
 /// Key of a service's liveliness token, `swarmrec/v1/<swarm>/alive/<kind>/<robot>`
@@ -255,6 +286,8 @@ pub struct Dispatcher {
     /// The service's own key of this endpoint: replies go out on it, never on the
     /// query's (maybe wildcard) key, since the router lets a robot reply on its own keys only.
     pub key: String,
+    /// `key` declared to the router (`declared`): replies name it by number.
+    pub reply_key: Option<zenoh::key_expr::KeyExpr<'static>>,
     pub robot: u32,
     pub max_message_bytes: usize,
     pub metrics: Arc<ServiceMetrics>,
@@ -296,7 +329,12 @@ impl Dispatcher {
         let (name, payload, ok) = self.handle(&data, &schema, caller, scope);
         let size = payload.len();
         let sent = if ok {
-            query.reply(&self.key, payload).encoding(encoding(name)).wait()
+            match &self.reply_key {
+                Some(key) => query.reply(key.clone(), payload),
+                None => query.reply(&self.key, payload),
+            }
+            .encoding(encoding(name))
+            .wait()
         } else {
             query.reply_err(payload).encoding(encoding(name)).wait()
         };

@@ -42,6 +42,7 @@ from swarmrec.wire.codec import decode, encode, schema_name
 
 __all__ = [
     "Caller",
+    "DeclaredKeys",
     "LocalEndpoints",
     "LocalServe",
     "Outcome",
@@ -199,6 +200,34 @@ class LocalPending(Pending):
         return [self._outcome(ok, data, schema, reply_cls)]
 
 
+class DeclaredKeys:
+    """Keys declared to the router on one session, each the first time it is asked.
+
+    A query on a key no one declared is routed by matching it against the router's whole
+    key tree, each time; a declared key has a resource whose route the router keeps (the
+    compiled services declare one queryable per service, ``<kind>/<robot>/*``, so the
+    callers make the keys). At most ``limit`` keys (a swarm's endpoints are robots x a
+    few); past them, or on a session that refuses, the string goes as before."""
+
+    def __init__(self, session: zenoh.Session, limit: int = 4096) -> None:
+        self.session, self.limit = session, limit
+        self._keys: dict[str, zenoh.KeyExpr] = {}
+        self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    def __call__(self, key: str) -> zenoh.KeyExpr | str:
+        with self._lock:
+            found = self._keys.get(key)
+            if found is None and len(self._keys) < self.limit:
+                try:
+                    found = self._keys[key] = self.session.declare_keyexpr(key)
+                except zenoh.ZError:
+                    return key
+            return key if found is None else found
+
+
 @dataclass
 class Caller:
     """Sends requests from one process; counts their bytes in ``metrics``."""
@@ -211,6 +240,13 @@ class Caller:
     #: This process's endpoints (a robot's services hosted together): calls to the
     #: caller's own robot go to them directly.
     local: LocalEndpoints | None = None
+    #: The keys asked, declared to the router; callers made per request (the gateway's)
+    #: share their service's.
+    keys: DeclaredKeys | None = None
+
+    def __post_init__(self) -> None:
+        if self.keys is None:
+            self.keys = DeclaredKeys(self.session)
 
     def count_sent(self, message: str, target_robot: int | None, size: int) -> None:
         if self.metrics is not None:
@@ -253,7 +289,7 @@ class Caller:
         if scatter:
             kwargs = {"target": zenoh.QueryTarget.ALL, "consolidation": zenoh.ConsolidationMode.NONE}
         replies = self.session.get(
-            key,
+            self.keys(key) if self.keys is not None else key,
             payload=payload,
             encoding=encoding_for(request),
             attachment=None if self.robot is None else str(self.robot).encode(),

@@ -255,6 +255,7 @@ class Gateway(ServiceBase):
             self.bus.request_timeout_s,
             self.ctx.metrics,
             self.bus.max_message_bytes,
+            keys=self.caller.keys,  # one set of declared keys, not one per call
             deadline=deadline,
         )
 

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import zenoh
 
 from swarmrec.core.presets import get_preset
 from swarmrec.core.verification import verify
@@ -197,3 +198,55 @@ def test_a_host_mixing_python_and_compiled_kinds_serves_both(
                 assert metric(host.urls[(k, r)], "swarmrec_service_ready") == 1
         codes = swarm.stop()
         assert set(codes.values()) == {0}, codes
+
+
+def _replies(session: zenoh.Session, key: str) -> tuple[list[str], list[str]]:
+    """Every reply to a query on ``key`` (all matching services, none consolidated): the
+    keys of the answers, and the codes of the refusals."""
+    answers, refusals = [], []
+    payload = pb.StoreReply(stored_frames=1).SerializeToString()
+    for reply in session.get(
+        key,
+        payload=payload,
+        encoding="application/protobuf;swarmrec.v1.StoreReply",
+        target=zenoh.QueryTarget.ALL,
+        consolidation=zenoh.ConsolidationMode.NONE,
+        timeout=5.0,
+    ):
+        if reply.ok is not None:
+            answers.append(str(reply.ok.key_expr))
+        else:
+            err = pb.ErrorReply()
+            err.ParseFromString(reply.err.payload.to_bytes())
+            refusals.append(pb.ErrorCode.Name(err.code))
+    return sorted(answers), sorted(refusals)
+
+
+def test_wildcard_and_unknown_endpoint_queries_get_the_python_services_answers(
+    tmp_path: Path, request: pytest.FixtureRequest
+) -> None:
+    # The compiled host declares one queryable a service (`<kind>/<robot>/*`) where Python
+    # declares one an endpoint: the answers must not tell them apart.
+    seen = {}
+    for plane in ("python", "compiled"):
+        with (
+            verifiers(tmp_path / plane, swarm_name(request), data_plane=plane) as swarm,
+            swarm.client(5.0) as client,
+        ):
+            assert (swarm.find("verifier", OWN).info.get("dispatch") == "compiled") == (plane == "compiled")
+            s = client.session
+            seen[plane] = (
+                _replies(s, endpoint_key(swarm, "verifier", OWN, "*")),
+                _replies(s, endpoint_key(swarm, "*", OWN, "info")),
+                _replies(s, endpoint_key(swarm, "verifier", OWN, "no-such-endpoint")),
+                _replies(s, endpoint_key(swarm, "verifier", OWN, "sto$*")),
+            )
+            swarm_prefix = endpoint_key(swarm, "verifier", OWN, "")
+    everything, infos, unknown, partial = seen["compiled"]
+    # Every endpoint of the verifier answered the wildcard: `info` with its MemberInfo, the
+    # others refusing a StoreReply where they take another message.
+    assert everything[0] == [swarm_prefix + "info"] and len(everything[1]) >= 2
+    assert infos == ([swarm_prefix + "info"], [])
+    assert unknown == ([], [])
+    assert partial[0] == [] and len(partial[1]) == 1  # `store` alone, refusing the schema
+    assert seen["compiled"] == seen["python"]
