@@ -86,13 +86,11 @@ def _distances(scene: FloatArray) -> FloatArray:
     dist = np.empty((n, n))
     for lo in range(0, n, _ROWS):
         block = dist[lo : lo + _ROWS]
+        dx, dy, dz = (scene[lo : lo + _ROWS, None, c] - scene[None, :, c] for c in range(3))
         # (dx² + dy²) + dz², in place: what summing the last axis of 3 does, in that order.
-        for c in range(3):
-            d = scene[lo : lo + _ROWS, None, c] - scene[None, :, c]
-            if c == 0:
-                np.multiply(d, d, out=block)
-            else:
-                block += d * d
+        np.multiply(dx, dx, out=block)
+        block += dy * dy
+        block += dz * dz
         np.sqrt(block, out=block)
     return dist
 

@@ -337,7 +337,6 @@ def main(
     offline = offline or _offline(seq, prepared, settings)
     record = RunRecord(
         seq=seq,
-        wire_seq=offline.wire_seq,
         offline=offline,
         trajectory=prepared.trajectory,
         preset=prepared.preset,

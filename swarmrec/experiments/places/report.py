@@ -511,8 +511,9 @@ class RunRecord:
     """What the pipeline hands the report: the data, the swarm's answers and counters."""
 
     seq: ConstellationSequence
-    #: The sequence as the services saw it (positions as the wire carried them).
-    wire_seq: ConstellationSequence
+    #: The offline evaluation of ``seq`` as the services saw it (started while the swarm
+    #: stopped, where the pipeline could).
+    offline: OfflineEvaluation
     trajectory: Trajectory | None
     preset: Preset
     bounds: npt.NDArray[np.int64]
@@ -530,9 +531,11 @@ class RunRecord:
     #: Where the replayed constellations are on disk, and their label list (None: COCO).
     dataset_folder: Path | None = None
     labels_file: Path | None = None
-    #: The offline evaluation of ``seq``, started while the swarm stopped (None: the report
-    #: computes it).
-    offline: OfflineEvaluation | None = None
+
+    @property
+    def wire_seq(self) -> ConstellationSequence:
+        """The sequence as the services saw it (positions as the wire carried them)."""
+        return self.offline.wire_seq
 
 
 def measured_store_weight(metrics: Scrape) -> float | None:
@@ -633,9 +636,7 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
     if run.index is not None:
         summary.index = _index_summary(run.index, metrics, settings.index.replicas)
     summary.funnel = funnel_stats(replay.reports, run.closures, metrics)
-    offline = run.offline or OfflineEvaluation(
-        seq, wire_seq, run.trajectory, run.preset, run.bounds, settings.robots
-    )
+    offline = run.offline
     # Frames delivered late were stored after their step: the lock-step identity is off then.
     if settings.check_offline and settings.lockstep and not replay.missing and not replay.late:
         summary.offline_check = _compare_offline(matrix, offline.matrix(wire=True))
