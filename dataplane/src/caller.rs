@@ -142,7 +142,19 @@ impl Caller {
         endpoint: &'static str,
         scatter: bool,
     ) -> Pending<'_> {
-        let payload = request.encode_to_vec();
+        self.start_bytes(key, schema, request.encode_to_vec(), target, endpoint, scatter)
+    }
+
+    /// `start` with the request already serialized (a replaying detector's frames are).
+    pub fn start_bytes(
+        &self,
+        key: &str,
+        schema: &'static str,
+        payload: Vec<u8>,
+        target: Option<u32>,
+        endpoint: &'static str,
+        scatter: bool,
+    ) -> Pending<'_> {
         self.metrics.count_sent(schema, self.scope(target), payload.len());
         let local = match target {
             Some(t) if !scatter && t == self.robot => self.local.find(key, t),

@@ -16,6 +16,7 @@ mod association;
 mod caller;
 mod compute;
 mod descriptor;
+mod detector;
 mod index;
 mod metrics;
 mod pb;
@@ -50,11 +51,11 @@ use crate::spec::HostSpec;
 const SINGLE_THREAD_RUNTIME: &str =
     "(app:(worker_threads:1),rx:(handover:app),tx:(handover:app),net:(handover:app),acc:(handover:app))";
 
-/// The kinds this binary implements.
 /// Requests a blocking endpoint holds waiting for its thread before it refuses more.
 const BLOCKING_QUEUE: usize = 1024;
 
-const KINDS: &[&str] = &["descriptor", "index-shard", "verifier"];
+/// The kinds this binary implements (the detector in its replay mode only).
+const KINDS: &[&str] = &["descriptor", "detector", "index-shard", "verifier"];
 
 fn usage() -> ! {
     eprintln!(
@@ -335,6 +336,7 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
             "verifier" => Arc::new(verifier::Verifier::new(s, metrics.clone(), log.clone())?),
             "index-shard" => shard::IndexShard::new(s, metrics.clone(), log.clone())?,
             "descriptor" => descriptor::Descriptor::new(s, metrics.clone(), log.clone(), local.clone())?,
+            "detector" => detector::Detector::new(s, metrics.clone(), log.clone(), local.clone())?,
             other => bail!("{other} has no compiled implementation"),
         };
         let path = if single {

@@ -49,6 +49,33 @@ pub struct ServiceSpec {
     /// A descriptor's settings (absent for other kinds).
     #[serde(default)]
     pub descriptor: Option<DescriptorSpec>,
+    /// A replaying detector's frames and settings (absent for other kinds).
+    #[serde(default)]
+    pub detector: Option<DetectorSpec>,
+}
+
+/// A replaying detector: its robot's block of the dataset, read and put on the wire by
+/// the Python reader and codec (`swarmrec.services.detector.replay.wire_frames`), and the
+/// outbox's settings (DetectorSettings).
+#[derive(Clone, Debug, Deserialize)]
+pub struct DetectorSpec {
+    /// Where the frames were read (for the log).
+    pub dataset: String,
+    /// Each frame of the block, in order.
+    pub frames: Vec<FrameSpec>,
+    pub outbox_capacity: usize,
+    pub outbox_retry_s: f64,
+    /// How long the descriptor may take over one frame (a query of nested requests).
+    pub process_timeout_s: f64,
+}
+
+/// One frame: its `swarmrec.v1.Constellation` bytes (hex), or why it cannot be sent.
+#[derive(Clone, Debug, Deserialize)]
+pub struct FrameSpec {
+    #[serde(default)]
+    pub wire: Option<String>,
+    #[serde(default)]
+    pub unsendable: Option<String>,
 }
 
 /// What a descriptor reads beyond the place settings (its preset, PlaceSettings,

@@ -50,7 +50,7 @@ from swarmrec.runtime.runner import (
     zenoh_config,
 )
 from swarmrec.runtime.settings import Config, StorageSettings
-from swarmrec.services.settings import ExplainSettings, IndexSettings, PlaceSettings
+from swarmrec.services.settings import DetectorSettings, ExplainSettings, IndexSettings, PlaceSettings
 from swarmrec.wire.placement import placement_to_proto
 
 __all__ = [
@@ -156,6 +156,25 @@ def _descriptor(h: Hosted) -> dict[str, Any]:
     }
 
 
+def _detector(h: Hosted) -> dict[str, Any]:
+    """A replaying detector's frames, read and put on the wire by the Python reader and
+    codec (the same bytes the Python detector sends), and its outbox's settings
+    (dataplane/src/spec.rs, DetectorSpec)."""
+    # Imported here: only a host of detectors reads datasets.
+    from swarmrec.services.detector.replay import wire_frames
+
+    detector = h.config.get(DetectorSettings)
+    _ids, frames = wire_frames(h.config)
+    return {
+        "frames": [{"wire": f.hex()} if isinstance(f, bytes) else {"unsendable": f} for f in frames],
+        "dataset": detector.dataset,
+        "outbox_capacity": detector.outbox_capacity,
+        "outbox_retry_s": detector.outbox_retry_s,
+        # A frame's query holds several nested requests: the reference gives it their time and some.
+        "process_timeout_s": 4 * h.config.bus.request_timeout_s,
+    }
+
+
 def _service(h: Hosted) -> dict[str, Any]:
     """One service's resolved settings, as the binary reads them (dataplane/src/spec.rs)."""
     bus = h.config.bus
@@ -165,6 +184,7 @@ def _service(h: Hosted) -> dict[str, Any]:
     return {
         "index": _index(h) if h.kind == "index-shard" else None,
         "descriptor": _descriptor(h) if h.kind == "descriptor" else None,
+        "detector": _detector(h) if h.kind == "detector" else None,
         "kind": h.kind,
         "wire_kind": int(h.wire_kind),
         "swarm": bus.swarm,

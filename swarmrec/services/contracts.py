@@ -66,8 +66,9 @@ def render_kind(entry: ServiceSpec) -> str:
         f"| class | `{entry.factory}` |",
         "| implementations | "
         + (
-            "compiled (`swarmrec-dataplane`, the default: docs/dataplane.md) and Python (the reference), "
-            "chosen by `--data-plane` |"
+            "compiled (`swarmrec-dataplane`, the default: docs/dataplane.md"
+            + (f"; {entry.compiled_when.doc}" if entry.compiled_when is not None else "")
+            + ") and Python (the reference), chosen by `--data-plane` |"
             if entry.compiled
             else "Python |"
         ),

@@ -62,6 +62,7 @@ __all__ = [
     "PLUGIN_GROUP",
     "REGISTRY",
     "WORKLOADS",
+    "CompiledWhen",
     "ServiceSpec",
     "all_components",
     "hosted",
@@ -75,6 +76,21 @@ __all__ = [
 ]
 
 Scope = Literal["robot", "swarm"]
+
+
+@dataclass(frozen=True)
+class CompiledWhen:
+    """The configurations of a kind its compiled implementation serves."""
+
+    #: In words, for the contract page.
+    doc: str
+    test: Callable[[Config], bool]
+
+
+def _replaying(config: Config) -> bool:
+    # A detector's replay mode: its frames come recorded, ready to send (the rgbd and
+    # classifier modes run models, in Python).
+    return not config.has(DetectorSettings) or config.get(DetectorSettings).detector_mode == "replay"
 
 
 @dataclass(frozen=True)
@@ -108,6 +124,13 @@ class ServiceSpec:
     #: Also implemented in the compiled host (swarmrec-dataplane, docs/dataplane.md), which
     #: serves it when the ``data_plane`` setting says ``compiled``.
     compiled: bool = False
+    #: When only some configurations of the kind are compiled (the rest run in Python
+    #: whatever ``data_plane`` says): which, in words and as a test.
+    compiled_when: CompiledWhen | None = None
+
+    def compiled_for(self, config: Config) -> bool:
+        """Whether the compiled host can serve this kind with ``config`` (``data_plane`` aside)."""
+        return self.compiled and (self.compiled_when is None or self.compiled_when.test(config))
 
     @property
     def all_components(self) -> tuple[type[Component], ...]:
@@ -170,6 +193,8 @@ for _entry in (
             LandmarkSettings,
         ),
         metrics=DetectorMetrics,
+        compiled=True,
+        compiled_when=CompiledWhen("replay mode only: rgbd and classifier run in Python", _replaying),
     ),
     ServiceSpec(
         "descriptor",
@@ -310,7 +335,7 @@ def hosted(kind: str, config: Config) -> Hosted:
     entry = spec(kind)
     if entry.zenoh_mode is not None and config.bus.mode != entry.zenoh_mode:
         config = config.replace(config.bus.with_(mode=entry.zenoh_mode))
-    if compiled.is_compiled(config, entry.compiled):
+    if compiled.is_compiled(config, entry.compiled_for(config)):
         # Served by the compiled host: the Python class (and its imports) is never loaded.
         factory = _not_in_python(entry.kind)
     else:
@@ -353,7 +378,7 @@ def serve_many(
     python: list[Hosted] = []
     for kind, config in services:
         h = hosted(kind, config)
-        (native if compiled.is_compiled(h.config, spec(kind).compiled) else python).append(h)
+        (native if compiled.is_compiled(h.config, spec(kind).compiled_for(h.config)) else python).append(h)
     if not native:
         return run_services(python, stop=stop, on_ready=on_ready)
     shards = compiled.index_shards(native)

@@ -22,7 +22,7 @@ from swarmrec.runtime.settings import (
     StorageSettings,
 )
 from swarmrec.services import compiled, registry
-from swarmrec.services.settings import IndexSettings, PlaceSettings
+from swarmrec.services.settings import DetectorSettings, IndexSettings, PlaceSettings, VprSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.placement import placement_from_proto
 
@@ -42,10 +42,54 @@ def config(data_plane: str, **place: object) -> Config:
 
 def test_only_kinds_with_a_compiled_implementation_go_and_only_when_the_setting_says_so() -> None:
     compiled_kinds = [k for k, e in registry.REGISTRY.items() if e.compiled]
-    assert compiled_kinds == ["descriptor", "index-shard", "verifier"]
-    assert compiled.is_compiled(config("compiled"), registry.spec("verifier").compiled)
-    assert not compiled.is_compiled(config("python"), registry.spec("verifier").compiled)
-    assert not compiled.is_compiled(config("compiled"), registry.spec("detector").compiled)
+    assert compiled_kinds == ["detector", "descriptor", "index-shard", "verifier"]
+    verifier = registry.spec("verifier")
+    assert compiled.is_compiled(config("compiled"), verifier.compiled_for(config("compiled")))
+    assert not compiled.is_compiled(config("python"), verifier.compiled_for(config("python")))
+    assert not compiled.is_compiled(
+        config("compiled"), registry.spec("place-owner").compiled_for(config("compiled"))
+    )
+
+
+@pytest.mark.parametrize(("mode", "served"), [("replay", True), ("rgbd", False), ("classifier", False)])
+def test_a_detector_is_compiled_in_its_replay_mode_only(mode: str, served: bool) -> None:
+    detector = registry.spec("detector")
+    cfg = config("compiled").replace(DetectorSettings(detector_mode=mode))  # type: ignore[arg-type]
+    assert detector.compiled_for(cfg) is served
+    assert compiled.is_compiled(cfg, detector.compiled_for(cfg)) is served
+    # The contract page says so.
+    assert detector.compiled_when is not None and "replay mode only" in detector.compiled_when.doc
+
+
+def test_a_replaying_detector_is_handed_the_bytes_the_python_codec_puts_on_the_wire(tmp_path: Path) -> None:
+    """Robot 3 of 5 plays its fifth of the frames; each frame's bytes are what
+    ``constellation_to_proto`` makes (the Python detector's), or, for one the codec refuses,
+    the reason."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(10):
+        x = 3.0e6 if i == 7 else 0.25 * i
+        (folder / f"{100 + i}.5.txt").write_text(f"chair {x!r} 1.0 2.0\ncup 0.5 0.5 0.5\n", encoding="utf-8")
+    cfg = config("compiled").replace(DetectorSettings(dataset=str(folder), outbox_retry_s=2.0))
+    spec = compiled.host_spec([registry.hosted("detector", cfg)])["services"][0]["detector"]
+    assert spec["dataset"] == str(folder) and spec["outbox_retry_s"] == 2.0
+    assert spec["process_timeout_s"] == 4 * BusSettings().request_timeout_s
+    frames = spec["frames"]
+    assert len(frames) == 2  # robot 3 of 5: frames 6 and 7
+    first = pb.Constellation.FromString(bytes.fromhex(frames[0]["wire"]))
+    assert (first.robot_id, first.frame_index, first.frame_id) == (3, 0, "106.5")
+    assert list(first.labels) == [56, 41] and list(first.positions_mm) == [1500, 1000, 2000, 500, 500, 500]
+    assert frames[1] == {
+        "unsendable": "object 0 at [3000000.0, 1.0, 2.0] m is out of the int32 millimetre range"
+    }
+
+
+def test_a_replaying_detector_for_full_image_recognition_is_refused_before_it_starts(tmp_path: Path) -> None:
+    cfg = config("compiled").replace(
+        DetectorSettings(dataset=str(tmp_path)), VprSettings(place_method="dvpr")
+    )
+    with pytest.raises(ConfigError, match="run the detector in rgbd mode"):
+        compiled.host_spec([registry.hosted("detector", cfg)])
 
 
 def test_compiled_shards_keep_a_python_process_for_their_coordinator_and_time_to_drain() -> None:
