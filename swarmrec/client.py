@@ -288,6 +288,7 @@ class ZenohClient(SwarmClient):
                 reason=insecure_reason or f"plaintext endpoints {list(connect)} given",
             )
         self._conf: zenoh.Config | None = conf
+        self._endpoints = list(connect)
         self._session: zenoh.Session | None = None
         self._owned = True
         self.caller: Caller | None = None
@@ -305,7 +306,17 @@ class ZenohClient(SwarmClient):
 
     def open(self) -> None:
         if self._conf is not None and self._session is None:
-            self._session = zenoh.open(self._conf)
+            try:
+                self._session = zenoh.open(self._conf)
+            except zenoh.ZError as e:
+                # zenoh's own words name a source line of its own; the user needs what failed
+                # and what to check (one line, and the CLI's exit code 2 for a SwarmrecError).
+                why = str(e).split("!", 1)[0].split(" at /", 1)[0].strip()
+                raise NoReply(
+                    ", ".join(self._endpoints),
+                    f"no swarm router accepted this client ({why}): is the swarm running, is this "
+                    "its router's address (--connect), and, under mutual TLS, its PKI (--pki-dir)?",
+                ) from None
             self.caller = Caller(self._session, None, self.timeout_s)
 
     def close(self) -> None:

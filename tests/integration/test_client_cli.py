@@ -9,6 +9,7 @@ run as separate processes with ``--connect`` pointing at the swarm's router.
 from __future__ import annotations
 
 import json
+import socket
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -203,3 +204,42 @@ def test_a_query_of_a_file_that_does_not_parse_names_the_file_and_line(
     assert done.returncode == 2
     assert f"{path}:2" in done.stderr and "unicorn" in done.stderr
     assert "Traceback" not in done.stderr
+
+
+@pytest.mark.parametrize(
+    "args",
+    [("members",), ("loop-closures", "0"), ("query", "QUERY")],
+    ids=["members", "loop-closures", "query"],
+)
+def test_with_no_router_listening_every_command_says_so_in_one_line(
+    running: Running, tmp_path: Path, args: tuple[str, ...]
+) -> None:
+    """The swarm's PKI, but an address where no router listens (the swarm's port, stopped:
+    a port taken and released by this test): one line naming the address and what to check,
+    exit code 2, as the gRPC path answers."""
+    path = tmp_path / "q.txt"
+    path.write_text("cup 0.1 0.2 1.5\nchair 1 2 3\nbook 0 0 1\n")
+    args = tuple(str(path) if a == "QUERY" else a for a in args)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    done = subprocess.run(
+        [
+            sys.executable, "-m", "swarmrec", *args,
+            "--connect", f"tls/127.0.0.1:{port}",
+            "--swarm", running.swarm.spec_swarm,
+            "--pki-dir", str(running.swarm.pki_dir),
+            "--identity", f"client.cli.{running.swarm.spec_swarm}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )  # fmt: skip
+
+    assert done.returncode == 2, done.stderr
+    assert done.stdout == ""
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1, lines
+    assert f"tls/127.0.0.1:{port}" in lines[0] and "is the swarm running" in lines[0]
+    assert "Traceback" not in done.stderr and "ZError" not in done.stderr
