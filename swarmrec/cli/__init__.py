@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from collections.abc import Callable, Sequence
 
@@ -27,6 +28,8 @@ COMMANDS: dict[str, str] = {
     "evaluate": "swarmrec.cli.evaluate",
     "synth": "swarmrec.cli.synth",
     "run": "swarmrec.cli.run",
+    "up": "swarmrec.cli.up",
+    "down": "swarmrec.cli.up",
     "compose": "swarmrec.cli.compose",
     "landmarks": "swarmrec.cli.landmarks",
     "slam": "swarmrec.cli.slam",
@@ -66,6 +69,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SwarmrecError as exc:
         print(f"swarmrec {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # The reader left (``| head``): what was printed is what it wanted. Point stdout at
+        # /dev/null so the interpreter's final flush does not raise again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":

@@ -1,6 +1,9 @@
 """``swarmrec query``, ``members`` and ``loop-closures``: ask a running swarm, from any host
 that reaches its router (``--connect tls/host:7447``) or its gRPC gateway
-(``--connect grpc://host:50051``), as the identity ``--identity`` of the PKI in ``--pki-dir``."""
+(``--connect grpc://host:50051``), as the identity ``--identity`` of the PKI in ``--pki-dir``;
+or, on the machine that runs it, from the folder of a swarm left running (``--run DIR``:
+its ``swarm.json`` names the router, the swarm and the PKI; ``runs/up`` by default when a
+``swarmrec up`` keeps a swarm there)."""
 
 from __future__ import annotations
 
@@ -9,29 +12,45 @@ import json
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 from swarmrec.cli.common import Subparsers
 from swarmrec.client import GRPC_SCHEME, SwarmClient, connect
 from swarmrec.core.presets import PRESETS
 from swarmrec.datasets.constellations import parse_constellation
 from swarmrec.datasets.labels import LabelMap, label_names
+from swarmrec.deployments.local_up import keeper_alive
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.tls import TlsFiles
 
-__all__ = ["add", "add_connection_flags", "client_of"]
+__all__ = ["DEFAULT_SWARM_DIR", "add", "add_connection_flags", "client_of", "swarm_dir_of"]
+
+#: Where ``swarmrec up`` keeps its swarm by default, and where a client looks when told nothing.
+DEFAULT_SWARM_DIR = Path("runs/up")
+#: The router a client tries when told nothing and no swarm is kept in DEFAULT_SWARM_DIR
+#: (a compose swarm's published port).
+FALLBACK_CONNECT = "tls/127.0.0.1:7447"
 
 
-def add_connection_flags(p: argparse.ArgumentParser, *, connect: str | None = "tls/127.0.0.1:7447") -> None:
-    """How a command reaches a running swarm: --connect, --swarm, --pki-dir, --identity, --timeout,
-    and --json (``connect``: the default router endpoint; None: no default)."""
-    default = f" (default {connect})" if connect else ""
+def add_connection_flags(p: argparse.ArgumentParser, *, run_flag: bool = True) -> None:
+    """How a command reaches a running swarm: --run (unless ``run_flag`` is False: the command
+    has a --run of its own), --connect, --swarm, --pki-dir, --identity, --timeout and --json."""
+    if run_flag:
+        p.add_argument(
+            "--run",
+            dest="swarm_dir",
+            type=Path,
+            metavar="DIR",
+            help="the folder of a swarm left running (its swarm.json, from swarmrec up, compose up or "
+            f"k8s up): its router, name and PKI (default {DEFAULT_SWARM_DIR} when a swarm is kept there, "
+            f"else --connect {FALLBACK_CONNECT})",
+        )
     p.add_argument(
         "--connect",
-        default=connect,
-        help=f"router endpoint(s), comma-separated{default}, or the gRPC "
-        "gateway as grpc://host:port; a tcp/ endpoint is the insecure mode",
+        help="router endpoint(s), comma-separated, or the gRPC gateway as grpc://host:port; a tcp/ "
+        "endpoint is the insecure mode (instead of --run)",
     )
-    p.add_argument("--swarm", default="local", help="swarm name (default local)")
+    p.add_argument("--swarm", help="swarm name (default: the swarm file's, else local)")
     p.add_argument(
         "--pki-dir",
         type=Path,
@@ -69,21 +88,59 @@ def add(sub: Subparsers) -> None:
     p.set_defaults(handler=_loop_closures)
 
 
-def client_of(args: argparse.Namespace) -> SwarmClient:
-    """The client the flags of :func:`add_connection_flags` describe."""
-    plaintext = args.connect.startswith("tcp/") or (
-        args.connect.startswith(GRPC_SCHEME) and args.pki_dir is None
-    )
+def swarm_dir_of(args: argparse.Namespace) -> Path | None:
+    """The folder of a swarm left running that the flags name, or the default one when they
+    name nothing and a swarm is kept there; None: --connect (or its fallback) says where."""
+    folder: Path | None = getattr(args, "swarm_dir", None)
+    if folder is not None and args.connect is not None:
+        raise ConfigError("--run names a swarm's folder, --connect its address: one of them")
+    if folder is None and args.connect is None and (DEFAULT_SWARM_DIR / "swarm.json").is_file():
+        folder = DEFAULT_SWARM_DIR
+    return folder
+
+
+def _swarm_file(folder: Path) -> dict[str, Any]:
+    """What a client needs of ``folder/swarm.json`` (any deployment's), checked."""
+    path = folder / "swarm.json"
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(
+            f"{path} not found: no swarm is kept there (start one: swarmrec up --out {folder})"
+        ) from None
+    except json.JSONDecodeError as e:
+        raise ConfigError(f"{path} is not a swarm file: {e}") from None
+    if not isinstance(data, dict) or not isinstance(data.get("router_endpoint"), str):
+        raise ConfigError(f"{path} is not a swarm file: it names no router_endpoint")
+    if data.get("deployment") == "local" and not keeper_alive(int(data.get("pid", 0))):
+        raise ConfigError(
+            f"the swarm of {path} is not running (its swarmrec up process {data.get('pid')} is gone): "
+            f"start it again with swarmrec up --out {folder}"
+        )
+    return data
+
+
+def client_of(args: argparse.Namespace, folder: Path | None = None) -> SwarmClient:
+    """The client the flags of :func:`add_connection_flags` describe (``folder``: the swarm
+    left running there, whatever the flags say)."""
+    folder = folder or swarm_dir_of(args)
+    address, swarm, pki_dir = args.connect or FALLBACK_CONNECT, args.swarm or "local", args.pki_dir
+    if folder is not None:
+        info = _swarm_file(folder)
+        address, swarm = info["router_endpoint"], args.swarm or str(info.get("swarm", "local"))
+        if pki_dir is None and info.get("security", "mtls") != "insecure" and info.get("pki_dir"):
+            pki_dir = Path(info["pki_dir"])
+    plaintext = address.startswith("tcp/") or (address.startswith(GRPC_SCHEME) and pki_dir is None)
     tls = None
-    if args.pki_dir is not None:
-        tls = TlsFiles.in_dir(Path(args.pki_dir), args.identity or f"client.cli.{args.swarm}")
+    if pki_dir is not None:
+        tls = TlsFiles.in_dir(Path(pki_dir), args.identity or f"client.cli.{swarm}")
     elif not plaintext:
         raise ConfigError(
-            f"{args.connect} is mutual TLS: give the swarm's PKI folder (--pki-dir or SWARMREC_PKI_DIR)"
+            f"{address} is mutual TLS: give the swarm's PKI folder (--pki-dir or SWARMREC_PKI_DIR), "
+            f"or the folder of a swarm left running (--run DIR)"
         )
-    return connect(
-        args.connect, args.swarm, timeout_s=args.timeout, tls=tls, insecure_reason="--connect tcp/..."
-    )
+    reason = "the swarm file says insecure" if folder is not None else "--connect tcp/..."
+    return connect(address, swarm, timeout_s=args.timeout, tls=tls, insecure_reason=reason)
 
 
 def _query(args: argparse.Namespace) -> int:
@@ -145,7 +202,7 @@ def _members(args: argparse.Namespace) -> int:
         print(json.dumps([m.__dict__ for m in members]))
         return 0 if members else 3
     if not members:
-        print(f"no live member in swarm {args.swarm!r}", file=sys.stderr)
+        print(f"no live member in swarm {swarm.swarm!r}", file=sys.stderr)
         return 3
     print(f"{'service':<12} {'robot':>5} {'labels':>10} {'stored':>7} {'version':>8}  metrics")
     for m in members:

@@ -40,9 +40,12 @@ def add(sub: Subparsers) -> None:
         help="the frame it should have been closed with",
     )
     p.add_argument(
-        "--run", type=Path, help=f"a finished run's folder (default {DEFAULT_RUN}; not with --connect)"
+        "--run",
+        type=Path,
+        help=f"a finished run's folder (default {DEFAULT_RUN}), or a swarm left running there "
+        "(its swarm.json, from swarmrec up: asked live); not with --connect",
     )
-    add_connection_flags(p, connect=None)
+    add_connection_flags(p, run_flag=False)
     p.set_defaults(handler=run)
 
 
@@ -50,10 +53,11 @@ def run(args: argparse.Namespace) -> int:
     if args.robot < 0 or args.frame < 0 or (args.other and min(args.other) < 0):
         raise ConfigError("robot and frame numbers are >= 0")
     other = tuple(args.other) if args.other else None
-    if args.connect is not None:
-        if args.run is not None:
-            raise ConfigError("--run reads a finished run, --connect asks a live swarm: one of them")
-        with client_of(args) as swarm:
+    kept = args.run is not None and (args.run / "swarm.json").is_file()
+    if args.connect is not None or kept:
+        if args.connect is not None and args.run is not None:
+            raise ConfigError("--run names a folder, --connect asks a live swarm: one of them")
+        with client_of(args, folder=args.run if kept else None) as swarm:
             ex = explain_live(swarm, args.robot, args.frame, other)
     else:
         ex = explain_run(RunFolder(args.run or DEFAULT_RUN), args.robot, args.frame, other)

@@ -1,7 +1,7 @@
 """Attach to a swarm that runs, whatever runs it: ``swarmrec run --attach DIR``.
 
-A deployment that leaves its swarm running (``swarmrec compose up``, ``swarmrec k8s
-up``) writes ``DIR/swarm.json``, an :class:`~swarmrec.deployments.base.AttachFile`
+A deployment that leaves its swarm running (``swarmrec up``, ``swarmrec compose up``,
+``swarmrec k8s up``) writes ``DIR/swarm.json``, an :class:`~swarmrec.deployments.base.AttachFile`
 whose ``deployment`` field names the deployment that wrote it. :func:`attach`
 reads it and returns that deployment, attached: its ``start(spec)`` checks that the
 running swarm is the spec instead of starting one, and its ``stop()`` leaves it
@@ -16,12 +16,13 @@ from pathlib import Path
 from swarmrec.deployments.base import AttachFile
 from swarmrec.deployments.compose import ComposeDeployment
 from swarmrec.deployments.kubernetes import KubernetesDeployment
+from swarmrec.deployments.local_up import AttachedLocal
 from swarmrec.errors import ConfigError
 
 __all__ = ["DEPLOYMENTS", "attach", "deployment_of"]
 
 #: The deployments that write an attach file, by the name in its ``deployment`` field.
-DEPLOYMENTS = ("compose", "kubernetes")
+DEPLOYMENTS = ("local", "compose", "kubernetes")
 
 
 def deployment_of(folder: Path) -> str:
@@ -31,8 +32,8 @@ def deployment_of(folder: Path) -> str:
         data = json.loads(path.read_text())
     except FileNotFoundError:
         raise ConfigError(
-            f"{path} not found: start a swarm there first (swarmrec compose up --out {folder}, "
-            f"or swarmrec k8s up --out {folder})"
+            f"{path} not found: start a swarm there first (swarmrec up --out {folder}, "
+            f"swarmrec compose up --out {folder}, or swarmrec k8s up --out {folder})"
         ) from None
     except json.JSONDecodeError as e:
         raise ConfigError(f"{path} is not a swarm file: {e}") from None
@@ -42,9 +43,13 @@ def deployment_of(folder: Path) -> str:
     return str(kind)
 
 
-def attach(folder: Path) -> tuple[ComposeDeployment | KubernetesDeployment, AttachFile]:
+def attach(folder: Path) -> tuple[AttachedLocal | ComposeDeployment | KubernetesDeployment, AttachFile]:
     """The running swarm ``folder/swarm.json`` describes, as a deployment, and the file."""
-    if deployment_of(folder) == "kubernetes":
+    kind = deployment_of(folder)
+    if kind == "local":
+        local = AttachedLocal(folder)
+        return local, local.info
+    if kind == "kubernetes":
         k8s = KubernetesDeployment.attached(folder)
         assert k8s.info is not None  # read from the file
         return k8s, k8s.info

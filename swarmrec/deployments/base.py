@@ -36,8 +36,10 @@ __all__ = [
     "DeploymentError",
     "SwarmSpec",
     "SwarmStartError",
+    "check_running",
     "config_env",
     "config_flags",
+    "shared_env",
 ]
 
 
@@ -209,3 +211,37 @@ class Deployment(Protocol):
     def stop(self) -> dict[str, int]:
         """Stop what this deployment started; the exit code of each process it ran."""
         ...
+
+
+def shared_env(spec: SwarmSpec) -> dict[str, str]:
+    """The settings every robot's services share: the environment of each robot-0 service,
+    less what differs per robot or per process (robot id, addresses, storage). A swarm
+    left running records it, so a run attached to it can check it is the one it wants."""
+    out: dict[str, str] = {}
+    per_service = {"SWARMREC_ROBOT", "SWARMREC_DATA_DIR", "SWARMREC_FSYNC", "SWARMREC_MODE"}
+    for kind in spec.kinds:
+        env = config_env(spec.config_for(kind, 0))
+        out.update({k: v for k, v in env.items() if k not in per_service})
+    return out
+
+
+def check_running(info: AttachFile, spec: SwarmSpec, wanted_env: dict[str, str], where: str) -> None:
+    """ConfigError unless the swarm ``info`` describes runs ``spec`` (its workload, kinds,
+    robots, name and shared settings ``wanted_env``); ``where`` names it in the message."""
+    problems = []
+    if spec.workload and spec.workload != info.workload:
+        problems.append(f"it runs the {info.workload} workload, not {spec.workload}")
+    if tuple(info.kinds) != spec.kinds:
+        problems.append(f"its robots run {info.kinds}, not {list(spec.kinds)}")
+    if info.robots != spec.robots:
+        problems.append(f"it has {info.robots} robots, not {spec.robots}")
+    if info.swarm != spec.swarm:
+        problems.append(f"its swarm is {info.swarm!r}, not {spec.swarm!r}")
+    if not problems:
+        have = info.shared_env
+        differ = sorted(k for k in wanted_env.keys() | have.keys() if wanted_env.get(k) != have.get(k))
+        if differ:
+            shown = ", ".join(f"{k}={have.get(k)!r} (wanted {wanted_env.get(k)!r})" for k in differ[:5])
+            problems.append(f"its settings differ: {shown}")
+    if problems:
+        raise ConfigError(f"{where} is not this run's: " + "; ".join(problems))

@@ -39,7 +39,14 @@ from typing import Any
 
 import swarmrec
 from swarmrec.client import GatewayClient, ZenohClient
-from swarmrec.deployments.base import AttachFile, DeploymentError, SwarmSpec, config_env
+from swarmrec.deployments.base import (
+    AttachFile,
+    DeploymentError,
+    SwarmSpec,
+    check_running,
+    config_env,
+    shared_env,
+)
 from swarmrec.deployments.identities import Security, client_tls, security_for, swarm_pki
 from swarmrec.deployments.metrics import Scrape, scrape_prometheus
 from swarmrec.errors import ConfigError
@@ -318,17 +325,6 @@ def render_yaml(doc: Any, indent: int = 0) -> str:
     return json.dumps(str(doc))
 
 
-def _shared_env(spec: SwarmSpec) -> dict[str, str]:
-    """The settings every robot's services share: the environment of each robot-0 service,
-    less what differs per robot or per container (robot id, addresses, storage)."""
-    out: dict[str, str] = {}
-    per_service = {"SWARMREC_ROBOT", "SWARMREC_DATA_DIR", "SWARMREC_FSYNC", "SWARMREC_MODE"}
-    for kind in spec.kinds:
-        env = config_env(spec.config_for(kind, 0))
-        out.update({k: v for k, v in env.items() if k not in per_service})
-    return out
-
-
 def write_compose(
     spec: SwarmSpec, s: ComposeSettings, *, experiment: dict[str, Any] | None = None
 ) -> SwarmFile:
@@ -371,7 +367,7 @@ def write_compose(
         prometheus_url=f"http://127.0.0.1:{s.prometheus_port}",
         compose_file=str(compose_file),
         experiment=dict(experiment or {}),
-        shared_env=_shared_env(_container_spec(spec)),
+        shared_env=shared_env(_container_spec(spec)),
         gateway_address=f"grpc://127.0.0.1:{s.gateway_port}" if "gateway" in spec.swarm_kinds else "",
         security=s.security,
         pki_dir=pki,
@@ -477,29 +473,9 @@ class ComposeDeployment:
 
     def start(self, spec: SwarmSpec, *, progress: bool = False) -> None:
         """Check that the running swarm is ``spec`` and take the counters' baseline."""
-        info, problems = self.info, []
-        if spec.workload and spec.workload != info.workload:
-            problems.append(f"it runs the {info.workload} workload, not {spec.workload}")
-        if tuple(info.kinds) != spec.kinds:
-            problems.append(f"its robots run {info.kinds}, not {list(spec.kinds)}")
-        if info.robots != spec.robots:
-            problems.append(f"it has {info.robots} robots, not {spec.robots}")
-        if info.swarm != spec.swarm:
-            problems.append(f"its swarm is {info.swarm!r}, not {spec.swarm!r}")
-        if not problems:
-            wanted = _shared_env(_container_spec(spec))
-            differ = sorted(
-                k for k in wanted.keys() | info.shared_env.keys() if wanted.get(k) != info.shared_env.get(k)
-            )
-            if differ:
-                shown = ", ".join(
-                    f"{k}={info.shared_env.get(k)!r} (wanted {wanted.get(k)!r})" for k in differ[:5]
-                )
-                problems.append(f"its settings differ: {shown}")
-        if problems:
-            raise ConfigError(f"the swarm in {self.folder} is not this run's: " + "; ".join(problems))
+        check_running(self.info, spec, shared_env(_container_spec(spec)), f"the swarm in {self.folder}")
         self._spec = spec
-        self._baseline = scrape_prometheus(info.prometheus_url, fresh_after=time.time())
+        self._baseline = scrape_prometheus(self.info.prometheus_url, fresh_after=time.time())
 
     def wait_ready(self, timeout_s: float | None = None) -> None:
         spec = self._spec

@@ -29,6 +29,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -68,7 +69,16 @@ from swarmrec.wire.codec import constellation_from_proto, constellation_to_proto
 #: How long a run waits after its replay for handoffs and retried stores to finish.
 SETTLE_TIMEOUT_S = 60.0
 
-__all__ = ["Prepared", "as_on_the_wire", "compose", "kubernetes_up", "main", "prepare", "swarm_bounds"]
+__all__ = [
+    "Prepared",
+    "as_on_the_wire",
+    "compose",
+    "kubernetes_up",
+    "local_up",
+    "main",
+    "prepare",
+    "swarm_bounds",
+]
 
 IntArray = npt.NDArray[np.int64]
 
@@ -176,6 +186,47 @@ def kubernetes_up(settings: PlacesSettings, k8s: KubernetesSettings) -> Kubernet
     return deployment
 
 
+def local_up(settings: PlacesSettings) -> tuple[LocalDeployment, dict[str, Any]]:
+    """This run's swarm as local processes, left running (``swarmrec up``): started, ready,
+    its index settled. Returns the deployment and the experiment record a later ``swarmrec
+    run --attach`` replays: the dataset as the detectors read it (so the attached run's
+    spec names the same folder), the rest as given."""
+    if settings.pixels.enabled:
+        raise ConfigError(
+            "a swarm kept up replays constellations; a run from pixels starts its own (swarmrec run)"
+        )
+    if settings.link.limited or settings.schedule:
+        raise ConfigError("emulated links belong to one run: use swarmrec run --link-...")
+    prepared = prepare(settings, dataset_dir=settings.out / "dataset")
+    spec = prepared.spec
+    deployment = _local(settings)
+    warm_up()  # the Python verifiers load the kernels from numba's cache
+    try:
+        deployment.start(spec, progress=settings.progress)
+        deployment.wait_ready()
+        with deployment.client(settings.request_timeout_s) as client:
+            shards = spec.bus.n_robots if "index-shard" in spec.kinds else None
+            client.wait_index_settled(timeout_s=SETTLE_TIMEOUT_S, shards=shards)
+    except BaseException:
+        deployment.stop()
+        raise
+    detector = spec.component(DetectorSettings)
+    assert isinstance(detector, DetectorSettings)
+    source = settings.source
+    groundtruth = source.groundtruth
+    original = Path(source.dataset)
+    if groundtruth is None and not source.synthetic and (original / "groundtruth.txt").is_file():
+        groundtruth = original / "groundtruth.txt"
+    record = settings.record() | {
+        "dataset": str(Path(detector.dataset).resolve()),
+        "seed": 0,
+        "frames": None,
+        "labels": str(detector.labels_file) if detector.labels_file else None,
+        "groundtruth": str(groundtruth.resolve()) if groundtruth else None,
+    }
+    return deployment, record
+
+
 def _link_schedule(
     deployment: Deployment, client: ZenohClient, events: list[tuple[float, str]]
 ) -> Callable[[int], None] | None:
@@ -271,7 +322,7 @@ def main(
                 # Frames of an earlier replay would be found as loop closures of this one.
                 raise ConfigError(
                     f"the swarm already holds data from an earlier run ({holding}); "
-                    "start it afresh (for compose: swarmrec compose down, then up)"
+                    "start it afresh (swarmrec down, then up; for compose: swarmrec compose down, then up)"
                 )
             # Every robot's shard confirmed on one settled placement before the first
             # frame: in a big swarm started at once, a shard that comes up after the

@@ -163,6 +163,7 @@ class PlacesSettings:
             "wire_positions": self.wire_positions,
             "replicas": self.index.replicas,
             "rebalance_target": self.index.rebalance_target,
+            "data_plane": self.data_plane,
         }
 
     @classmethod
@@ -184,6 +185,7 @@ class PlacesSettings:
                 request_timeout_s=float(record["request_timeout_s"]),
                 pace="lockstep" if record.get("lockstep", True) else "fast",
                 wire_positions=record.get("wire_positions", "mm"),
+                data_plane=record.get("data_plane", "compiled"),
                 index=IndexSettings(
                     replicas=int(record.get("replicas", IndexSettings.replicas)),
                     rebalance_target=float(record.get("rebalance_target", IndexSettings.rebalance_target)),
