@@ -303,13 +303,21 @@ def print_summary(s: PlacesSummary, out: Path) -> None:
             f"  links: {lk.rate_kbps or 'unlimited'} kB/s, {lk.latency_ms or 0} ms; {len(lk.events)} changes"
         )
         for when, event in lk.events[:10]:
-            print(f"    at {when:g} {lk.schedule_unit}: {event}")
+            at = f"step {when:g}" if lk.schedule_unit == "step" else f"{when:g} s"
+            print(f"    at {at}: {event}")
+        if len(lk.events) > 10:
+            print(f"    ... {len(lk.events) - 10} more in summary.json")
     if s.offline_check is not None:
         oc = s.offline_check
         verdict = "identical" if oc.identical else f"DIFFERENT ({oc})"
         print(f"  pair scores vs offline decentralized evaluation: {verdict}")
+    elif s.offline_not_compared:
+        print(f"  pair scores vs offline decentralized evaluation: not compared ({s.offline_not_compared})")
     if q.missing_slots:
-        print(f"  missing answers: {q.missing_slots} (by robot {q.missing_by_robot})")
+        by_robot = ", ".join(
+            f"robot {r}: {n}" for r, n in sorted(q.missing_by_robot.items(), key=lambda x: int(x[0]))
+        )
+        print(f"  missing answers: {q.missing_slots} ({by_robot})")
     if q.late_frames or q.pending_frames:
         print(
             f"  frames delivered late from the detectors' outboxes: {q.late_frames}"

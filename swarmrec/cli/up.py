@@ -197,6 +197,8 @@ def _print_up(swarm: str, args: argparse.Namespace, deployment: LocalDeployment,
     )
     print(f"  router   {deployment.endpoint}")
     print(f"  gateway  {deployment.gateway_address}")
+    if deployment.live_view_url:
+        print(f"  live     {deployment.live_view_url}   (open it in a browser)")
     if deployment.pki_dir is not None:
         print(f"  PKI      {deployment.pki_dir.resolve()}")
     print(f"  logs     {deployment.log_dir.resolve()}")

@@ -21,7 +21,7 @@ from swarmrec.experiments.vpr import main as vpr_main
 from swarmrec.experiments.vpr.settings import METHODS
 from swarmrec.vpr.centres import CentresSettings
 from swarmrec.vpr.centres import main as centres_main
-from swarmrec.vpr.evaluation import EvaluationSettings
+from swarmrec.vpr.evaluation import EvaluationSettings, EvaluationSummary
 from swarmrec.vpr.evaluation import main as evaluation_main
 
 __all__ = ["add", "add_method_flags", "print_comparison", "print_dvpr", "run_method"]
@@ -73,6 +73,7 @@ def add(sub: Subparsers) -> None:
         help=f"varied offices the k-means centres are trained on (default {d.other_worlds})",
     )
     e.add_argument("--threads", type=int, default=d.threads, help="faiss and onnxruntime threads (default 1)")
+    e.add_argument("--quiet", action="store_true", help="no progress display")
     e.set_defaults(handler=run_evaluate)
     c = cmds.add_parser(
         "centres",
@@ -115,21 +116,56 @@ def run_evaluate(args: argparse.Namespace) -> int:
         deployment_frames=args.deployment_frames,
         other_worlds=args.other_worlds,
         threads=args.threads,
+        progress=not args.quiet,
     )
     summary = evaluation_main(settings)
+    print_evaluation(summary, settings)
+    return 0
+
+
+def print_evaluation(summary: EvaluationSummary, settings: EvaluationSettings) -> None:
+    """The evaluation's tables, each under a heading (summary.json holds every run's values)."""
+    runs = f"mean of {settings.runs} runs" if settings.runs > 1 else "one run"
+    print(
+        f"full-image place recognition on office {settings.deployment_seed} ({settings.deployment_frames} "
+        f"frames), {runs} a row; relative AUC = decentralized / centralized, balance = busiest / mean robot"
+    )
+    print("Fig. 6: one k-means cluster per robot")
+    print(f"  {'robots':>6} {'relative AUC':>13} {'worst balance':>14} {'bytes a query':>14}")
     for row in summary.fig6:
         print(
-            f"  {row['n_robots']:>2} robots, one cluster each: relative AUC {row['relative_auc_mean']:.3f}, "
-            f"worst balance ratio {row['worst_balance_ratio_mean']:.2f}"
+            f"  {row['n_robots']:>6} {row['relative_auc_mean']:>13.3f} "
+            f"{row['worst_balance_ratio_mean']:>14.2f} {row['bytes_per_query_mean']:>14.1f}"
         )
+    print(f"Fig. 7: {settings.fig7_robots} robots, c clusters per robot")
+    print(f"  {'c':>6} {'relative AUC':>13} {'worst balance':>14} {'bytes a query':>14}")
     for row in summary.fig7:
         print(
-            f"  {settings.fig7_robots} robots, c = {row['clusters_per_robot']}: relative AUC "
-            f"{row['relative_auc_mean']:.3f}, worst balance ratio {row['worst_balance_ratio_mean']:.2f}"
+            f"  {row['clusters_per_robot']:>6} {row['relative_auc_mean']:>13.3f} "
+            f"{row['worst_balance_ratio_mean']:>14.2f} {row['bytes_per_query_mean']:>14.1f}"
         )
+    b = summary.balance
+    if "relative_auc_mean" in b:
+        after = b.get("worst_balance_ratio_after_first_period_runs") or []
+        worst_after = f", after the first period {max(after):.2f}" if after else ""
+        print(
+            f"re-balancing ({b['n_robots']} robots, {b['clusters_per_robot_start']} clusters each to start; "
+            "beyond the paper)"
+        )
+        print(
+            f"  relative AUC {b['relative_auc_mean']:.3f}, worst balance {b['worst_balance_ratio_mean']:.2f}"
+            f"{worst_after}, migration {b['migration_bytes_per_query_mean']:.1f} B a query"
+        )
+    if summary.quantisation:
+        print("descriptor codes (the model card's protocol: recall and AUC against float32)")
+        print(f"  {'code':>8} {'bytes':>6} {'recall@1':>9} {'recall@5':>9} {'AUC':>7}")
+        for q in summary.quantisation:
+            print(
+                f"  {q['code']:>8} {q['descriptor_bytes']:>6} {q['recall_at_1']:>9.3f} "
+                f"{q['recall_at_5']:>9.3f} {q['auc']:>7.3f}"
+            )
     seconds = summary.seconds["total"]
-    print(f"  written to {summary.out}/ (summary.json, runs.json, fig6.png, fig7.png) in {seconds:.0f} s")
-    return 0
+    print(f"written to {summary.out}/ (summary.json, runs.json, fig6.png, fig7.png) in {seconds:.0f} s")
 
 
 def run_centres(args: argparse.Namespace) -> int:

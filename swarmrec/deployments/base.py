@@ -162,6 +162,8 @@ class AttachFile:
     prometheus_url: str
     #: ``grpc://host:port`` of the swarm's gRPC gateway, from this machine.
     gateway_address: str = ""
+    #: The gateway's live view (a web page of the swarm), with its token; "" when none.
+    live_view_url: str = ""
     #: mtls or insecure; with mtls, the PKI on this machine (the client's and operator's identities).
     security: str = "mtls"
     pki_dir: str = ""

@@ -180,6 +180,15 @@ class LocalDeployment:
                 return address
         raise ConfigError("the gateway has not been started, or is not ready yet")
 
+    @property
+    def live_view_url(self) -> str:
+        """The gateway's live view, with its token ("" when it serves none)."""
+        for sp in self.swarm_procs:
+            url = sp.info.get("web")
+            if sp.kind == "gateway" and isinstance(url, str):
+                return url
+        return ""
+
     def client(self, timeout_s: float = 5.0, *, role: str = "operator") -> ZenohClient:
         spec = self._spec()
         if self.pki_dir is None:

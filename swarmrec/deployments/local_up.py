@@ -74,6 +74,7 @@ def write_local_file(folder: Path, deployment: LocalDeployment, experiment: dict
         router_endpoint=deployment.endpoint,
         prometheus_url="",
         gateway_address=deployment.gateway_address if "gateway" in spec.swarm_kinds else "",
+        live_view_url=deployment.live_view_url,
         security=deployment.security,
         pki_dir=str(deployment.pki_dir.resolve()) if deployment.pki_dir is not None else "",
         experiment=experiment,

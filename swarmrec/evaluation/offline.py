@@ -259,8 +259,12 @@ def main(settings: EvaluationSettings) -> EvaluationSummary:
         _write_scores(out / f"scores_{name}.npz", matrix, seq, robots)
         _write_best(out / f"best_matches_{name}.csv", seq, dense, curve)
         if settings.plots:
+            starts = [b.start for b in split_frames(len(seq), robots)] if robots > 1 else []
             plot_similarity(
-                dense, f"{seq.name}: {name.replace('_', ' ')} robots", out / f"similarity_{name}.png"
+                dense,
+                f"{seq.name}: {name.replace('_', ' ')} robots",
+                out / f"similarity_{name}.png",
+                robot_starts=starts,
             )
     if settings.plots and curves:
         plot_pr(curves, out / "precision_recall.png")

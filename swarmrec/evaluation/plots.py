@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from itertools import pairwise
 from pathlib import Path
 
 import matplotlib
@@ -11,28 +13,83 @@ matplotlib.use("Agg")  # files only: never needs a display
 import matplotlib.pyplot as plt
 import numpy as np
 import numpy.typing as npt
+from matplotlib.colors import PowerNorm
 
 from swarmrec.evaluation.bandwidth import HolderLoad
 from swarmrec.evaluation.pr import PRCurve
 
-__all__ = ["plot_bytes", "plot_funnel", "plot_holder_load", "plot_pr", "plot_similarity"]
+__all__ = ["block_max", "plot_bytes", "plot_funnel", "plot_holder_load", "plot_pr", "plot_similarity"]
+
+
+#: The most rows and columns a similarity image shows; bigger matrices are shown by block maxima.
+SIMILARITY_BINS = 500
+
+
+def block_max(
+    scores: npt.NDArray[np.float64], bins: int = SIMILARITY_BINS
+) -> tuple[npt.NDArray[np.float64], int]:
+    """``scores`` shrunk to at most ``bins`` x ``bins`` by the maximum of each block, and the
+    block size. An image of 2500 frames is drawn on a few hundred pixels: a pixel showing any
+    one frame pair of its block would hide most of a sparse matrix's scores; its maximum
+    shows each one."""
+    n = scores.shape[0]
+    if n <= bins:
+        return scores, 1
+    f = -(-n // bins)
+    pad = (-n) % f
+    padded = np.pad(scores, ((0, pad), (0, pad)), constant_values=0.0)
+    m = padded.shape[0] // f
+    return padded.reshape(m, f, m, f).max(axis=(1, 3)), f
 
 
 def plot_similarity(
-    dense: npt.NDArray[np.float64], title: str, path: Path, best_threshold: float = 0.25
+    dense: npt.NDArray[np.float64],
+    title: str,
+    path: Path,
+    best_threshold: float = 0.25,
+    robot_starts: Sequence[int] = (),
 ) -> None:
-    """Scores as an image (negative sentinels shown as 0), with each frame's
-    best match above ``best_threshold`` marked, as in the paper's Fig. 4."""
-    fig, ax = plt.subplots(figsize=(5.5, 5))
-    img = ax.imshow(np.clip(dense, 0.0, 1.0), cmap="viridis", vmin=0, vmax=1, interpolation="nearest")
+    """Scores as an image (negative sentinels shown as 0; a big matrix by block maxima), with
+    each frame's best match above ``best_threshold`` marked, as in the paper's Fig. 4, and
+    the robots' blocks of frames marked where ``robot_starts`` (each robot's first frame) says."""
+    n = dense.shape[0]
+    shown, block = block_max(np.clip(dense, 0.0, 1.0))
+    positive = shown[shown > 0]
+    # The colour scale ends at the 99th percentile of the scores present, and a square-root
+    # norm lifts the many small ones off the background.
+    top = float(np.quantile(positive, 0.99)) if positive.size else 1.0
+    fig, ax = plt.subplots(figsize=(6.2, 5.6))
+    img = ax.imshow(
+        shown,
+        cmap="magma_r",
+        norm=PowerNorm(0.5, vmin=0.0, vmax=max(top, 1e-6)),
+        interpolation="nearest",
+        extent=(0, n, n, 0),
+    )
     best = np.argmax(dense, axis=1)
-    score = dense[np.arange(dense.shape[0]), best]
+    score = dense[np.arange(n), best]
     keep = score > best_threshold
-    ax.scatter(best[keep], np.flatnonzero(keep), s=2, c="red", label=f"best match > {best_threshold}")
+    ax.scatter(
+        best[keep] + 0.5,
+        np.flatnonzero(keep) + 0.5,
+        s=2,
+        c="tab:cyan",
+        label=f"best match > {best_threshold}",
+    )
+    starts = [int(s) for s in robot_starts if 0 < s < n]
+    for s in starts:
+        ax.axhline(s, color="0.55", lw=0.6)
+        ax.axvline(s, color="0.55", lw=0.6)
+    if robot_starts:
+        edges = [0, *starts, n]
+        top_axis = ax.secondary_xaxis("top")
+        top_axis.set_xticks([(a + b) / 2 for a, b in pairwise(edges)])
+        top_axis.set_xticklabels([f"r{r}" for r in range(len(edges) - 1)], fontsize=7)
+        top_axis.tick_params(length=0)
     ax.set_xlabel("frame")
     ax.set_ylabel("frame")
-    ax.set_title(title)
-    ax.legend(loc="upper right", fontsize=7, markerscale=4)
+    ax.set_title(title + (f" (max of {block}x{block} blocks)" if block > 1 else ""), fontsize=9)
+    ax.legend(loc="lower left", fontsize=7, markerscale=4)
     fig.colorbar(img, ax=ax, fraction=0.046, label="score")
     fig.tight_layout()
     fig.savefig(path, dpi=120)

@@ -58,6 +58,7 @@ from swarmrec.runtime import ServiceBase, ServiceContext, keys
 from swarmrec.runtime.rpc import Caller, Pending
 from swarmrec.runtime.settings import SecuritySettings
 from swarmrec.runtime.tls import TlsFiles
+from swarmrec.services.live_view import LiveView
 from swarmrec.services.metrics import GatewayMetrics
 from swarmrec.services.registry import kind_of_wire
 from swarmrec.services.settings import GatewaySettings
@@ -191,6 +192,24 @@ class Gateway(ServiceBase):
         self.address = f"grpc://{'127.0.0.1' if host in ('0.0.0.0', '') else host}:{self.port}"
         fields = {"grpc": self.address, "tls": self.tls, "client_auth": self._client_auth}
         ctx.log.info("gRPC gateway listening", extra={"fields": fields})
+        self.live: LiveView | None = None
+        if self.settings.web_port >= 0:
+            try:
+                self.live = LiveView(
+                    ctx.session,
+                    self.bus.swarm,
+                    self.swarm,
+                    host=self.settings.web_host,
+                    port=self.settings.web_port,
+                    max_streams=self.settings.web_max_streams,
+                    log=ctx.log,
+                )
+            except OSError as e:
+                self.close()
+                where = f"{self.settings.web_host}:{self.settings.web_port}"
+                raise ConfigError(f"the live view cannot listen on {where}: {e.strerror}") from None
+            # (Its address with the token is in the ready line, as readable as the run's folder.)
+            ctx.log.info("live view listening", extra={"fields": {"port": self.live.port}})
 
     # --- lifecycle ---------------------------------------------------------------------
 
@@ -199,7 +218,10 @@ class Gateway(ServiceBase):
             self.health.set(name, status)
 
     def announce(self) -> dict[str, Any]:
-        return {"grpc": self.address, "grpc_tls": self.tls}
+        info: dict[str, Any] = {"grpc": self.address, "grpc_tls": self.tls}
+        if self.live is not None:
+            info["web"] = self.live.url
+        return info
 
     def serving(self, ready: bool) -> None:
         self.ready = ready
@@ -211,6 +233,9 @@ class Gateway(ServiceBase):
 
     def close(self) -> None:
         self.stopping.set()
+        if getattr(self, "live", None) is not None:
+            assert self.live is not None
+            self.live.close()
         # Calls in flight get a moment to finish; streams see `stopping` and end UNAVAILABLE.
         self.server.stop(grace=2.0).wait(5.0)
         self.executor.shutdown(wait=False, cancel_futures=True)

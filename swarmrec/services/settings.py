@@ -476,6 +476,11 @@ class GatewaySettings(Component):
     grpc_stream_buffer: int = setting(
         4096, "events queued for a slow stream reader; past it the stream ends RESOURCE_EXHAUSTED"
     )
+    web_host: str = setting("127.0.0.1", "address the live view (a web page of the swarm) listens on")
+    web_port: int = setting(
+        0, "the live view's port (0: a free one; its address, with its token, in the ready line; -1: off)"
+    )
+    web_max_streams: int = setting(4, "live-view event streams open at once; more are answered 503")
 
     def problems(self) -> list[str]:
         problems = []
@@ -492,6 +497,10 @@ class GatewaySettings(Component):
             )
         if self.grpc_stream_buffer < 1:
             problems.append(f"grpc_stream_buffer must be >= 1, got {self.grpc_stream_buffer}")
+        if not -1 <= self.web_port <= 65535:
+            problems.append(f"web_port must be -1 (off) or 0 .. 65535, got {self.web_port}")
+        if not 1 <= self.web_max_streams <= 64:
+            problems.append(f"web_max_streams must be 1 .. 64, got {self.web_max_streams}")
         return problems
 
 

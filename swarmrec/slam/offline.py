@@ -76,7 +76,9 @@ class SlamSettings:
         if self.out.exists() and not self.out.is_dir():
             raise ConfigError(f"out {self.out} exists and is not a directory")
         if (self.out / SUMMARY_NAME).exists() and not self.overwrite:
-            raise ConfigError(f"{self.out / SUMMARY_NAME} exists; pass overwrite to replace it")
+            raise ConfigError(
+                f"{self.out / SUMMARY_NAME} exists: add --overwrite to replace it (Python: overwrite=True)"
+            )
         if self.centralized not in METHODS:
             raise ConfigError(f"centralized must be one of {METHODS}, got {self.centralized!r}")
         if self.bytes_per_float not in (4, 8):

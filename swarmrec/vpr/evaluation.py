@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -44,6 +45,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from tqdm import tqdm
 
 from swarmrec.errors import ConfigError
 from swarmrec.vpr.balance import (
@@ -117,6 +119,8 @@ class EvaluationSettings:
     max_distance_m: float = 0.5
     max_angle_deg: float = 30.0
     threads: int = 1
+    #: A progress bar on stderr (rendering, then the runs).
+    progress: bool = False
 
     def __post_init__(self) -> None:
         if not self.robots or min(self.robots) < 2:
@@ -346,6 +350,13 @@ def main(settings: EvaluationSettings) -> EvaluationSummary:
     out.mkdir(parents=True, exist_ok=True)
     set_faiss_threads(s.threads)
     model = DescriptorModel(s.model, intra_op_threads=s.threads)
+    if s.progress:
+        print(
+            f"rendering and describing {s.deployment_frames} frames of office {s.deployment_seed} and "
+            f"every {s.other_stride}th frame of {s.other_worlds} other offices ...",
+            file=sys.stderr,
+            flush=True,
+        )
     deployment = render_world(s.deployment_seed, s.deployment_frames, 1, vary=False, offset=False)
     x = model.describe(deployment.images)
     other, other_seeds = other_descriptors(model, s.other_worlds, s.other_seed_base, s.other_stride)
@@ -374,19 +385,24 @@ def main(settings: EvaluationSettings) -> EvaluationSummary:
         team = teams[n] = _team(n, same)
         answers = run_queries(x, team.robots, np.zeros(len(x), np.int64), team.order)
         centralized[n] = _score(team, answers)
-    for n in s.robots:
-        for seed in range(s.runs):
-            runs.append(_random_run(f"fig6_n{n}_run{seed}", "fig6", teams[n], 1, seed, x, other,
-                                    centralized[n], centres_out))  # fmt: skip
-    for c in s.clusters_per_robot:
+    total = (len(s.robots) + len(s.clusters_per_robot) + 1) * s.runs
+    with tqdm(total=total, desc="runs", unit="run", disable=not s.progress, leave=False) as bar:
+        for n in s.robots:
+            for seed in range(s.runs):
+                runs.append(_random_run(f"fig6_n{n}_run{seed}", "fig6", teams[n], 1, seed, x, other,
+                                        centralized[n], centres_out))  # fmt: skip
+                bar.update()
+        for c in s.clusters_per_robot:
+            n = s.fig7_robots
+            for seed in range(s.runs):
+                runs.append(_random_run(f"fig7_c{c}_run{seed}", "fig7", teams[n], c, seed, x, other,
+                                        centralized[n], centres_out))  # fmt: skip
+                bar.update()
         n = s.fig7_robots
+        balanced = []
         for seed in range(s.runs):
-            runs.append(_random_run(f"fig7_c{c}_run{seed}", "fig7", teams[n], c, seed, x, other,
-                                    centralized[n], centres_out))  # fmt: skip
-    n = s.fig7_robots
-    balanced = [
-        _balanced_run(s, teams[n], seed, x, other, centralized[n], centres_out) for seed in range(s.runs)
-    ]
+            balanced.append(_balanced_run(s, teams[n], seed, x, other, centralized[n], centres_out))
+            bar.update()
     runs += balanced
     sweep_s = time.perf_counter() - started - describe_s
     quantisation = _quantisation(s, x, other, deployment)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from swarmrec.cli.run import print_summary
 from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.links import LinkSpec, read_schedule
@@ -19,7 +20,9 @@ ROBOTS, FRAMES, OUT, BACK, LOST_ROBOT = 3, 150, 5, 10, 1
 
 
 @pytest.mark.slow
-def test_a_robot_out_of_range_misses_its_steps_keeps_its_data_and_comes_back(tmp_path: Path) -> None:
+def test_a_robot_out_of_range_misses_its_steps_keeps_its_data_and_comes_back(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     schedule = tmp_path / "schedule.csv"
     schedule.write_text(f"# robot {LOST_ROBOT} out of range\nstart,end,robot\n{OUT},{BACK},{LOST_ROBOT}\n")
     stored: dict[str, dict[str, int]] = {}
@@ -53,6 +56,12 @@ def test_a_robot_out_of_range_misses_its_steps_keeps_its_data_and_comes_back(tmp
         (float(BACK), f"robot {LOST_ROBOT} back in range"),
     ]
     assert summary.queries.missing_by_robot == {str(LOST_ROBOT): BACK - OUT}
+    capsys.readouterr()
+    print_summary(summary, settings.out)
+    printed = capsys.readouterr().out
+    assert f"    at step {OUT}: robot {LOST_ROBOT} out of range\n" in printed
+    assert f"not compared ({BACK - OUT} answer slots missing)" in printed
+    assert f"missing answers: {BACK - OUT} (robot {LOST_ROBOT}: {BACK - OUT})" in printed
     # What it stored before going out of range is all there when it comes back, and it stores again.
     before, after = stored[f"after step {OUT - 1}"], stored[f"after step {BACK}"]
     assert before[f"verifier-{LOST_ROBOT}"] == OUT

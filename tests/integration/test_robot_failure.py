@@ -19,6 +19,7 @@ from typing import Any, cast
 import numpy as np
 import pytest
 
+from swarmrec.cli.run import print_summary
 from swarmrec.core.descriptor import semantic_descriptor
 from swarmrec.core.split import split_frames
 from swarmrec.datasets.constellations import read_constellations
@@ -38,7 +39,7 @@ STEPS = FRAMES // ROBOTS
 @pytest.mark.slow
 @pytest.mark.parametrize("replicas", [1, 2])
 def test_a_robot_killed_mid_run_is_reported_missing_and_the_others_keep_querying(
-    tmp_path: Path, replicas: int
+    tmp_path: Path, replicas: int, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = tmp_path / "run"
     settings = PlacesSettings(
@@ -92,6 +93,16 @@ def test_a_robot_killed_mid_run_is_reported_missing_and_the_others_keep_querying
     q = summary.queries
     # The run completed and names the dead robot: it missed every step after the kill.
     assert q.missing_by_robot == {str(DEAD): STEPS - KILL_AFTER - 1}
+    # The summary a user reads says why the scores were not compared, and who missed what.
+    missed = STEPS - KILL_AFTER - 1
+    capsys.readouterr()
+    print_summary(summary, out)
+    printed = capsys.readouterr().out
+    assert (
+        f"pair scores vs offline decentralized evaluation: not compared ({missed} answer slots missing)"
+        in (printed)
+    )
+    assert f"missing answers: {missed} (robot {DEAD}: {missed})" in printed
     assert q.frames_replayed == ROBOTS * STEPS - (STEPS - KILL_AFTER - 1)
     assert any(f"loop closures of robot {DEAD}" in e for e in q.errors)
     # Its processes died by SIGKILL; everyone else exited cleanly.

@@ -174,3 +174,16 @@ def test_a_frame_without_a_report_and_a_frame_outside_the_run(tmp_path: Path) ->
         explain_run(run, 0, 4)
     with pytest.raises(ConfigError, match="not a finished run"):
         RunFolder(tmp_path / "elsewhere")
+
+
+def test_a_folder_of_both_methods_points_to_the_constellation_report(tmp_path: Path) -> None:
+    (tmp_path / "constellations").mkdir()
+    (tmp_path / "constellations" / "summary.json").write_text("{}")
+
+    with pytest.raises(ConfigError, match=r"reports of both methods: .*--run .*constellations\)"):
+        RunFolder(tmp_path)
+
+
+def test_a_folder_that_is_no_run_says_which_file_is_missing(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"a loop-closure funnel \(no summary\.json\)"):
+        RunFolder(tmp_path)

@@ -84,7 +84,7 @@ def test_settings_refuse_what_cannot_work(team: tuple[Path, PoseGraph], tmp_path
     with pytest.raises(ConfigError, match="centralized"):
         SlamSettings(folder, tmp_path / "out", centralized="dogleg")  # type: ignore[arg-type]
     solve_folder(SlamSettings(folder, tmp_path / "out"))
-    with pytest.raises(ConfigError, match="pass overwrite"):
+    with pytest.raises(ConfigError, match="add --overwrite"):
         SlamSettings(folder, tmp_path / "out")
     assert SlamSettings(folder, tmp_path / "out", overwrite=True).dgs.over_relaxation == 1.9
     assert SlamSettings(folder, tmp_path / "j", mode="jacobi").dgs.over_relaxation == 1.0

@@ -81,3 +81,24 @@ def test_bad_settings_are_refused(tmp_path: Path) -> None:
         EvaluationSettings(out=tmp_path, rebalance_share=1.0)
     with pytest.raises(ConfigError, match="pq_bytes must divide 128"):
         EvaluationSettings(out=tmp_path, pq_bytes=(24,))
+
+
+def test_the_printed_summary_heads_each_table_and_shows_rebalancing_and_codes(
+    evaluated: tuple[Path, EvaluationSummary], capsys: pytest.CaptureFixture[str]
+) -> None:
+    from swarmrec.cli.vpr import print_evaluation
+
+    out, summary = evaluated
+    print_evaluation(summary, EvaluationSettings(out=out, **TINY))  # type: ignore[arg-type]
+    lines = capsys.readouterr().out.splitlines()
+
+    headings = [line for line in lines if not line.startswith("  ")]
+    assert len(headings) == 6 and headings[5].startswith(f"written to {out}/")
+    assert headings[1] == "Fig. 6: one k-means cluster per robot"
+    assert headings[2] == "Fig. 7: 3 robots, c clusters per robot"
+    assert headings[3].startswith("re-balancing (3 robots, 2 clusters each to start")
+    assert headings[4].startswith("descriptor codes")
+    fig6 = summary.fig6[0]
+    assert f"{2:>8} {fig6['relative_auc_mean']:>13.3f}" in lines[lines.index(headings[1]) + 2]
+    codes = [line.split()[0] for line in lines[lines.index(headings[4]) + 2 :] if line.startswith("  ")]
+    assert codes == ["float32", "int8", "pq16"]

@@ -343,6 +343,12 @@ class RunFolder:
             queries = (path / "funnel_queries.csv").read_text(encoding="utf-8").splitlines()
             rows = (path / "funnel.csv").read_text(encoding="utf-8").splitlines()
         except FileNotFoundError as e:
+            if (path / "constellations" / "summary.json").is_file():
+                # A `--method both` run keeps each method's report in a folder of its own.
+                raise ConfigError(
+                    f"{path} holds the reports of both methods: the constellation funnel is in "
+                    f"{path / 'constellations'} (--run {path / 'constellations'})"
+                ) from None
             raise ConfigError(
                 f"{path} is not a finished run with a loop-closure funnel (no {Path(e.filename).name}); "
                 "`swarmrec run --out DIR` writes one"

@@ -24,6 +24,7 @@ replaying constellations, and the report scores the constellations they made
 from __future__ import annotations
 
 import shutil
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -261,16 +262,12 @@ def _link_schedule(
 
 
 def _local(settings: PlacesSettings) -> LocalDeployment:
-    """A fresh local swarm in the run's folder (stores and detections of an earlier run removed)."""
+    """A fresh local swarm in the run's folder (stores and detections of an earlier run removed,
+    once the settings are known to be ones it can run)."""
     out = settings.out
-    for pattern in ("robot*/*/*.log", "robot*/*/placement.state"):
-        for old in (out / "data").glob(pattern):
-            old.unlink()
-    for old in (out / "data").glob("robot*/detector/constellations/*.txt"):
-        old.unlink()
     schedule = read_schedule(settings.schedule, unit=settings.schedule_unit) if settings.schedule else None
     security: Security = "insecure" if settings.security == "insecure" else "mtls"
-    return LocalDeployment(
+    deployment = LocalDeployment(
         data_dir=out / "data",
         log_dir=out / "logs",
         hosting=settings.hosting,
@@ -278,6 +275,12 @@ def _local(settings: PlacesSettings) -> LocalDeployment:
         schedule=schedule,
         security=security,
     )
+    for pattern in ("robot*/*/*.log", "robot*/*/placement.state"):
+        for old in (out / "data").glob(pattern):
+            old.unlink()
+    for old in (out / "data").glob("robot*/detector/constellations/*.txt"):
+        old.unlink()
+    return deployment
 
 
 def main(
@@ -296,17 +299,18 @@ def main(
     """
     t_start = time.perf_counter()
     out = settings.out
-    out.mkdir(parents=True, exist_ok=True)
-    prepared = prepare(settings, dataset_dir=out / "dataset")
-    spec = prepared.spec
-    if prepared.pixels is not None and not isinstance(deployment, LocalDeployment | None):
+    # Settings the run cannot honour are refused before anything is written to ``out``.
+    if settings.pixels.enabled and not isinstance(deployment, LocalDeployment | None):
         raise ConfigError("a run from pixels reads the detectors' constellations from a local deployment")
     if (settings.link.limited or settings.schedule) and deployment is not None:
         raise ConfigError("emulated links are set up by the local deployment the run starts itself")
     if deployment is None:
-        deployment = _local(settings)
+        deployment = _local(settings)  # (refuses links with several robots a process, a bad schedule)
         # Compiled once here, the verifier processes load the kernels from numba's cache.
         warm_up()
+    out.mkdir(parents=True, exist_ok=True)
+    prepared = prepare(settings, dataset_dir=out / "dataset")
+    spec = prepared.spec
     timings: dict[str, float] = {"prepare_s": time.perf_counter() - t_start}
     exit_codes: dict[str, int] = {}
     offline: OfflineEvaluation | None = None
@@ -315,6 +319,8 @@ def main(
         deployment.start(spec, progress=settings.progress)
         deployment.wait_ready()
         timings["start_s"] = time.perf_counter() - t0
+        if settings.progress and isinstance(deployment, LocalDeployment) and deployment.live_view_url:
+            print(f"live view of the swarm: {deployment.live_view_url}", file=sys.stderr, flush=True)
         # The operator identity: it drives the replay (detector step/replay).
         with deployment.client(settings.request_timeout_s) as client:
             holding = {f"{m.kind}-{m.robot}": m.stored_items for m in client.members() if m.stored_items}

@@ -12,6 +12,8 @@ scores, the offline check, ground truth from ``groundtruth.txt`` by time).
 from __future__ import annotations
 
 import json
+import shutil
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -60,6 +62,30 @@ class PixelSource:
         return len(self.frames)
 
 
+#: What one rendered frame takes on disk (a 640x480 RGB PNG and its 16-bit depth PNG), measured.
+RENDER_BYTES_PER_FRAME = 0.8e6
+
+
+def _check_room(folder: Path, frames: int, say: bool) -> None:
+    """Say how much the render will write, and refuse it when the disk has not that much free."""
+    need = frames * RENDER_BYTES_PER_FRAME
+    existing = folder
+    while not existing.exists():
+        existing = existing.parent
+    free = shutil.disk_usage(existing).free
+    if free < 1.1 * need:
+        raise ConfigError(
+            f"rendering {frames} frames into {folder} needs about {need / 1e9:.1f} GB and "
+            f"{free / 1e9:.1f} GB are free: fewer --frames, or another --out"
+        )
+    if say:
+        print(
+            f"rendering {frames} RGB-D frames into {folder} (about {need / 1e9:.2f} GB, 0.8 MB a frame)",
+            file=sys.stderr,
+            flush=True,
+        )
+
+
 def _render(settings: PlacesSettings, folder: Path) -> dict[str, Any]:
     src = settings.source
     config = (
@@ -67,6 +93,7 @@ def _render(settings: PlacesSettings, folder: Path) -> dict[str, Any]:
         if src.frames is None
         else OfficeConfig(seed=src.seed, n_frames=src.frames)
     )
+    _check_room(folder, config.n_frames, settings.progress)
     summary = write_rgbd_sequence(generate_office(config), folder, overwrite=True, progress=settings.progress)
     return {
         "folder": str(summary.folder),

@@ -30,6 +30,7 @@ from swarmrec.client import IndexState
 from swarmrec.core.association import FrameTable, build_table
 from swarmrec.core.funnel import Reason, Stage, passed_stages
 from swarmrec.core.presets import Preset
+from swarmrec.core.split import split_frames
 from swarmrec.core.types import ConstellationSequence, Trajectory
 from swarmrec.datasets.constellations import label_counts
 from swarmrec.deployments.metrics import Scrape
@@ -292,6 +293,8 @@ class PlacesSummary:
     timings: dict[str, float]
     auc: float | None = None
     offline_check: OfflineCheck | None = None
+    #: Why the pair scores were not compared with the offline evaluation ("" when they were).
+    offline_not_compared: str = ""
     positions_effect: PositionsEffect | None = None
     links: LinkReport | None = None
     detector: DetectorFigures | None = None
@@ -423,6 +426,17 @@ class OfflineEvaluation:
                 matrix = scored.matrix
             self._done[id(seq)] = (table, matrix)
         return self._done[id(seq)][1]
+
+
+def _why_not_compared(settings: PlacesSettings, missing: int, late: int) -> str:
+    """Why a run's pair scores are not compared with the offline evaluation, in a few words."""
+    if not settings.check_offline:
+        return "--no-offline-check"
+    if not settings.lockstep:
+        return f"pace {settings.pace}: only a lock-step replay is the offline evaluation's sequence"
+    if missing:
+        return f"{missing} answer slots missing"
+    return f"{late} frames delivered after their step"
 
 
 def _compare_offline(matrix: ScoreMatrix, offline: ScoreMatrix) -> OfflineCheck:
@@ -640,6 +654,8 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
     # Frames delivered late were stored after their step: the lock-step identity is off then.
     if settings.check_offline and settings.lockstep and not replay.missing and not replay.late:
         summary.offline_check = _compare_offline(matrix, offline.matrix(wire=True))
+    else:
+        summary.offline_not_compared = _why_not_compared(settings, len(replay.missing), len(replay.late))
     dense = matrix.dense()
     curves: dict[str, PRCurve] = {}
     truth = None
@@ -727,7 +743,10 @@ def _plots(
     loads: list[int],
 ) -> None:
     out = settings.out
-    plot_similarity(dense, f"{seq.name}: swarm of {settings.robots} robots", out / "similarity.png")
+    starts = [int(b.start) for b in split_frames(dense.shape[0], settings.robots)]
+    plot_similarity(
+        dense, f"{seq.name}: swarm of {settings.robots} robots", out / "similarity.png", robot_starts=starts
+    )
     if curves:
         plot_pr(curves, out / "precision_recall.png")
     counts = label_counts(seq.constellations, seq.n_labels)

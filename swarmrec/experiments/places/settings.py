@@ -197,7 +197,11 @@ class PlacesSettings:
         run = base.with_(**changes)
         if run.lockstep != composed_lockstep:
             raise ConfigError(
-                f"the swarm was composed for {'lock-step' if composed_lockstep else 'free'} replay; "
-                f"--pace {run.pace} needs a swarm composed {'with' if run.lockstep else 'without'} --lockstep"
+                f"the swarm was started for {'lock-step' if composed_lockstep else 'free'} replay; "
+                + (
+                    f"--pace {run.pace} needs one started with --free (swarmrec up --free, compose up --free)"
+                    if composed_lockstep
+                    else "a lock-step replay needs one started without --free"
+                )
             )
         return run

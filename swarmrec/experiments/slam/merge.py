@@ -126,7 +126,9 @@ class MergeSettings:
                 f"{self.run} is not a finished `swarmrec run` folder (summary.json, loop_closures.csv)"
             )
         if (self.out / SUMMARY_NAME).exists() and not self.overwrite:
-            raise ConfigError(f"{self.out / SUMMARY_NAME} exists; pass overwrite (--overwrite) to replace it")
+            raise ConfigError(
+                f"{self.out / SUMMARY_NAME} exists: add --overwrite to replace it (Python: overwrite=True)"
+            )
         if self.keyframe_every < 1 or self.min_inliers < 3 or self.pair_support < 1:
             raise ConfigError("keyframe_every and pair_support must be >= 1, min_inliers >= 3")
         for name in ("odometry_sigma_deg", "odometry_sigma_m", "ransac_threshold_m"):

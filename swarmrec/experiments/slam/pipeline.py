@@ -125,7 +125,11 @@ def solve_live(
     deadline = time.monotonic() + settings.solve_timeout_s
     statuses: dict[int, pb.SlamStatus | None] = {}
     with tqdm(
-        desc="solving", disable=not settings.progress, leave=False, bar_format="{desc} {postfix}"
+        # (tqdm puts ", " before the postfix: "solving, rotation stage, iteration 3; 0:running, ...")
+        desc="solving",
+        disable=not settings.progress,
+        leave=False,
+        bar_format="{desc}{postfix}",
     ) as bar:
         while True:
             for r in team:
@@ -138,8 +142,13 @@ def solve_live(
             live = [s for s in statuses.values() if s is not None]
             if live:
                 slowest = min(live, key=lambda s: (s.linearisation, s.iteration))
+                stage = (
+                    "rotation stage"
+                    if slowest.linearisation == 0
+                    else f"pose stage (linearisation {slowest.linearisation})"
+                )
                 bar.set_postfix_str(
-                    f"linearisation {slowest.linearisation}, iteration {slowest.iteration}; "
+                    f"{stage}, iteration {slowest.iteration}; "
                     + ", ".join(
                         f"{r}:{pb.SlamState.Name(s.state)[11:].lower()}" for r, s in statuses.items() if s
                     )
