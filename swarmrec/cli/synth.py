@@ -17,7 +17,8 @@ def add(sub: Subparsers) -> None:
         "synth", help="write the synthetic office world as constellation files + groundtruth.txt"
     )
     p.add_argument("--out", type=Path, required=True, help="folder to write")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="the world's seed (default 0)")
+    p.add_argument("--json", action="store_true", help="print what was written as JSON")
     p.add_argument("--frames", type=int, help="number of frames (default: the world's default)")
     p.set_defaults(handler=run)
 
@@ -30,5 +31,12 @@ def run(args: argparse.Namespace) -> int:
     )
     ds = generate_office(config)
     write_dataset(ds, args.out)
-    print(json.dumps({"out": str(args.out), "frames": len(ds.sequence)}))
+    if args.json:
+        print(json.dumps({"out": str(args.out), "frames": len(ds.sequence)}))
+    else:
+        print(
+            f"wrote the synthetic office of seed {args.seed}, {len(ds.sequence)} frames, to {args.out} "
+            "(constellations/ and groundtruth.txt): swarmrec evaluate --dataset "
+            f"{args.out}, or swarmrec run --dataset {args.out}"
+        )
     return 0
