@@ -24,6 +24,7 @@ from the swarm PKI and asks clients for theirs (``grpc_client_auth``).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import queue
 import threading
@@ -58,6 +59,7 @@ from swarmrec.runtime import ServiceBase, ServiceContext, keys
 from swarmrec.runtime.rpc import Caller, Pending
 from swarmrec.runtime.settings import SecuritySettings
 from swarmrec.runtime.tls import TlsFiles
+from swarmrec.security.identity import parse_common_name
 from swarmrec.services.live_view import LiveView
 from swarmrec.services.metrics import GatewayMetrics
 from swarmrec.services.registry import kind_of_wire
@@ -66,7 +68,15 @@ from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import constellation_from_proto
 from swarmrec.wire.gen.swarmrec.v1 import gateway_pb2, gateway_pb2_grpc
 
-__all__ = ["GRPC_STATUS", "SERVICE_NAME", "SUBSCRIBED_METADATA", "Gateway", "grpc_status_of"]
+__all__ = [
+    "GRPC_STATUS",
+    "SERVICE_NAME",
+    "SERVICE_STREAMS",
+    "SUBSCRIBED_METADATA",
+    "Gateway",
+    "caller_allowed",
+    "grpc_status_of",
+]
 
 M = TypeVar("M", bound=Message)
 
@@ -104,6 +114,119 @@ def grpc_status_of(e: Exception) -> tuple[grpc.StatusCode, ErrorCode]:
     if isinstance(e, ConfigError):
         return grpc.StatusCode.INVALID_ARGUMENT, ErrorCode.INVALID_ARGUMENT
     return grpc.StatusCode.INTERNAL, ErrorCode.INTERNAL
+
+
+#: Streams of the standard services (reflection, health's Watch) open at once, at most: each
+#: holds a gRPC worker thread, and a holder of idle ones must not starve the gateway's calls.
+SERVICE_STREAMS = 4
+#: The long-lived calls of the standard services that :data:`SERVICE_STREAMS` bounds.
+_SERVICE_STREAM_METHODS = frozenset(
+    {
+        "/grpc.reflection.v1alpha.ServerReflection/ServerReflectionInfo",
+        "/grpc.health.v1.Health/Watch",
+    }
+)
+
+
+def caller_allowed(common_name: str, swarm: str) -> str:
+    """Why a client certificate's holder may not use this swarm's gateway ("" when it may):
+    only the swarm's clients and operators are served; its services, its router, another
+    swarm's identities and names outside the scheme are not."""
+    try:
+        identity = parse_common_name(common_name)
+    except ConfigError:
+        return f"{common_name!r} is not a swarm identity"
+    if identity.swarm != swarm:
+        return f"{common_name!r} belongs to swarm {identity.swarm!r}, not {swarm!r}"
+    if identity.role not in ("client", "operator"):
+        return f"{common_name!r} is a {identity.role}, not a client or an operator"
+    return ""
+
+
+class _Guard(grpc.ServerInterceptor):  # type: ignore[misc, unused-ignore]  # grpc's base is untyped
+    """Every call: the caller's certificate names one of this swarm's clients or operators
+    (under client authentication), and the standard services' streams stay few."""
+
+    def __init__(self, swarm: str, check_identity: bool, metrics: GatewayMetrics) -> None:
+        self.swarm, self.check_identity, self.metrics = swarm, check_identity, metrics
+        self.streams = threading.BoundedSemaphore(SERVICE_STREAMS)
+
+    def _refusal(self, context: grpc.ServicerContext) -> str:
+        if not self.check_identity:
+            return ""
+        names = context.auth_context().get("x509_common_name") or [b""]
+        return caller_allowed(names[0].decode("utf-8", "replace"), self.swarm)
+
+    def _deny(self, method: str, context: grpc.ServicerContext, why: str) -> NoReturn:
+        self.metrics.calls.labels(method=method.rsplit("/", 1)[-1], code="PERMISSION_DENIED").inc()
+        context.abort(
+            grpc.StatusCode.PERMISSION_DENIED,
+            f"this gateway serves swarm {self.swarm!r}'s clients and operators: {why}",
+        )
+        raise AssertionError("unreachable: abort raises")
+
+    def intercept_service(self, continuation: Any, details: Any) -> Any:
+        handler = continuation(details)
+        if handler is None:
+            return None
+        method: str = details.method
+        limited = method in _SERVICE_STREAM_METHODS
+        guard = self
+
+        if handler.unary_unary is not None:
+            inner_uu = handler.unary_unary
+
+            def unary_unary(request: Any, context: grpc.ServicerContext) -> Any:
+                why = guard._refusal(context)
+                if why:
+                    guard._deny(method, context, why)
+                return inner_uu(request, context)
+
+            return grpc.unary_unary_rpc_method_handler(
+                unary_unary, handler.request_deserializer, handler.response_serializer
+            )
+        if handler.unary_stream is not None:
+            inner_us = handler.unary_stream
+
+            def unary_stream(request: Any, context: grpc.ServicerContext) -> Iterator[Any]:
+                why = guard._refusal(context)
+                if why:
+                    guard._deny(method, context, why)
+                with guard._slot(limited, context):
+                    yield from inner_us(request, context)
+
+            return grpc.unary_stream_rpc_method_handler(
+                unary_stream, handler.request_deserializer, handler.response_serializer
+            )
+        if handler.stream_stream is not None:
+            inner_ss = handler.stream_stream
+
+            def stream_stream(requests: Iterator[Any], context: grpc.ServicerContext) -> Iterator[Any]:
+                why = guard._refusal(context)
+                if why:
+                    guard._deny(method, context, why)
+                with guard._slot(limited, context):
+                    yield from inner_ss(requests, context)
+
+            return grpc.stream_stream_rpc_method_handler(
+                stream_stream, handler.request_deserializer, handler.response_serializer
+            )
+        return handler  # (no client-streaming call in these services)
+
+    @contextlib.contextmanager
+    def _slot(self, limited: bool, context: grpc.ServicerContext) -> Iterator[None]:
+        if not limited:
+            yield
+            return
+        if not self.streams.acquire(blocking=False):
+            context.abort(
+                grpc.StatusCode.RESOURCE_EXHAUSTED,
+                f"{SERVICE_STREAMS} reflection and health streams are open; close one first",
+            )
+        try:
+            yield
+        finally:
+            self.streams.release()
 
 
 class _Deadline(Exception):
@@ -168,8 +291,11 @@ class Gateway(ServiceBase):
         self._set_health(health_pb2.HealthCheckResponse.NOT_SERVING)
         self.executor = ThreadPoolExecutor(self.settings.grpc_workers, thread_name_prefix="grpc")
         limit = self.bus.max_message_bytes
+        # Whether the port asks for client certificates is known once its credentials are made.
+        credentials = self._credentials()
         self.server = grpc.server(
             self.executor,
+            interceptors=[_Guard(self.bus.swarm, self._client_auth, self.metrics)],
             options=[("grpc.max_receive_message_length", limit), ("grpc.max_send_message_length", 1 << 24)],
         )
         gateway_pb2_grpc.add_SwarmGatewayServicer_to_server(_Servicer(self), self.server)  # type: ignore[no-untyped-call]  # generated
@@ -178,7 +304,6 @@ class Gateway(ServiceBase):
             (SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME), self.server
         )
         address = f"{self.settings.grpc_host}:{self.settings.grpc_port}"
-        credentials = self._credentials()
         try:
             if credentials is None:
                 self.port = self.server.add_insecure_port(address)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import signal
 import subprocess
 import threading
@@ -35,12 +36,13 @@ from swarmrec.deployments.identities import client_tls
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.errors import ReplyTimeout
 from swarmrec.runtime.tls import TlsFiles
-from swarmrec.security.pki import PkiSettings, init_pki
-from swarmrec.services.gateway import SERVICE_NAME, SUBSCRIBED_METADATA
+from swarmrec.security.identity import Identity
+from swarmrec.security.pki import PkiSettings, ensure_identity, init_pki
+from swarmrec.services.gateway import SERVICE_NAME, SERVICE_STREAMS, SUBSCRIBED_METADATA
 from swarmrec.services.settings import DetectorSettings, PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import constellation_to_proto
-from swarmrec.wire.gen.swarmrec.v1 import gateway_pb2
+from swarmrec.wire.gen.swarmrec.v1 import gateway_pb2, gateway_pb2_grpc
 from tests.integration.conftest import running_swarm
 from tests.integration.support import wait_until, write_office
 
@@ -141,6 +143,65 @@ def test_reflection_lists_the_gateway_health_and_reflection_services(running: Ru
         "grpc.health.v1.Health",
         "grpc.reflection.v1alpha.ServerReflection",
     }
+
+
+def test_only_this_swarms_clients_and_operators_are_served(running: Running) -> None:
+    pki, swarm = running.swarm.pki_dir, running.swarm.spec_swarm
+    assert pki is not None
+    # Certificates the swarm's CA signed, held by what is not one of its clients: a robot's
+    # service, and a client of another swarm (signed with the same CA, as a careless operator might).
+    same_ca = running.tmp / "same-ca"
+    shutil.copytree(pki, same_ca, dirs_exist_ok=True)
+    ensure_identity(same_ca, Identity.client("elsewhere", "cli"))
+    outsiders = {
+        "a service": TlsFiles.in_dir(pki, f"r0.verifier.{swarm}"),
+        "another swarm's client": TlsFiles.in_dir(same_ca, "client.cli.elsewhere"),
+    }
+    for who, tls in outsiders.items():
+        with running.channel(tls) as channel:
+            with pytest.raises(grpc.RpcError) as info:
+                gateway_pb2_grpc.SwarmGatewayStub(channel).Members(gateway_pb2.MembersRequest(), timeout=5)
+            assert info.value.code() == grpc.StatusCode.PERMISSION_DENIED, who
+            assert "clients and operators" in (info.value.details() or ""), who
+            with pytest.raises(grpc.RpcError) as info:
+                next(reflection_pb2_grpc.ServerReflectionStub(channel).ServerReflectionInfo(
+                    iter([reflection_pb2.ServerReflectionRequest(list_services="")]), timeout=5))  # fmt: skip
+            assert info.value.code() == grpc.StatusCode.PERMISSION_DENIED, who
+    for role in ("client", "operator"):
+        with running.channel(client_tls(pki, swarm, role)) as channel:
+            reply = gateway_pb2_grpc.SwarmGatewayStub(channel).Members(
+                gateway_pb2.MembersRequest(), timeout=5
+            )
+            assert reply.members, role
+
+
+def test_idle_reflection_streams_are_bounded_and_never_starve_the_health_check(running: Running) -> None:
+    release = threading.Event()
+
+    def requests() -> Iterator[reflection_pb2.ServerReflectionRequest]:
+        yield reflection_pb2.ServerReflectionRequest(list_services="")
+        release.wait(30)  # then idle, holding its stream open
+
+    channels = [running.channel() for _ in range(SERVICE_STREAMS + 1)]
+    held = []
+    try:
+        for channel in channels[:SERVICE_STREAMS]:
+            stream = reflection_pb2_grpc.ServerReflectionStub(channel).ServerReflectionInfo(requests())
+            next(stream)  # answered: the stream holds its slot
+            held.append(stream)
+        extra = reflection_pb2_grpc.ServerReflectionStub(channels[-1]).ServerReflectionInfo(requests())
+        with pytest.raises(grpc.RpcError) as info:
+            next(extra)
+        assert info.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+        with running.channel() as channel:
+            answer = health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(), timeout=5)
+        assert answer.status == health_pb2.HealthCheckResponse.SERVING
+    finally:
+        release.set()
+        for stream in held:
+            stream.cancel()
+        for channel in channels:
+            channel.close()
 
 
 def test_health_answers_serving_for_the_server_and_the_gateway_service(running: Running) -> None:
