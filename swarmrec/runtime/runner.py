@@ -114,6 +114,10 @@ T = TypeVar("T")
 #: counts, code UNAVAILABLE) rather than block zenoh's receive thread.
 SUBSCRIPTION_CAPACITY = 65536
 
+#: Bytes of subscribed messages waiting for a subscription's workers, at most: a flood of
+#: big messages (each under ``max_message_bytes``) is bounded by memory, not count alone.
+SUBSCRIPTION_MAX_BYTES = 32 << 20
+
 #: Requests waiting for an endpoint's workers (``dispatch`` queue); beyond it the zenoh
 #: callback answers UNAVAILABLE at once (counted) rather than block zenoh's receive
 #: thread. zenoh's own channel holds as many.
@@ -530,18 +534,35 @@ class _SubscriptionDispatcher(_Dispatcher):
         super().__init__(ctx, service, sub.name, sub.message)
         self.sub = sub
         self.inbox: queue.Queue[_Sample | None] = queue.Queue(maxsize=sub.capacity)
+        self.queued_bytes = 0
+        self.bytes_lock = threading.Lock()
 
     def on_sample(self, sample: zenoh.Sample) -> None:
-        # zenoh's thread: copy the bytes out and return; the worker does the rest.
-        item = _Sample(
-            sample.payload.to_bytes(),
-            schema_of(sample.encoding),
-            caller_robot(sample.attachment),
-            str(sample.key_expr),
-        )
-        try:
-            self.inbox.put_nowait(item)
-        except queue.Full:
+        # zenoh's thread: copy the bytes out and return; the worker does the rest. A message
+        # over the size limit is refused here, before it is copied or queued: refused input
+        # must not hold memory (it is counted, TOO_LARGE, and not logged one line each).
+        size = len(sample.payload)
+        if size > self.ctx.bus.max_message_bytes:
+            self.ctx.metrics.rejected.labels(self.name, ErrorCode.TOO_LARGE.wire_name).inc()
+            return
+        with self.bytes_lock:
+            full = self.queued_bytes + size > SUBSCRIPTION_MAX_BYTES
+            if not full:
+                self.queued_bytes += size
+        if not full:
+            item = _Sample(
+                sample.payload.to_bytes(),
+                schema_of(sample.encoding),
+                caller_robot(sample.attachment),
+                str(sample.key_expr),
+            )
+            try:
+                self.inbox.put_nowait(item)
+            except queue.Full:
+                full = True
+                with self.bytes_lock:
+                    self.queued_bytes -= size
+        if full:
             self.ctx.metrics.rejected.labels(self.name, ErrorCode.UNAVAILABLE.wire_name).inc()
             self.ctx.log.warning(
                 "subscription queue full, message dropped", extra={"fields": {"endpoint": self.name}}
@@ -551,6 +572,8 @@ class _SubscriptionDispatcher(_Dispatcher):
         _work(self.inbox, self.handle)
 
     def handle(self, item: _Sample) -> None:
+        with self.bytes_lock:
+            self.queued_bytes -= len(item.data)
         t0, c0 = time.perf_counter(), time.thread_time()
         try:
             msg = self.parse(item.data, item.schema, scope_between(self.ctx.bus.robot, item.sender))

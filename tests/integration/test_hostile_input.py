@@ -27,6 +27,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+import zenoh
 
 # protobuf ships no type stubs (see swarmrec/runtime/rpc.py for the two codes).
 from google.protobuf.message import Message  # type: ignore[import-untyped, unused-ignore]
@@ -277,3 +278,37 @@ def test_a_round_id_of_2_to_the_32_minus_1_no_longer_locks_a_robots_fusion(
     )
     assert metric(url, "swarmrec_fusion_early_messages_total") == 0
     assert current(0) == 6
+
+
+def test_refused_oversized_messages_leave_no_memory_behind(
+    fusion: tuple[LocalDeployment, ZenohClient],
+) -> None:
+    # 400 messages of 1.2 MB to a fusion inbox (over max_message_bytes, 1 MiB): each is
+    # refused before it is copied or queued. They grew the process by 533 MB when the size
+    # was checked only after queueing.
+    local, client = fusion
+    process = local.find("fusion", 0)
+    url = metrics_url(process)
+    key = endpoint_key(local, "fusion", 0, "inbox")
+    rss_before = rss_mib(process.proc.pid)
+    big = bytes(1_200_000)
+
+    for _ in range(400):
+        # (blocking, not zenoh's default of dropping a put under congestion: all 400 arrive)
+        client.session.put(key, big, attachment=b"1", congestion_control=zenoh.CongestionControl.BLOCK)
+    wait_until(
+        lambda: metric(url, "swarmrec_rejected_requests_total", endpoint="inbox", code=TOO_LARGE) == 400,
+        60.0,
+        "400 oversized messages refused",
+    )
+
+    rss_after = rss_mib(process.proc.pid)
+    print(f"\nfusion 0 after 400 refused 1.2 MB messages: RSS {rss_before:.1f} -> {rss_after:.1f} MiB")
+    # zenoh's receive buffers grow to fit 1.2 MB messages (about 40 MiB here): what is bounded is
+    # that nothing grows with the number refused.
+    assert rss_after - rss_before < 100
+    # And it still serves.
+    reply_of(
+        request(client.session, endpoint_key(local, "fusion", 0, "start_round"), start(1)),
+        pb.FusionRoundStarted,
+    )
