@@ -234,7 +234,8 @@ fn register(metrics: &ServiceMetrics) -> ShardMetricIds {
         ),
         group_queries: r.counter(
             "swarmrec_shard_group_queries",
-            "Partial queries served by this index shard, by label group (the rebalancing load)",
+            "Robots' partial queries served by this index shard, by label group (the rebalancing \
+             load; a client's lookups are not in it)",
             &["group"],
         ),
         placement_version: r.gauge(
@@ -829,11 +830,17 @@ impl IndexShard {
         if !req.read_only {
             self.store_slice(&mut st, g, desc, &counts)?;
         }
-        st.served[g] += 1;
+        // The load the placement moves groups for is the robots': a client's lookups
+        // (read-only, anyone may send them) must not move the index.
+        if !req.read_only {
+            st.served[g] += 1;
+        }
         drop(st);
         let r = &self.metrics.registry;
         r.inc(self.ids.partial_queries, &[], 1.0);
-        r.inc(self.ids.group_queries, &[&g.to_string()], 1.0);
+        if !req.read_only {
+            r.inc(self.ids.group_queries, &[&g.to_string()], 1.0);
+        }
         // The label range is not echoed: zenoh pairs the reply with its request, which names it.
         Ok(pb::CandidatesReply {
             query_id: req.query_id,

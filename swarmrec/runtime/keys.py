@@ -26,6 +26,7 @@ __all__ = [
     "endpoint",
     "event",
     "parse_alive",
+    "parse_event",
     "validate_swarm_name",
 ]
 
@@ -92,3 +93,10 @@ def _parse_token(key: str, segment: str) -> tuple[str, int] | None:
 def event(swarm: str, name: str, robot: int | str) -> str:
     """Key of a published event (``robot="*"``: every robot)."""
     return f"{PREFIX}/{swarm}/events/{name}/{_robot(robot)}"
+
+
+def parse_event(key: str) -> tuple[str, int] | None:
+    """(event name, robot) of a published event's key, None for any other key. The router
+    lets a robot's services publish on their own robot's keys only, so the key's robot is
+    the publisher's; a payload that names another robot is a forgery."""
+    return _parse_token(key, "events")

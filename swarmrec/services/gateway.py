@@ -60,7 +60,7 @@ from swarmrec.runtime.rpc import Caller, Pending
 from swarmrec.runtime.settings import SecuritySettings
 from swarmrec.runtime.tls import TlsFiles
 from swarmrec.security.identity import parse_common_name
-from swarmrec.services.live_view import LiveView
+from swarmrec.services.live_view import LiveView, event_is_publishers
 from swarmrec.services.metrics import GatewayMetrics
 from swarmrec.services.registry import kind_of_wire
 from swarmrec.services.settings import GatewaySettings
@@ -595,9 +595,15 @@ class Gateway(ServiceBase):
 
         def convert(e: _Event) -> Message | None:
             try:
-                return cls.FromString(e.data)
+                msg = cls.FromString(e.data)
             except Exception:  # a malformed event is the publisher's problem, not the stream's
                 return None
+            # A payload claiming another robot than the key it came on (its publisher's) is not
+            # passed on as that robot's.
+            if not event_is_publishers(msg, e.key):
+                self.metrics.calls.labels(method=f"{name}:forged_event", code="DROPPED").inc()
+                return None
+            return msg
 
         return self.stream(name, context, subscribe, convert)
 

@@ -477,9 +477,13 @@ class IndexShard(ServiceBase, ShardSettings):
             found = index.candidates(part.counts, n_ret, before=before)
             if not req.read_only:
                 self._store(g, desc, part.counts)
-            self.served[g] += 1
+            if not req.read_only:
+                # The load the placement moves groups for is the robots': a client's lookups
+                # (read-only, anyone may send them) must not move the index.
+                self.served[g] += 1
         self.metrics.partial_queries.inc()
-        self.metrics.group_queries.labels(str(g)).inc()
+        if not req.read_only:
+            self.metrics.group_queries.labels(str(g)).inc()
         return candidates_to_proto(
             req.query_id,
             (Candidate(c.robot, c.frame, c.score) for c in found),

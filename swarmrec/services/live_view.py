@@ -47,7 +47,7 @@ from swarmrec.runtime import keys
 from swarmrec.services.live_view_page import PAGE
 from swarmrec.wire import messages as pb
 
-__all__ = ["MAX_CONNECTIONS", "STATE_CACHE_S", "LiveView"]
+__all__ = ["MAX_CONNECTIONS", "STATE_CACHE_S", "LiveView", "event_is_publishers"]
 
 #: The page's state is read from the swarm at most this often, however many pages ask.
 STATE_CACHE_S = 1.0
@@ -145,6 +145,8 @@ class LiveView:
             c = pb.LoopClosure.FromString(sample.payload.to_bytes())
         except Exception:  # a malformed event is the publisher's problem, not the page's
             return
+        if not _publishers(c, sample):
+            return
         data = _closure_json(c)
         with self.lock:
             self.closures.append(data)
@@ -155,6 +157,8 @@ class LiveView:
         try:
             r = pb.QueryReport.FromString(sample.payload.to_bytes())
         except Exception:
+            return
+        if not _publishers(r, sample):
             return
         with self.lock:
             f = self.funnel
@@ -172,6 +176,8 @@ class LiveView:
         try:
             u = pb.FusionUpdate.FromString(sample.payload.to_bytes())
         except Exception:
+            return
+        if not _publishers(u, sample):
             return
         data = {"robot": u.robot_id, "round": u.round_id, "decision": u.decision, "heard_all": u.heard_all}
         with self.lock:
@@ -279,6 +285,26 @@ class LiveView:
         with self.lock:
             if q in self.streams:
                 self.streams.remove(q)
+
+
+#: The field of each streamed event that names the robot it is about.
+_EVENT_ROBOT_FIELD = {"LoopClosure": "query_robot_id", "QueryReport": "robot_id", "FusionUpdate": "robot_id"}
+
+
+def event_is_publishers(msg: Any, key: str) -> bool:
+    """Whether ``msg``, published on ``key``, is about the robot whose key it came on: the
+    router lets a robot's services publish on their own robot's keys only, so a payload
+    naming another robot is a forgery (issue 28: a loop closure on robot 3's key claiming
+    robot 2 was streamed as robot 2's)."""
+    parsed = keys.parse_event(key)
+    field = _EVENT_ROBOT_FIELD.get(type(msg).__name__)
+    if parsed is None or field is None:
+        return False
+    return int(getattr(msg, field)) == parsed[1]
+
+
+def _publishers(msg: Any, sample: zenoh.Sample) -> bool:
+    return event_is_publishers(msg, str(sample.key_expr))
 
 
 def _offer(q: queue.Queue[tuple[str, dict[str, Any]]], item: tuple[str, dict[str, Any]]) -> None:

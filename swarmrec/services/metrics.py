@@ -64,7 +64,8 @@ class ShardMetrics(MetricSet):
             ),
             group_queries=Counter(
                 "swarmrec_shard_group_queries",
-                "Partial queries served by this index shard, by label group (the rebalancing load)",
+                "Robots' partial queries served by this index shard, by label group (the rebalancing "
+                "load; a client's lookups are not in it)",
                 ["group"],
                 registry=registry,
             ),

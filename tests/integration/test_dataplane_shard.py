@@ -115,6 +115,13 @@ def answers(swarm: LocalDeployment, seed: int) -> list[tuple[bytes | None, str, 
         for endpoint, shard, req in stream(seed):
             a = ask(client.session, endpoint_key(swarm, "index-shard", shard, endpoint), req)
             out.append((a.ok, a.code, a.error.message if a.error is not None else ""))
+        # The load each shard reports (what the placement rebalances on): the robots' queries
+        # it answered, never a client's lookups.
+        loads = {st.shard_id: sum(st.served_queries) for st in client.shard_states(5.0)}
+        answered = [0] * N_ROBOTS
+        for (endpoint, shard, _), (ok, code, _) in zip(stream(seed), out, strict=True):
+            answered[shard] += endpoint == "query" and ok is not None and not code
+        assert loads == dict(enumerate(answered)), (loads, answered)
         return out
 
 

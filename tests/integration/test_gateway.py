@@ -19,6 +19,7 @@ import shutil
 import signal
 import subprocess
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,6 +36,7 @@ from swarmrec.datasets.constellations import read_constellations
 from swarmrec.deployments.identities import client_tls
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.errors import ReplyTimeout
+from swarmrec.runtime import keys
 from swarmrec.runtime.tls import TlsFiles
 from swarmrec.security.identity import Identity
 from swarmrec.security.pki import PkiSettings, ensure_identity, init_pki
@@ -440,3 +442,24 @@ def test_health_turns_not_serving_when_the_gateway_stops(running: Running) -> No
             statuses.append(next(watch).status)
     assert gateway.proc.wait(30) == 0
     assert statuses == [health_pb2.HealthCheckResponse.SERVING, health_pb2.HealthCheckResponse.NOT_SERVING]
+
+
+def test_an_event_claiming_another_robot_than_its_key_is_not_streamed(tmp_path: Path) -> None:
+    # Plaintext, so this test may publish as any robot (under mutual TLS the router lets a
+    # robot's services publish on their own robot's keys only, which is what makes the key
+    # the publisher's): robot 3's key, a payload claiming robot 2.
+    with (
+        running_swarm(tmp_path, "gw-forged", robots=4, kinds=(), security="insecure") as swarm,
+        swarm.gateway_client(10.0) as gw,
+        swarm.client(5.0) as publisher,
+    ):
+        closures = Collector(gw.stub.WatchLoopClosures(gateway_pb2.WatchRequest())).start()
+        forged = pb.LoopClosure(query_robot_id=2, query_frame_index=7, match_robot_id=0, score=1.0)
+        genuine = pb.LoopClosure(query_robot_id=3, query_frame_index=8, match_robot_id=0, score=1.0)
+        key = keys.event(swarm.spec_swarm, "loop_closure", 3)
+        publisher.session.put(key, forged.SerializeToString())
+        publisher.session.put(key, genuine.SerializeToString())
+        wait_until(lambda: len(closures.items) >= 1, 10, "the genuine closure streamed")
+        time.sleep(0.5)  # (anything after it would have come by now)
+        got = closures.stop()
+    assert [(c.query_robot_id, c.query_frame_index) for c in got] == [(3, 8)]
