@@ -58,7 +58,7 @@ from swarmrec.errors import (
 )
 from swarmrec.runtime import keys
 from swarmrec.runtime.rpc import Caller
-from swarmrec.runtime.tls import TlsFiles, configure_client_tls, configure_insecure
+from swarmrec.runtime.tls import TlsFiles, configure_client_tls, configure_insecure, no_shared_memory
 from swarmrec.services.protocol import QueryPlan, two_step_query
 from swarmrec.services.registry import kind_of_wire
 from swarmrec.services.routing import Routing, newest_placement, version_of
@@ -271,6 +271,7 @@ class ZenohClient(SwarmClient):
         conf = zenoh.Config()
         conf.insert_json5("mode", '"client"')
         conf.insert_json5("scouting/multicast/enabled", "false")
+        no_shared_memory(conf)
         if tls is not None:
             configure_client_tls(conf, tls, list(connect))
         else:

@@ -80,7 +80,7 @@ from swarmrec.runtime.settings import (
     StorageSettings,
 )
 from swarmrec.runtime.storage import RecordLog
-from swarmrec.runtime.tls import apply_security
+from swarmrec.runtime.tls import apply_security, no_shared_memory
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import decode, encode, error_reply, schema_name
 
@@ -305,6 +305,7 @@ def zenoh_config(
     if bus.listen:
         conf.insert_json5("listen/endpoints", json.dumps(list(bus.listen)))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    no_shared_memory(conf)
     if security is not None:
         apply_security(conf, bus, security, identity=identity, log=log or logging.getLogger("swarmrec"))
     if on_single_runtime(bus):

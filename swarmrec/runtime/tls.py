@@ -46,6 +46,7 @@ __all__ = [
     "configure_insecure",
     "configure_router_tls",
     "insert_access_control",
+    "no_shared_memory",
     "require_tls_endpoints",
     "tls_endpoint",
 ]
@@ -132,6 +133,16 @@ def configure_router_tls(conf: zenoh.Config, files: TlsFiles, listen: Sequence[s
     _insert(conf, f"{_TLS}/connect_certificate", str(files.cert))
     _insert(conf, f"{_TLS}/connect_private_key", str(files.key))
     _insert(conf, f"{_TLS}/verify_name_on_connect", True)
+
+
+def no_shared_memory(conf: zenoh.Config) -> None:
+    """zenoh's shared-memory transport off. The Python binding has it on: a message over 3 kB
+    between two processes of one machine goes through a 16 MiB segment of the sender's,
+    which every receiver maps, and keeps mapped after the sender has gone (issue 28: one
+    segment per departed client session, in the router and every service it reached). It
+    would also carry a mutual-TLS swarm's messages beside the encrypted link. The swarm's
+    messages are small; they go on the link."""
+    conf.insert_json5("transport/shared_memory/enabled", "false")
 
 
 def configure_client_tls(conf: zenoh.Config, files: TlsFiles, connect: Sequence[str]) -> None:
