@@ -19,6 +19,7 @@ from swarmrec.client import GRPC_SCHEME, SwarmClient, connect
 from swarmrec.core.presets import PRESETS
 from swarmrec.datasets.constellations import parse_constellation
 from swarmrec.datasets.labels import LabelMap, label_names
+from swarmrec.deployments.base import read_attach_json
 from swarmrec.deployments.local_up import keeper_alive
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.tls import TlsFiles
@@ -102,15 +103,8 @@ def swarm_dir_of(args: argparse.Namespace) -> Path | None:
 def _swarm_file(folder: Path) -> dict[str, Any]:
     """What a client needs of ``folder/swarm.json`` (any deployment's), checked."""
     path = folder / "swarm.json"
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(
-            f"{path} not found: no swarm is kept there (start one: swarmrec up --out {folder})"
-        ) from None
-    except json.JSONDecodeError as e:
-        raise ConfigError(f"{path} is not a swarm file: {e}") from None
-    if not isinstance(data, dict) or not isinstance(data.get("router_endpoint"), str):
+    data = read_attach_json(folder)
+    if not isinstance(data.get("router_endpoint"), str):
         raise ConfigError(f"{path} is not a swarm file: it names no router_endpoint")
     if data.get("deployment") == "local" and not keeper_alive(int(data.get("pid", 0))):
         raise ConfigError(

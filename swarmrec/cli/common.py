@@ -4,12 +4,23 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import TypeAlias
+from typing import TYPE_CHECKING, Any, TypeAlias
 
 from swarmrec.core.presets import PRESETS
 from swarmrec.datasets.source import DatasetSource
+from swarmrec.services.settings import IndexSettings
 
-__all__ = ["Subparsers", "add_dataset_flags", "dataset_source"]
+if TYPE_CHECKING:
+    from swarmrec.experiments.places.settings import PlacesSettings
+
+__all__ = [
+    "Subparsers",
+    "add_dataset_flags",
+    "add_index_flags",
+    "add_local_swarm_flags",
+    "dataset_source",
+    "swarm_places_settings",
+]
 
 #: argparse's own type for what add_subparsers() returns.
 Subparsers: TypeAlias = "argparse._SubParsersAction[argparse.ArgumentParser]"
@@ -38,3 +49,63 @@ def add_dataset_flags(p: argparse.ArgumentParser) -> None:
 def dataset_source(args: argparse.Namespace) -> DatasetSource:
     """The dataset the flags of :func:`add_dataset_flags` name."""
     return DatasetSource(args.dataset, args.seed, args.frames, args.labels, args.groundtruth)
+
+
+def add_local_swarm_flags(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """How a local swarm runs: --insecure, --hosting, --data-plane (`run` and `up`)."""
+    p.add_argument(
+        "--insecure",
+        action="store_true",
+        help="plaintext, unauthenticated zenoh links (debugging; logged by every process); "
+        "default: mutual TLS with a PKI made for the run and the router's access control",
+    )
+    p.add_argument(
+        "--hosting",
+        default="service",
+        metavar="service|robot|robots:K",
+        help="how the local swarm puts services in processes: one per service (default), one per robot "
+        "(its services share a session), or K robots per process (a simulation of many robots)",
+    )
+    p.add_argument(
+        "--data-plane",
+        choices=("compiled", "python"),
+        default="compiled",
+        help="which implementation serves the kinds that have a compiled one: compiled (default: the "
+        "Rust host, built by `make dataplane`; docs/dataplane.md) or python (the reference)",
+    )
+
+
+def add_index_flags(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """The elastic index's replicas and rebalancing (`run` and `up`)."""
+    p.add_argument(
+        "--replicas",
+        type=int,
+        default=IndexSettings.replicas,
+        help=f"index shards that hold each label group (default {IndexSettings.replicas}; 1 is the paper's "
+        "one range a shard, no shard may then be lost)",
+    )
+    p.add_argument(
+        "--rebalance-target",
+        type=float,
+        default=IndexSettings.rebalance_target,
+        help="the coordinator adds and moves replicas while the busiest shard serves more than this "
+        f"times the mean (default {IndexSettings.rebalance_target})",
+    )
+
+
+def swarm_places_settings(args: argparse.Namespace, out: Path, **changes: Any) -> PlacesSettings:
+    """The places run a swarm left running is started for (`up`, `compose up`, `k8s up`): the
+    dataset flags, --robots, --swarm, --timeout and --free, and ``changes``."""
+    # (Imported here: `serve` shares this module and must not load the experiments.)
+    from swarmrec.experiments.places.settings import PlacesSettings
+
+    return PlacesSettings(
+        source=dataset_source(args),
+        robots=args.robots,
+        preset=args.preset,
+        pace="fast" if args.free else "lockstep",
+        swarm=args.swarm,
+        request_timeout_s=args.timeout,
+        out=out,
+        **changes,
+    )

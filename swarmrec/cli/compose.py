@@ -5,12 +5,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from swarmrec.cli.common import Subparsers, add_dataset_flags, dataset_source
+from swarmrec.cli.common import Subparsers, add_dataset_flags, swarm_places_settings
 from swarmrec.deployments import compose
 from swarmrec.deployments.base import SwarmSpec
 from swarmrec.experiments.landmarks.simulation import LandmarkSettings, swarm_spec
 from swarmrec.experiments.places.pipeline import compose as compose_places
-from swarmrec.experiments.places.settings import PlacesSettings
 from swarmrec.services.registry import WORKLOADS
 
 __all__ = ["add", "run"]
@@ -70,15 +69,7 @@ def write(args: argparse.Namespace, settings: compose.ComposeSettings) -> tuple[
         record = {"swarm": lm.swarm, "robots": lm.robots, "request_timeout_s": lm.request_timeout_s}
         spec = swarm_spec(lm)
         return compose.write_compose(spec, settings, experiment=record), spec
-    run = PlacesSettings(
-        source=dataset_source(args),
-        robots=args.robots,
-        preset=args.preset,
-        pace="fast" if args.free else "lockstep",
-        swarm=args.swarm,
-        request_timeout_s=args.timeout,
-        out=args.out,
-    )
+    run = swarm_places_settings(args, args.out)
     info = compose_places(run, settings)
     return info, SwarmSpec(run.bus(), WORKLOADS["places"], workload="places")
 

@@ -19,7 +19,7 @@ import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from swarmrec.cli.common import Subparsers, add_dataset_flags, dataset_source
+from swarmrec.cli.common import Subparsers, add_dataset_flags, swarm_places_settings
 
 if TYPE_CHECKING:
     from swarmrec.deployments.kubernetes import Kubectl
@@ -164,17 +164,8 @@ def secrets(args: argparse.Namespace) -> int:
 def up(args: argparse.Namespace) -> int:
     from swarmrec.deployments.kubernetes import DEFAULT_OVERLAY, KubernetesSettings
     from swarmrec.experiments.places.pipeline import kubernetes_up
-    from swarmrec.experiments.places.settings import PlacesSettings
 
-    run = PlacesSettings(
-        source=dataset_source(args),
-        robots=args.robots,
-        preset=args.preset,
-        pace="fast" if args.free else "lockstep",
-        swarm=args.swarm,
-        request_timeout_s=args.timeout,
-        out=args.out,
-    )
+    run = swarm_places_settings(args, args.out)
     settings = KubernetesSettings(
         namespace=args.namespace,
         out=args.out,

@@ -7,7 +7,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from swarmrec.cli.common import Subparsers, add_dataset_flags, dataset_source
+from swarmrec.cli.common import (
+    Subparsers,
+    add_dataset_flags,
+    add_index_flags,
+    add_local_swarm_flags,
+    dataset_source,
+)
 from swarmrec.cli.k8s import add_cluster_flags, kubectl_of
 from swarmrec.cli.vpr import add_method_flags, run_method
 from swarmrec.deployments.attach import attach
@@ -55,26 +61,7 @@ def add(sub: Subparsers) -> None:
         help="skip comparing the pair scores with the offline evaluation",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.add_argument(
-        "--insecure",
-        action="store_true",
-        help="plaintext, unauthenticated zenoh links (debugging; logged by every process); "
-        "default: mutual TLS with a PKI made for the run and the router's access control",
-    )
-    p.add_argument(
-        "--hosting",
-        default="service",
-        metavar="service|robot|robots:K",
-        help="how the local swarm puts services in processes: one per service (default), one per robot "
-        "(its services share a session), or K robots per process (a simulation of many robots)",
-    )
-    p.add_argument(
-        "--data-plane",
-        choices=("compiled", "python"),
-        default="compiled",
-        help="which implementation serves the kinds that have a compiled one (the verifier): compiled "
-        "(default: the Rust host, built by `make dataplane`; docs/dataplane.md) or python (the reference)",
-    )
+    add_local_swarm_flags(p)
     links = p.add_argument_group(
         "emulated links",
         "every robot reaches the swarm through a Toxiproxy proxy of its own (docs/links.md); local runs only",
@@ -98,20 +85,7 @@ def add(sub: Subparsers) -> None:
         "(8 bytes; the swarm's pair scores are then the published scripts' to the last bit)",
     )
     index = p.add_argument_group("elastic index", "label groups on index shards (docs/elastic-index.md)")
-    index.add_argument(
-        "--replicas",
-        type=int,
-        default=IndexSettings.replicas,
-        help=f"index shards that hold each label group (default {IndexSettings.replicas}; 1 is the paper's "
-        "one range a shard, no shard may then be lost)",
-    )
-    index.add_argument(
-        "--rebalance-target",
-        type=float,
-        default=IndexSettings.rebalance_target,
-        help="the coordinator adds and moves replicas while the busiest shard serves more than this "
-        f"times the mean (default {IndexSettings.rebalance_target})",
-    )
+    add_index_flags(index)
     pixels = p.add_argument_group(
         "from pixels",
         "detectors find objects in RGB-D frames with an ONNX model instead of replaying constellations "

@@ -16,7 +16,13 @@ from pathlib import Path
 from types import FrameType
 
 from swarmrec.cli.clients import DEFAULT_SWARM_DIR
-from swarmrec.cli.common import Subparsers, add_dataset_flags, dataset_source
+from swarmrec.cli.common import (
+    Subparsers,
+    add_dataset_flags,
+    add_index_flags,
+    add_local_swarm_flags,
+    swarm_places_settings,
+)
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.deployments.local_up import (
     SWARM_FILE,
@@ -27,7 +33,6 @@ from swarmrec.deployments.local_up import (
 )
 from swarmrec.errors import ConfigError
 from swarmrec.experiments.places.pipeline import local_up
-from swarmrec.experiments.places.settings import PlacesSettings
 from swarmrec.services.settings import IndexSettings
 
 __all__ = ["add", "down", "up"]
@@ -64,41 +69,14 @@ def add(sub: Subparsers) -> None:
         action="store_true",
         help="for free replay (run --attach --pace fast or a rate), not lock-step",
     )
-    p.add_argument(
-        "--hosting",
-        default="service",
-        metavar="service|robot|robots:K",
-        help="one process per service (default), one per robot, or K robots per process",
-    )
-    p.add_argument(
-        "--data-plane",
-        choices=("compiled", "python"),
-        default="compiled",
-        help="compiled (default; docs/dataplane.md) or python (the reference)",
-    )
-    p.add_argument(
-        "--insecure",
-        action="store_true",
-        help="plaintext, unauthenticated zenoh links (debugging); default: mutual TLS, a PKI in OUT/data/pki",
-    )
+    add_local_swarm_flags(p)
     p.add_argument(
         "--wire-positions",
         choices=("mm", "exact"),
         default="mm",
         help="object positions on the wire: mm (default) or exact doubles",
     )
-    p.add_argument(
-        "--replicas",
-        type=int,
-        default=IndexSettings.replicas,
-        help=f"index shards that hold each label group (default {IndexSettings.replicas})",
-    )
-    p.add_argument(
-        "--rebalance-target",
-        type=float,
-        default=IndexSettings.rebalance_target,
-        help=f"busiest / mean shard load the index keeps under (default {IndexSettings.rebalance_target})",
-    )
+    add_index_flags(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=up)
 
@@ -138,14 +116,9 @@ def _refuse_running(out: Path) -> None:
 def up(args: argparse.Namespace) -> int:
     out = args.out.resolve()
     _refuse_running(out)
-    settings = PlacesSettings(
-        source=dataset_source(args),
-        robots=args.robots,
-        preset=args.preset,
-        pace="fast" if args.free else "lockstep",
-        swarm=args.swarm,
-        request_timeout_s=args.timeout,
-        out=out,
+    settings = swarm_places_settings(
+        args,
+        out,
         wire_positions=args.wire_positions,
         hosting=args.hosting,
         data_plane=args.data_plane,

@@ -10,10 +10,9 @@ running.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
-from swarmrec.deployments.base import AttachFile
+from swarmrec.deployments.base import AttachFile, read_attach_json
 from swarmrec.deployments.compose import ComposeDeployment
 from swarmrec.deployments.kubernetes import KubernetesDeployment
 from swarmrec.deployments.local_up import AttachedLocal
@@ -27,19 +26,12 @@ DEPLOYMENTS = ("local", "compose", "kubernetes")
 
 def deployment_of(folder: Path) -> str:
     """Which deployment wrote ``folder/swarm.json`` (files of older versions: compose)."""
-    path = folder / "swarm.json"
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(
-            f"{path} not found: start a swarm there first (swarmrec up --out {folder}, "
-            f"swarmrec compose up --out {folder}, or swarmrec k8s up --out {folder})"
-        ) from None
-    except json.JSONDecodeError as e:
-        raise ConfigError(f"{path} is not a swarm file: {e}") from None
-    kind = data.get("deployment", "compose") if isinstance(data, dict) else None
+    data = read_attach_json(folder)
+    kind = data.get("deployment", "compose")
     if kind not in DEPLOYMENTS:
-        raise ConfigError(f"{path}: unknown deployment {kind!r} (known: {', '.join(DEPLOYMENTS)})")
+        raise ConfigError(
+            f"{folder / 'swarm.json'}: unknown deployment {kind!r} (known: {', '.join(DEPLOYMENTS)})"
+        )
     return str(kind)
 
 

@@ -20,18 +20,22 @@ kind it is.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
 from swarmrec.client import GatewayClient, ZenohClient
+from swarmrec.deployments.identities import client_tls
 from swarmrec.deployments.metrics import Scrape
 from swarmrec.errors import ConfigError, SwarmrecError
 from swarmrec.runtime.settings import BusSettings, Component, Config, StorageSettings, to_env, to_flags
+from swarmrec.runtime.tls import TlsFiles
 from swarmrec.services import registry
 
 __all__ = [
     "AttachFile",
+    "AttachedSwarm",
     "Deployment",
     "DeploymentError",
     "SwarmSpec",
@@ -39,6 +43,7 @@ __all__ = [
     "check_running",
     "config_env",
     "config_flags",
+    "read_attach_json",
     "shared_env",
 ]
 
@@ -171,6 +176,60 @@ class AttachFile:
     experiment: dict[str, Any] = field(default_factory=dict)
     #: The settings every robot's services share (what the spec said), to check a run against.
     shared_env: dict[str, str] = field(default_factory=dict)
+
+
+def read_attach_json(folder: Path) -> dict[str, Any]:
+    """``folder/swarm.json`` as JSON (whichever deployment wrote it); ConfigError, saying how
+    to start one, when there is none or it is not a swarm file."""
+    path = folder / "swarm.json"
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(
+            f"{path} not found: no swarm is kept there (start one: swarmrec up --out {folder}, "
+            f"swarmrec compose up --out {folder} or swarmrec k8s up --out {folder})"
+        ) from None
+    except json.JSONDecodeError as e:
+        raise ConfigError(f"{path} is not a swarm file: {e}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path} is not a swarm file: not a JSON object")
+    return data
+
+
+class AttachedSwarm:
+    """A client's side of a swarm left running, from its attach file (``folder/swarm.json``):
+    what the deployments that attach to one (compose, a local swarm kept up) share."""
+
+    folder: Path
+    info: AttachFile
+
+    @property
+    def endpoint(self) -> str:
+        return self.info.router_endpoint
+
+    @property
+    def gateway_address(self) -> str:
+        if not self.info.gateway_address:
+            raise ConfigError(f"the swarm in {self.folder} runs no gateway")
+        return self.info.gateway_address
+
+    def _tls(self, role: str) -> TlsFiles | None:
+        if self.info.security == "insecure" or not self.info.pki_dir:
+            return None
+        return client_tls(
+            Path(self.info.pki_dir), self.info.swarm, "client" if role == "client" else "operator"
+        )
+
+    def client(self, timeout_s: float = 5.0, *, role: str = "operator") -> ZenohClient:
+        tls = self._tls(role)
+        reason = "" if tls is not None else f"{self.folder / 'swarm.json'} says security insecure"
+        return ZenohClient(
+            [self.endpoint], self.info.swarm, timeout_s=timeout_s, tls=tls, insecure_reason=reason
+        )
+
+    def gateway_client(self, timeout_s: float = 5.0) -> GatewayClient:
+        tls = self._tls("client")
+        return GatewayClient(self.gateway_address, self.info.swarm, timeout_s=timeout_s, tls=tls)
 
 
 class Deployment(Protocol):

@@ -38,8 +38,8 @@ from pathlib import Path
 from typing import Any
 
 import swarmrec
-from swarmrec.client import GatewayClient, ZenohClient
 from swarmrec.deployments.base import (
+    AttachedSwarm,
     AttachFile,
     DeploymentError,
     SwarmSpec,
@@ -47,7 +47,7 @@ from swarmrec.deployments.base import (
     config_env,
     shared_env,
 )
-from swarmrec.deployments.identities import Security, client_tls, security_for, swarm_pki
+from swarmrec.deployments.identities import Security, security_for, swarm_pki
 from swarmrec.deployments.metrics import Scrape, scrape_prometheus
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.settings import BusSettings
@@ -431,8 +431,10 @@ def read_swarm_file(folder: Path) -> SwarmFile:
     return info
 
 
-class ComposeDeployment:
+class ComposeDeployment(AttachedSwarm):
     """A compose swarm that already runs (``swarmrec compose up``), as a Deployment."""
+
+    info: SwarmFile
 
     def __init__(self, folder: Path, *, wait_s: float = 120.0) -> None:
         self.folder = folder
@@ -441,35 +443,6 @@ class ComposeDeployment:
         self.wait_s = wait_s
         self._baseline: Scrape | None = None
         self._spec: SwarmSpec | None = None
-
-    @property
-    def endpoint(self) -> str:
-        return self.info.router_endpoint
-
-    @property
-    def gateway_address(self) -> str:
-        if not self.info.gateway_address:
-            raise ConfigError(f"the swarm in {self.folder} runs no gateway")
-        return self.info.gateway_address
-
-    def _tls(self, role: str) -> Any:
-        if self.info.security == "insecure" or not self.info.pki_dir:
-            return None
-        return client_tls(
-            Path(self.info.pki_dir), self.info.swarm, "client" if role == "client" else "operator"
-        )
-
-    def client(self, timeout_s: float = 5.0, *, role: str = "operator") -> ZenohClient:
-        tls = self._tls(role)
-        reason = "" if tls is not None else "the compose swarm was written with security insecure"
-        return ZenohClient(
-            [self.endpoint], self.info.swarm, timeout_s=timeout_s, tls=tls, insecure_reason=reason
-        )
-
-    def gateway_client(self, timeout_s: float = 5.0) -> GatewayClient:
-        return GatewayClient(
-            self.gateway_address, self.info.swarm, timeout_s=timeout_s, tls=self._tls("client")
-        )
 
     def start(self, spec: SwarmSpec, *, progress: bool = False) -> None:
         """Check that the running swarm is ``spec`` and take the counters' baseline."""

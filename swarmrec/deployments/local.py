@@ -171,23 +171,26 @@ class LocalDeployment:
             return f"tcp/127.0.0.1:{self.router_port}"
         return tls_endpoint("127.0.0.1", self.router_port)
 
+    def _gateway_says(self, field: str) -> str | None:
+        """A field of the gateway's readiness line (None: no gateway ready, or no such field)."""
+        for sp in self.swarm_procs:
+            value = sp.info.get(field)
+            if sp.kind == "gateway" and isinstance(value, str):
+                return value
+        return None
+
     @property
     def gateway_address(self) -> str:
         """The gateway's address from its readiness line (it listens on a port the OS chose)."""
-        for sp in self.swarm_procs:
-            address = sp.info.get("grpc")
-            if sp.kind == "gateway" and isinstance(address, str):
-                return address
-        raise ConfigError("the gateway has not been started, or is not ready yet")
+        address = self._gateway_says("grpc")
+        if address is None:
+            raise ConfigError("the gateway has not been started, or is not ready yet")
+        return address
 
     @property
     def live_view_url(self) -> str:
         """The gateway's live view, with its token ("" when it serves none)."""
-        for sp in self.swarm_procs:
-            url = sp.info.get("web")
-            if sp.kind == "gateway" and isinstance(url, str):
-                return url
-        return ""
+        return self._gateway_says("web") or ""
 
     def client(self, timeout_s: float = 5.0, *, role: str = "operator") -> ZenohClient:
         spec = self._spec()

@@ -24,9 +24,14 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from swarmrec.client import GatewayClient, ZenohClient
-from swarmrec.deployments.base import AttachFile, SwarmSpec, check_running, shared_env
-from swarmrec.deployments.identities import client_tls
+from swarmrec.deployments.base import (
+    AttachedSwarm,
+    AttachFile,
+    SwarmSpec,
+    check_running,
+    read_attach_json,
+    shared_env,
+)
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.deployments.metrics import Scrape, scrape
 from swarmrec.errors import ConfigError
@@ -95,17 +100,10 @@ def write_local_file(folder: Path, deployment: LocalDeployment, experiment: dict
 
 def read_local_file(folder: Path) -> LocalFile:
     """The ``swarm.json`` ``swarmrec up`` wrote in ``folder``."""
+    data = read_attach_json(folder)
     path = folder / SWARM_FILE
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(
-            f"{path} not found: start a swarm there first (swarmrec up --out {folder})"
-        ) from None
-    except json.JSONDecodeError as e:
-        raise ConfigError(f"{path} is not a swarm file: {e}") from None
-    if not isinstance(data, dict) or data.get("deployment") != "local":
-        kind = data.get("deployment", "compose") if isinstance(data, dict) else "unknown"
+    if data.get("deployment") != "local":
+        kind = data.get("deployment", "compose")
         raise ConfigError(f"{path} describes a {kind} swarm, not one kept up by `swarmrec up`")
     try:
         return LocalFile(**data)
@@ -146,8 +144,10 @@ def stop_kept(folder: Path, timeout_s: float = 60.0) -> str:
     return f"swarm {info.swarm!r} stopped ({info.robots} robots, process {info.pid})"
 
 
-class AttachedLocal:
+class AttachedLocal(AttachedSwarm):
     """A local swarm kept up by ``swarmrec up``, as a Deployment that starts and stops nothing."""
+
+    info: LocalFile
 
     def __init__(self, folder: Path) -> None:
         self.folder = folder
@@ -160,35 +160,6 @@ class AttachedLocal:
         self.description = f"local processes kept up by swarmrec up ({self.info.hosting} hosting)"
         self._spec: SwarmSpec | None = None
         self._baseline: Scrape | None = None
-
-    @property
-    def endpoint(self) -> str:
-        return self.info.router_endpoint
-
-    @property
-    def gateway_address(self) -> str:
-        if not self.info.gateway_address:
-            raise ConfigError(f"the swarm in {self.folder} runs no gateway")
-        return self.info.gateway_address
-
-    def _tls(self, role: str) -> Any:
-        if self.info.security == "insecure" or not self.info.pki_dir:
-            return None
-        return client_tls(
-            Path(self.info.pki_dir), self.info.swarm, "client" if role == "client" else "operator"
-        )
-
-    def client(self, timeout_s: float = 5.0, *, role: str = "operator") -> ZenohClient:
-        tls = self._tls(role)
-        reason = "" if tls is not None else "the local swarm was started with --insecure"
-        return ZenohClient(
-            [self.endpoint], self.info.swarm, timeout_s=timeout_s, tls=tls, insecure_reason=reason
-        )
-
-    def gateway_client(self, timeout_s: float = 5.0) -> GatewayClient:
-        return GatewayClient(
-            self.gateway_address, self.info.swarm, timeout_s=timeout_s, tls=self._tls("client")
-        )
 
     def start(self, spec: SwarmSpec, *, progress: bool = False) -> None:
         """Check that the running swarm is ``spec`` and take the counters' baseline."""

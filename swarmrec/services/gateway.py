@@ -59,7 +59,6 @@ from swarmrec.runtime import ServiceBase, ServiceContext, keys
 from swarmrec.runtime.rpc import Caller, Pending
 from swarmrec.runtime.settings import SecuritySettings
 from swarmrec.runtime.tls import TlsFiles
-from swarmrec.security.identity import parse_common_name
 from swarmrec.services.live_view import LiveView, event_is_publishers
 from swarmrec.services.metrics import GatewayMetrics
 from swarmrec.services.registry import kind_of_wire
@@ -130,16 +129,14 @@ _SERVICE_STREAM_METHODS = frozenset(
 
 def caller_allowed(common_name: str, swarm: str) -> str:
     """Why a client certificate's holder may not use this swarm's gateway ("" when it may):
-    only the swarm's clients and operators are served; its services, its router, another
-    swarm's identities and names outside the scheme are not."""
-    try:
-        identity = parse_common_name(common_name)
-    except ConfigError:
-        return f"{common_name!r} is not a swarm identity"
-    if identity.swarm != swarm:
-        return f"{common_name!r} belongs to swarm {identity.swarm!r}, not {swarm!r}"
-    if identity.role not in ("client", "operator"):
-        return f"{common_name!r} is a {identity.role}, not a client or an operator"
+    only the swarm's clients and operators (``client.<name>.<swarm>``, ``operator.<name>.<swarm>``,
+    the scheme of :mod:`swarmrec.security.identity`, a layer above) are served; its services,
+    its router, another swarm's identities and names outside the scheme are not."""
+    parts = common_name.split(".")
+    if len(parts) != 3 or parts[0] not in ("client", "operator") or not parts[1]:
+        return f"{common_name!r} is not a client or an operator"
+    if parts[2] != swarm:
+        return f"{common_name!r} belongs to swarm {parts[2]!r}, not {swarm!r}"
     return ""
 
 

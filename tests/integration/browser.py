@@ -22,6 +22,8 @@ from typing import Any
 
 import websocket
 
+from swarmrec.runtime.hosting import terminate
+
 __all__ = ["Browser", "chromium_path"]
 
 REPO = Path(__file__).resolve().parents[2]
@@ -127,12 +129,7 @@ class Browser:
         try:
             self.ws.close()
         finally:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+            terminate(self.proc)
 
     def __enter__(self) -> Browser:
         return self

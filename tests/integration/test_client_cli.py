@@ -55,12 +55,14 @@ def running(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Running]:
         yield Running(swarm, dataset, reports)
 
 
-def cli(running: Running, *args: str, swarm: str | None = None) -> subprocess.CompletedProcess[str]:
+def cli(
+    running: Running, *args: str, swarm: str | None = None, connect: str | None = None
+) -> subprocess.CompletedProcess[str]:
     """``python -m swarmrec <args> --connect <router> --swarm <name>``, as a separate process."""
     return subprocess.run(
         [
             sys.executable, "-m", "swarmrec", *args,
-            "--connect", running.swarm.endpoint,
+            "--connect", connect or running.swarm.endpoint,
             "--swarm", swarm or running.swarm.spec_swarm,
             "--pki-dir", str(running.swarm.pki_dir),
             "--identity", f"client.cli.{running.swarm.spec_swarm}",
@@ -223,19 +225,7 @@ def test_with_no_router_listening_every_command_says_so_in_one_line(
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    done = subprocess.run(
-        [
-            sys.executable, "-m", "swarmrec", *args,
-            "--connect", f"tls/127.0.0.1:{port}",
-            "--swarm", running.swarm.spec_swarm,
-            "--pki-dir", str(running.swarm.pki_dir),
-            "--identity", f"client.cli.{running.swarm.spec_swarm}",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )  # fmt: skip
+    done = cli(running, *args, connect=f"tls/127.0.0.1:{port}")
 
     assert done.returncode == 2, done.stderr
     assert done.stdout == ""
