@@ -12,6 +12,7 @@ from __future__ import annotations
 import base64
 import itertools
 import json
+import os
 import re
 import subprocess
 import time
@@ -62,6 +63,8 @@ class Browser:
                  f"--window-size={width},{height}", "about:blank"],
                 stdout=subprocess.DEVNULL,
                 stderr=sink,
+                # Its scratch files (org.chromium.Chromium.*) go beside the profile, not in /tmp.
+                env={**os.environ, "TMPDIR": str(profile.parent)},
             )  # fmt: skip
         deadline = time.monotonic() + 60
         port = None
