@@ -379,12 +379,21 @@ class ZenohClient(SwarmClient):
         )
         return [o.reply for o in pending.gather(pb.ShardState) if o.reply is not None]
 
-    def index_state(self, timeout_s: float | None = None, *, known: Placement | None = None) -> IndexState:
+    def index_state(
+        self,
+        timeout_s: float | None = None,
+        *,
+        known: Placement | None = None,
+        members: Sequence[Member] | None = None,
+    ) -> IndexState:
         """The placement the shards follow and the stores the descriptors still owe. With
         ``known`` (a placement read before), the shards that still follow it do not send it
-        again (a poll of a hundred shards would otherwise carry a hundred placements)."""
+        again (a poll of a hundred shards would otherwise carry a hundred placements); with
+        ``members`` (the swarm's members, read just before), they are not asked for again."""
         states = self.shard_states(timeout_s, known_version=None if known is None else known.version)
-        pending = sum(m.pending_items for m in self.members(timeout_s) if m.kind == "descriptor")
+        if members is None:
+            members = self.members(timeout_s)
+        pending = sum(m.pending_items for m in members if m.kind == "descriptor")
         versions = {st.shard_id: (version_of(st) if st.confirmed else -1) for st in states}
         newest = newest_placement(states)
         # A confirmed shard leaving the placement out follows ``known``'s version.

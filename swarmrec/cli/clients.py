@@ -20,7 +20,7 @@ from swarmrec.core.presets import PRESETS
 from swarmrec.datasets.constellations import parse_constellation
 from swarmrec.datasets.labels import LabelMap, label_names
 from swarmrec.deployments.base import read_attach_json
-from swarmrec.deployments.local_up import keeper_alive
+from swarmrec.deployments.local_up import require_keeper
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.tls import TlsFiles
 
@@ -106,11 +106,8 @@ def _swarm_file(folder: Path) -> dict[str, Any]:
     data = read_attach_json(folder)
     if not isinstance(data.get("router_endpoint"), str):
         raise ConfigError(f"{path} is not a swarm file: it names no router_endpoint")
-    if data.get("deployment") == "local" and not keeper_alive(int(data.get("pid", 0))):
-        raise ConfigError(
-            f"the swarm of {path} is not running (its swarmrec up process {data.get('pid')} is gone): "
-            f"start it again with swarmrec up --out {folder}"
-        )
+    if data.get("deployment") == "local":
+        require_keeper(folder, int(data.get("pid", 0)))
     return data
 
 

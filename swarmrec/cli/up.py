@@ -211,7 +211,6 @@ def _keep(deployment: LocalDeployment) -> int:
                     file=sys.stderr,
                     flush=True,
                 )
-    return 0
 
 
 def down(args: argparse.Namespace) -> int:
@@ -219,11 +218,10 @@ def down(args: argparse.Namespace) -> int:
     path = folder / SWARM_FILE
     if not path.is_file():
         raise ConfigError(f"no swarm is kept in {folder} (no {SWARM_FILE} there)")
-    else:
-        try:
-            read_local_file(folder)
-        except ConfigError as e:
-            hint = "a compose swarm: swarmrec compose down; Kubernetes: swarmrec k8s down"
-            raise ConfigError(f"{e} ({hint})") from None
+    try:
+        read_local_file(folder)
+    except ConfigError as e:
+        hint = "a compose swarm: swarmrec compose down; Kubernetes: swarmrec k8s down"
+        raise ConfigError(f"{e} ({hint})") from None
     print(stop_kept(folder, args.timeout))
     return 0

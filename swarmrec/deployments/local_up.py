@@ -36,7 +36,15 @@ from swarmrec.deployments.local import LocalDeployment
 from swarmrec.deployments.metrics import Scrape, scrape
 from swarmrec.errors import ConfigError
 
-__all__ = ["AttachedLocal", "LocalFile", "keeper_alive", "read_local_file", "stop_kept", "write_local_file"]
+__all__ = [
+    "AttachedLocal",
+    "LocalFile",
+    "keeper_alive",
+    "read_local_file",
+    "require_keeper",
+    "stop_kept",
+    "write_local_file",
+]
 
 #: The name of the attach file in the swarm's folder (the one compose and Kubernetes write).
 SWARM_FILE = "swarm.json"
@@ -122,6 +130,15 @@ def keeper_alive(pid: int) -> bool:
     return b"swarmrec" in cmdline
 
 
+def require_keeper(folder: Path, pid: int) -> None:
+    """ConfigError unless the ``swarmrec up`` process ``pid`` that kept ``folder``'s swarm runs."""
+    if not keeper_alive(pid):
+        raise ConfigError(
+            f"the swarm of {folder / SWARM_FILE} is not running (its swarmrec up process {pid} is "
+            f"gone): start it again with swarmrec up --out {folder}"
+        )
+
+
 def stop_kept(folder: Path, timeout_s: float = 60.0) -> str:
     """Stop the swarm ``swarmrec up`` keeps from ``folder``: SIGTERM to its process, then wait
     until it has stopped the services and removed the file. One line saying what happened."""
@@ -152,11 +169,7 @@ class AttachedLocal(AttachedSwarm):
     def __init__(self, folder: Path) -> None:
         self.folder = folder
         self.info = read_local_file(folder)
-        if not keeper_alive(self.info.pid):
-            raise ConfigError(
-                f"the swarm of {folder / SWARM_FILE} is not running (process {self.info.pid} is gone): "
-                f"start it again with swarmrec up --out {folder}"
-            )
+        require_keeper(folder, self.info.pid)
         self.description = f"local processes kept up by swarmrec up ({self.info.hosting} hosting)"
         self._spec: SwarmSpec | None = None
         self._baseline: Scrape | None = None

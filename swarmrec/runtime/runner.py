@@ -547,27 +547,30 @@ class _SubscriptionDispatcher(_Dispatcher):
             self.ctx.metrics.rejected.labels(self.name, ErrorCode.TOO_LARGE.wire_name).inc()
             return
         with self.bytes_lock:
-            full = self.queued_bytes + size > SUBSCRIPTION_MAX_BYTES
-            if not full:
+            room = self.queued_bytes + size <= SUBSCRIPTION_MAX_BYTES
+            if room:
                 self.queued_bytes += size
-        if not full:
-            item = _Sample(
-                sample.payload.to_bytes(),
-                schema_of(sample.encoding),
-                caller_robot(sample.attachment),
-                str(sample.key_expr),
-            )
-            try:
-                self.inbox.put_nowait(item)
-            except queue.Full:
-                full = True
-                with self.bytes_lock:
-                    self.queued_bytes -= size
-        if full:
-            self.ctx.metrics.rejected.labels(self.name, ErrorCode.UNAVAILABLE.wire_name).inc()
-            self.ctx.log.warning(
-                "subscription queue full, message dropped", extra={"fields": {"endpoint": self.name}}
-            )
+        if not room:
+            self._dropped()
+            return
+        item = _Sample(
+            sample.payload.to_bytes(),
+            schema_of(sample.encoding),
+            caller_robot(sample.attachment),
+            str(sample.key_expr),
+        )
+        try:
+            self.inbox.put_nowait(item)
+        except queue.Full:
+            with self.bytes_lock:
+                self.queued_bytes -= size
+            self._dropped()
+
+    def _dropped(self) -> None:
+        self.ctx.metrics.rejected.labels(self.name, ErrorCode.UNAVAILABLE.wire_name).inc()
+        self.ctx.log.warning(
+            "subscription queue full, message dropped", extra={"fields": {"endpoint": self.name}}
+        )
 
     def work(self) -> None:
         _work(self.inbox, self.handle)

@@ -148,35 +148,39 @@ class _Guard(grpc.ServerInterceptor):  # type: ignore[misc, unused-ignore]  # gr
         self.swarm, self.check_identity, self.metrics = swarm, check_identity, metrics
         self.streams = threading.BoundedSemaphore(SERVICE_STREAMS)
 
-    def _refusal(self, context: grpc.ServicerContext) -> str:
+    def _admit(self, method: str, context: grpc.ServicerContext) -> None:
+        """Abort the call PERMISSION_DENIED (counted) unless the caller may use the gateway."""
         if not self.check_identity:
-            return ""
+            return
         names = context.auth_context().get("x509_common_name") or [b""]
-        return caller_allowed(names[0].decode("utf-8", "replace"), self.swarm)
+        why = caller_allowed(names[0].decode("utf-8", "replace"), self.swarm)
+        if why:
+            self.metrics.calls.labels(method=method.rsplit("/", 1)[-1], code="PERMISSION_DENIED").inc()
+            context.abort(
+                grpc.StatusCode.PERMISSION_DENIED,
+                f"this gateway serves swarm {self.swarm!r}'s clients and operators: {why}",
+            )
 
-    def _deny(self, method: str, context: grpc.ServicerContext, why: str) -> NoReturn:
-        self.metrics.calls.labels(method=method.rsplit("/", 1)[-1], code="PERMISSION_DENIED").inc()
-        context.abort(
-            grpc.StatusCode.PERMISSION_DENIED,
-            f"this gateway serves swarm {self.swarm!r}'s clients and operators: {why}",
-        )
-        raise AssertionError("unreachable: abort raises")
+    def _streamed(
+        self, method: str, context: grpc.ServicerContext, produce: Callable[[], Iterator[Any]]
+    ) -> Iterator[Any]:
+        """A streaming call's answers, once admitted, holding a slot while it streams when it
+        is one of the standard services' long-lived calls."""
+        self._admit(method, context)
+        with self._slot(method in _SERVICE_STREAM_METHODS, context):
+            yield from produce()
 
     def intercept_service(self, continuation: Any, details: Any) -> Any:
         handler = continuation(details)
         if handler is None:
             return None
         method: str = details.method
-        limited = method in _SERVICE_STREAM_METHODS
         guard = self
-
         if handler.unary_unary is not None:
             inner_uu = handler.unary_unary
 
             def unary_unary(request: Any, context: grpc.ServicerContext) -> Any:
-                why = guard._refusal(context)
-                if why:
-                    guard._deny(method, context, why)
+                guard._admit(method, context)
                 return inner_uu(request, context)
 
             return grpc.unary_unary_rpc_method_handler(
@@ -186,11 +190,7 @@ class _Guard(grpc.ServerInterceptor):  # type: ignore[misc, unused-ignore]  # gr
             inner_us = handler.unary_stream
 
             def unary_stream(request: Any, context: grpc.ServicerContext) -> Iterator[Any]:
-                why = guard._refusal(context)
-                if why:
-                    guard._deny(method, context, why)
-                with guard._slot(limited, context):
-                    yield from inner_us(request, context)
+                return guard._streamed(method, context, lambda: inner_us(request, context))
 
             return grpc.unary_stream_rpc_method_handler(
                 unary_stream, handler.request_deserializer, handler.response_serializer
@@ -199,11 +199,7 @@ class _Guard(grpc.ServerInterceptor):  # type: ignore[misc, unused-ignore]  # gr
             inner_ss = handler.stream_stream
 
             def stream_stream(requests: Iterator[Any], context: grpc.ServicerContext) -> Iterator[Any]:
-                why = guard._refusal(context)
-                if why:
-                    guard._deny(method, context, why)
-                with guard._slot(limited, context):
-                    yield from inner_ss(requests, context)
+                return guard._streamed(method, context, lambda: inner_ss(requests, context))
 
             return grpc.stream_stream_rpc_method_handler(
                 stream_stream, handler.request_deserializer, handler.response_serializer
@@ -212,6 +208,7 @@ class _Guard(grpc.ServerInterceptor):  # type: ignore[misc, unused-ignore]  # gr
 
     @contextlib.contextmanager
     def _slot(self, limited: bool, context: grpc.ServicerContext) -> Iterator[None]:
+        """A stream slot, or the call aborted RESOURCE_EXHAUSTED (``limited`` calls only)."""
         if not limited:
             yield
             return
@@ -355,8 +352,7 @@ class Gateway(ServiceBase):
 
     def close(self) -> None:
         self.stopping.set()
-        if getattr(self, "live", None) is not None:
-            assert self.live is not None
+        if self.live is not None:
             self.live.close()
         # Calls in flight get a moment to finish; streams see `stopping` and end UNAVAILABLE.
         self.server.stop(grace=2.0).wait(5.0)

@@ -36,7 +36,7 @@ from collections.abc import Iterable
 from concurrent.futures import ThreadPoolExecutor
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from typing import Any
+from typing import Any, TypeVar
 from urllib.parse import parse_qs, urlsplit
 
 import zenoh
@@ -48,6 +48,8 @@ from swarmrec.services.live_view_page import PAGE
 from swarmrec.wire import messages as pb
 
 __all__ = ["MAX_CONNECTIONS", "STATE_CACHE_S", "LiveView", "event_is_publishers"]
+
+E = TypeVar("E", pb.LoopClosure, pb.QueryReport, pb.FusionUpdate)
 
 #: The page's state is read from the swarm at most this often, however many pages ask.
 STATE_CACHE_S = 1.0
@@ -94,7 +96,7 @@ class LiveView:
         self.token = secrets.token_urlsafe(18)
         self.max_streams = max_streams
         self.lock = threading.Lock()
-        self.streams: list[queue.Queue[tuple[str, dict[str, Any]]]] = []
+        self.streams: list[_Stream] = []
         self.closures: deque[dict[str, Any]] = deque(maxlen=RECENT_EVENTS)
         self.fusion: deque[dict[str, Any]] = deque(maxlen=50)
         self.funnel = {"queries": 0, "queried": 0, "candidates": 0, "verified_pairs": 0, "closures": 0}
@@ -130,7 +132,7 @@ class LiveView:
         self.server.server_close()
         with self.lock:
             for q in self.streams:
-                _offer(q, ("end", {}))
+                q.offer(("end", {}))
         self._scraper.shutdown(wait=False, cancel_futures=True)
 
     # --- events from the swarm (zenoh's callbacks: quick, never blocking) ---------------
@@ -138,14 +140,11 @@ class LiveView:
     def _publish(self, kind: str, data: dict[str, Any]) -> None:
         with self.lock:
             for q in self.streams:
-                _offer(q, (kind, data))
+                q.offer((kind, data))
 
     def _on_closure(self, sample: zenoh.Sample) -> None:
-        try:
-            c = pb.LoopClosure.FromString(sample.payload.to_bytes())
-        except Exception:  # a malformed event is the publisher's problem, not the page's
-            return
-        if not _publishers(c, sample):
+        c = _decode(pb.LoopClosure, sample)
+        if c is None:
             return
         data = _closure_json(c)
         with self.lock:
@@ -154,11 +153,8 @@ class LiveView:
         self._publish("closure", data)
 
     def _on_report(self, sample: zenoh.Sample) -> None:
-        try:
-            r = pb.QueryReport.FromString(sample.payload.to_bytes())
-        except Exception:
-            return
-        if not _publishers(r, sample):
+        r = _decode(pb.QueryReport, sample)
+        if r is None:
             return
         with self.lock:
             f = self.funnel
@@ -173,11 +169,8 @@ class LiveView:
         )
 
     def _on_fusion(self, sample: zenoh.Sample) -> None:
-        try:
-            u = pb.FusionUpdate.FromString(sample.payload.to_bytes())
-        except Exception:
-            return
-        if not _publishers(u, sample):
+        u = _decode(pb.FusionUpdate, sample)
+        if u is None:
             return
         data = {"robot": u.robot_id, "round": u.round_id, "decision": u.decision, "heard_all": u.heard_all}
         with self.lock:
@@ -216,7 +209,7 @@ class LiveView:
             error = f"members: {e}"
         placement: dict[str, Any] = {}
         try:
-            ix = self.client.index_state()
+            ix = self.client.index_state(members=members)
             version = ix.placement.version if ix.placement is not None else -1
             with self.lock:
                 if version >= 0 and (not self.placements or self.placements[-1][1] != version):
@@ -229,16 +222,21 @@ class LiveView:
         # Each member's /metrics once (several members of one process have paths of their own).
         urls = sorted({m.metrics_url for m in members if m.metrics_url})
         scraped = dict(zip(urls, self._scraper.map(_scrape, urls), strict=True))
+        # A shard's load is read from a URL that serves that shard alone.
+        shards_at: dict[str, list[int]] = {}
+        for m in members:
+            if m.kind == "index-shard":
+                shards_at.setdefault(m.metrics_url, []).append(m.robot)
         by_message: dict[str, float] = {}
         shard_load: dict[int, float] = {}
         for url, series in scraped.items():
-            shards = [m.robot for m in members if m.metrics_url == url and m.kind == "index-shard"]
             for name, labels, value in series:
                 # scope "swarm": what crossed between robots (the report's bytes are these too).
                 if name == "swarmrec_message_bytes_sent_total" and labels.get("scope") == "swarm":
                     by_message[labels["message"]] = by_message.get(labels["message"], 0.0) + value
-                elif name == "swarmrec_shard_partial_queries_total" and len(shards) == 1:
-                    shard_load[shards[0]] = shard_load.get(shards[0], 0.0) + value
+                elif name == "swarmrec_shard_partial_queries_total" and len(shards_at.get(url, ())) == 1:
+                    robot = shards_at[url][0]
+                    shard_load[robot] = shard_load.get(robot, 0.0) + value
         with self.lock:
             closures = list(self.closures)[-50:]
             funnel = dict(self.funnel)
@@ -272,16 +270,16 @@ class LiveView:
 
     # --- event streams ----------------------------------------------------------------
 
-    def open_stream(self) -> queue.Queue[tuple[str, dict[str, Any]]] | None:
+    def open_stream(self) -> _Stream | None:
         """A queue of events for one reader, or None when ``max_streams`` are open."""
         with self.lock:
             if len(self.streams) >= self.max_streams:
                 return None
-            q: queue.Queue[tuple[str, dict[str, Any]]] = queue.Queue(STREAM_QUEUE)
+            q = _Stream()
             self.streams.append(q)
             return q
 
-    def close_stream(self, q: queue.Queue[tuple[str, dict[str, Any]]]) -> None:
+    def close_stream(self, q: _Stream) -> None:
         with self.lock:
             if q in self.streams:
                 self.streams.remove(q)
@@ -303,20 +301,32 @@ def event_is_publishers(msg: Any, key: str) -> bool:
     return int(getattr(msg, field)) == parsed[1]
 
 
-def _publishers(msg: Any, sample: zenoh.Sample) -> bool:
-    return event_is_publishers(msg, str(sample.key_expr))
+def _decode(cls: type[E], sample: zenoh.Sample) -> E | None:
+    """An event as ``cls``; None when it is malformed (the publisher's problem, not the
+    page's) or names another robot than the key it came on."""
+    try:
+        msg = cls.FromString(sample.payload.to_bytes())
+    except Exception:
+        return None
+    return msg if event_is_publishers(msg, str(sample.key_expr)) else None
 
 
-def _offer(q: queue.Queue[tuple[str, dict[str, Any]]], item: tuple[str, dict[str, Any]]) -> None:
-    """Queue ``item``; a full queue drops its oldest event (the reader is told how many)."""
-    while True:
-        try:
-            q.put_nowait(item)
-            return
-        except queue.Full:
-            with contextlib.suppress(queue.Empty):
-                q.get_nowait()
-                q.dropped = getattr(q, "dropped", 0) + 1  # type: ignore[attr-defined]
+class _Stream(queue.Queue[tuple[str, dict[str, Any]]]):
+    """One reader's events; when full, the oldest is dropped and counted (the reader is told)."""
+
+    def __init__(self) -> None:
+        super().__init__(STREAM_QUEUE)
+        self.dropped = 0
+
+    def offer(self, item: tuple[str, dict[str, Any]]) -> None:
+        while True:
+            try:
+                self.put_nowait(item)
+                return
+            except queue.Full:
+                with contextlib.suppress(queue.Empty):
+                    self.get_nowait()
+                    self.dropped += 1
 
 
 def _scrape(url: str) -> list[tuple[str, dict[str, str], float]]:
@@ -416,9 +426,8 @@ class _Handler(BaseHTTPRequestHandler):
                     continue
                 if kind == "end":
                     return
-                dropped = getattr(q, "dropped", 0)
-                if dropped:
-                    data = {**data, "dropped": dropped}
+                if q.dropped:
+                    data = {**data, "dropped": q.dropped}
                 self._write(_lines([(f"event: {kind}", None), ("data", json.dumps(data))]))
         except (BrokenPipeError, ConnectionResetError, OSError):
             return  # the reader left

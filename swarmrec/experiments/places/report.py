@@ -30,7 +30,6 @@ from swarmrec.client import IndexState
 from swarmrec.core.association import FrameTable, build_table
 from swarmrec.core.funnel import Reason, Stage, passed_stages
 from swarmrec.core.presets import Preset
-from swarmrec.core.split import split_frames
 from swarmrec.core.types import ConstellationSequence, Trajectory
 from swarmrec.datasets.constellations import label_counts
 from swarmrec.deployments.metrics import Scrape
@@ -671,7 +670,7 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
     _write_closures(out / "loop_closures.csv", run.closures, run.blocks, seq, truth)
     write_funnel(out, replay.reports, run.closures, run.blocks, seq)
     if settings.plots:
-        _plots(settings, summary, dense, curves, wire_seq, run.bounds, loads)
+        _plots(settings, summary, dense, curves, wire_seq, run.bounds, run.blocks, loads)
     (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
     return summary
 
@@ -740,10 +739,11 @@ def _plots(
     curves: dict[str, PRCurve],
     seq: ConstellationSequence,
     bounds: npt.NDArray[np.int64],
+    blocks: list[range],
     loads: list[int],
 ) -> None:
     out = settings.out
-    starts = [int(b.start) for b in split_frames(dense.shape[0], settings.robots)]
+    starts = [b.start for b in blocks]
     plot_similarity(
         dense, f"{seq.name}: swarm of {settings.robots} robots", out / "similarity.png", robot_starts=starts
     )
