@@ -5,9 +5,12 @@
 //! `ErrorReply` read as the peer's refusal and zenoh's own error as a timeout, and
 //! every failure counted in `swarmrec_peer_failures_total` by endpoint and reason.
 //!
-//! A request to an endpoint of the caller's own robot in this process is served on
-//! the caller's thread when its result is first asked for (`LocalEndpoints`), so the
-//! requests started after it are already on their way meanwhile.
+//! A request to an endpoint this process serves (the caller's own robot's, or another
+//! robot's hosted beside it) is served on the caller's thread when its result is first
+//! asked for (`LocalEndpoints`), so the requests started after it are already on their
+//! way meanwhile; the others go to other processes only (zenoh's `Locality::Remote`).
+//! zenoh would otherwise serve a co-hosted robot's endpoint inside `get`, before the
+//! requests after it leave.
 //!
 //! Nothing here runs on zenoh's thread: a caller waits for its replies, and zenoh's one
 //! thread must stay free to deliver them (`Endpoint::blocking`).
@@ -19,6 +22,7 @@ use prost::Message;
 use zenoh::handlers::FifoChannelHandler;
 use zenoh::qos::CongestionControl;
 use zenoh::query::{ConsolidationMode, QueryTarget, Reply};
+use zenoh::sample::Locality;
 use zenoh::Wait;
 
 use crate::metrics::{scope_between, ServiceMetrics};
@@ -96,6 +100,16 @@ pub struct Pending<'a> {
     way: Way,
 }
 
+/// A request to an endpoint of this process is served when its result is asked for; one
+/// dropped unasked is still served (its reply unread), as zenoh would have delivered it.
+impl Drop for Pending<'_> {
+    fn drop(&mut self) {
+        if let Way::Local { serve, payload, schema } = std::mem::replace(&mut self.way, Way::Unsent) {
+            let _ = serve.serve_local(&payload, &schema, self.caller.robot);
+        }
+    }
+}
+
 /// One reply: its bytes, or why there is none.
 pub type Outcome = Result<Vec<u8>, CallError>;
 
@@ -157,7 +171,7 @@ impl Caller {
     ) -> Pending<'_> {
         self.metrics.count_sent(schema, self.scope(target), payload.len());
         let local = match target {
-            Some(t) if !scatter && t == self.robot => self.local.find(key, t),
+            Some(t) if !scatter => self.local.find(key, t),
             _ => None,
         };
         let way = if let Some(serve) = local {
@@ -176,6 +190,10 @@ impl Caller {
                 .congestion_control(CongestionControl::Block);
             if scatter {
                 get = get.target(QueryTarget::All).consolidation(ConsolidationMode::None);
+            } else {
+                // Every endpoint this process serves was found above (`LocalEndpoints`):
+                // zenoh need not look for one in this session.
+                get = get.allowed_destination(Locality::Remote);
             }
             get.wait().map_or(Way::Unsent, Way::Remote)
         } else {

@@ -483,7 +483,8 @@ impl Descriptor {
         for &l in labels {
             desc[l as usize] += 1;
         }
-        let (replies, answered) = self.ask_shards(&desc, frame, &mut report);
+        let mut stores = Vec::new();
+        let (replies, answered) = self.ask_shards(&desc, frame, &mut report, &mut stores);
         let (mut cand_robot, mut cand_frame) = (Vec::new(), Vec::new());
         for (g, reply) in &replies {
             let served_by = answered.iter().find(|(ag, _)| ag == g).map_or(0, |(_, s)| *s);
@@ -555,8 +556,8 @@ impl Descriptor {
                     .start(&key, "VerifyRequest", &request, Some(r), "verify", false),
             ));
         }
-        // The replicas' stores leave after the verify requests; stored while the verifiers work.
-        let stores = self.start_replica_stores(&desc, frame, &answered);
+        // The replicas' stores left with step 1; those it could not know of leave now.
+        self.start_replica_stores(&desc, frame, &answered, &mut stores);
         let mut pairs: Vec<pb::VerifiedPair> = Vec::new();
         let mut failures: HashMap<u32, Reason> = HashMap::new();
         for (r, pending) in verifying {
@@ -620,14 +621,17 @@ impl Descriptor {
     }
 
     /// Step 1 (`ask_shards`): every non-empty slice to an owner of its group, all in flight
-    /// together; (group, reply) in the order answered and, per group answered, the shard
-    /// that answered (it stored the slice with its search).
+    /// together, and its store to the group's other owners and learners right behind them
+    /// (into `stores`: acknowledged while the shards search, not after the verifiers);
+    /// (group, reply) in the order answered and, per group answered, the shard that
+    /// answered (it stored the slice with its search).
     #[allow(clippy::type_complexity)]
-    fn ask_shards(
-        &self,
+    fn ask_shards<'a>(
+        &'a self,
         desc: &[u32],
         frame: u32,
         report: &mut pb::QueryReport,
+        stores: &mut Vec<Store<'a>>,
     ) -> (Vec<(usize, pb::CandidatesReply)>, Vec<(usize, u32)>) {
         let robot = self.robot;
         let mut placement = self.routing.placement();
@@ -658,6 +662,19 @@ impl Descriptor {
                 self.send(&mut ask, first, placement.version);
             }
             asks.push(ask);
+        }
+        for ask in &asks {
+            let Some(&asked) = ask.tried.first() else { continue };
+            let (lo, hi) = placement.groups[ask.group];
+            let msg = pb::ShardStore {
+                descriptor: Some(partial(desc, lo, hi, robot, frame)),
+                placement_version: placement.version,
+            };
+            for shard in placement.store_targets(ask.group) {
+                if shard != asked {
+                    stores.push(self.store_to(ask.group, shard, &msg));
+                }
+            }
         }
         let mut replies = Vec::new();
         let mut answered: Vec<(usize, u32)> = Vec::new();
@@ -736,10 +753,17 @@ impl Descriptor {
         }
     }
 
-    /// A ShardStore of each answered group's slice to its other owners and learners.
-    fn start_replica_stores(&self, desc: &[u32], frame: u32, answered: &[(usize, u32)]) -> Vec<Store<'_>> {
+    /// A ShardStore of each answered group's slice to its other owners and learners that
+    /// the stores started with step 1 missed: where another owner than the one first
+    /// asked answered, or the placement moved meanwhile (`stores` has the others).
+    fn start_replica_stores<'a>(
+        &'a self,
+        desc: &[u32],
+        frame: u32,
+        answered: &[(usize, u32)],
+        stores: &mut Vec<Store<'a>>,
+    ) {
         let placement = self.routing.placement();
-        let mut stores = Vec::new();
         for &(g, served_by) in answered {
             let (lo, hi) = placement.groups[g];
             let msg = pb::ShardStore {
@@ -747,12 +771,12 @@ impl Descriptor {
                 placement_version: placement.version,
             };
             for shard in placement.store_targets(g) {
-                if shard != served_by {
+                let sent = stores.iter().any(|st| st.group == g && st.shard == shard);
+                if shard != served_by && !sent {
                     stores.push(self.store_to(g, shard, &msg));
                 }
             }
         }
-        stores
     }
 
     /// The replicas' acknowledgements (`finish_replica_stores`): a group a shard refused as

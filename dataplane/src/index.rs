@@ -138,6 +138,18 @@ impl RangeIndex {
 
     /// The `n_ret` best stored frames for the query slice `query`, best first.
     pub fn candidates(&self, query: &[f64], n_ret: usize, before: Option<u64>) -> Vec<Candidate> {
+        self.candidates_except(query, n_ret, before, None)
+    }
+
+    /// `candidates`, never naming the stored frame `except` (robot, frame): a frame is
+    /// never its own candidate, even where its slice got here before its query did.
+    pub fn candidates_except(
+        &self,
+        query: &[f64],
+        n_ret: usize,
+        before: Option<u64>,
+        except: Option<(u32, u64)>,
+    ) -> Vec<Candidate> {
         let t = before.unwrap_or_else(|| self.frames());
         if t == 0 {
             return Vec::new();
@@ -148,7 +160,7 @@ impl RangeIndex {
         let mut values: Vec<f64> = Vec::new();
         let mut slots: Vec<u64> = Vec::new();
         for r in 0..self.size() {
-            if before.is_some() && self.frame[r] >= t {
+            if (before.is_some() && self.frame[r] >= t) || except == Some((self.robot[r], self.frame[r])) {
                 continue;
             }
             let row = &self.counts[r * w..(r + 1) * w];
@@ -238,6 +250,26 @@ mod tests {
         let found = ix.candidates(&[1.0, 0.0], 10, Some(2));
         assert_eq!(found.len(), 4);
         assert!(found.iter().all(|c| c.frame < 2));
+    }
+
+    #[test]
+    fn the_excepted_frame_is_never_named_and_the_others_keep_their_order() {
+        let mut ix = RangeIndex::new(0, 2, 2).unwrap();
+        ix.add(0, 0, &[1.0, 0.0]).unwrap();
+        ix.add(1, 0, &[1.0, 1.0]).unwrap();
+        ix.add(1, 1, &[1.0, 1.0]).unwrap();
+        let all: Vec<(u32, u64)> = ix
+            .candidates(&[1.0, 1.0], 10, None)
+            .iter()
+            .map(|c| (c.robot, c.frame))
+            .collect();
+        assert_eq!(all, vec![(1, 0), (1, 1), (0, 0)]);
+        let without: Vec<(u32, u64)> = ix
+            .candidates_except(&[1.0, 1.0], 10, None, Some((1, 1)))
+            .iter()
+            .map(|c| (c.robot, c.frame))
+            .collect();
+        assert_eq!(without, vec![(1, 0), (0, 0)]);
     }
 
     #[test]

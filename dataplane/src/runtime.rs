@@ -426,9 +426,10 @@ impl Dispatcher {
     }
 }
 
-/// The endpoints this process serves, by key, for calls within one robot
+/// The endpoints this process serves, by key, for calls that stay in the process
 /// (`LocalEndpoints` of the Python runner): a descriptor's calls to its own robot's
-/// verifier and shard are served on its thread, with no message.
+/// verifier and shard, and to those of the robots hosted beside it, are served on its
+/// thread, with no message.
 #[derive(Default)]
 pub struct LocalEndpoints {
     served: std::sync::Mutex<std::collections::HashMap<String, (u32, Arc<Dispatcher>)>>,

@@ -819,14 +819,18 @@ impl IndexShard {
                 "frame index or step more than {MAX_FRAME_GAP} frames past what is stored"
             )));
         }
+        // A slice already here (a replica's store can come before its query's retry) is
+        // accepted when the same, and its frame is never its own candidate.
+        let mut own = None;
         if !req.read_only {
             if let Some(stored) = ix.get(desc.robot_id, frame) {
                 if stored != counts.as_slice() {
                     return Err(Self::already(desc));
                 }
+                own = Some((desc.robot_id, frame));
             }
         }
-        let found = ix.candidates(&counts, n_ret as usize, before);
+        let found = ix.candidates_except(&counts, n_ret as usize, before, own);
         if !req.read_only {
             self.store_slice(&mut st, g, desc, &counts)?;
         }

@@ -137,21 +137,31 @@ class RangeIndex:
         return new
 
     def candidates(
-        self, counts: npt.ArrayLike, n_ret: int, *, before: int | None = None
+        self,
+        counts: npt.ArrayLike,
+        n_ret: int,
+        *,
+        before: int | None = None,
+        exclude: tuple[int, int] | None = None,
     ) -> list[IndexCandidate]:
         """The ``n_ret`` best stored frames for the query slice ``counts``, best first.
 
         ``before`` limits the search to frames with a smaller index on every
         robot (lock-step replay at step ``before``, ties as the published
         evaluation breaks them); None searches everything (equal scores at the
-        ``n_ret`` cut kept in (robot, frame) order).
+        ``n_ret`` cut kept in (robot, frame) order). ``exclude`` (robot, frame)
+        is never named: a frame is not its own candidate, even where its slice
+        is stored before its query comes (a replica's store can be).
         """
         query = np.asarray(counts, dtype=np.float64).reshape(-1)
         t = before if before is not None else self.frames
         if t <= 0:
             return []
         n = self.size
-        rows = np.flatnonzero(self._frame[:n] < t) if before is not None else np.arange(n)
+        keep = self._frame[:n] < t if before is not None else np.ones(n, dtype=bool)
+        if exclude is not None:
+            keep &= (self._robot[:n] != exclude[0]) | (self._frame[:n] != exclude[1])
+        rows = np.flatnonzero(keep)
         # Only the query's non-zero bins can have a non-zero minimum; the sums are
         # of small integers, exact in float64 in any order, so skipping the zero
         # bins changes no bit of the result (and saves most of the work).

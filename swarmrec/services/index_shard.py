@@ -474,7 +474,10 @@ class IndexShard(ServiceBase, ShardSettings):
                     f"frame {desc.frame_index} of robot {desc.robot_id} is already stored here with "
                     "another slice; stores are idempotent (the same slice again is accepted)"
                 )
-            found = index.candidates(part.counts, n_ret, before=before)
+            # A slice already here (a replica's store can come before its query's retry)
+            # is accepted when the same, and its frame is never its own candidate.
+            own = None if stored is None else (desc.robot_id, desc.frame_index)
+            found = index.candidates(part.counts, n_ret, before=before, exclude=own)
             if not req.read_only:
                 self._store(g, desc, part.counts)
             if not req.read_only:

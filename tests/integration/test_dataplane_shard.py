@@ -74,10 +74,14 @@ def stream(seed: int) -> list[tuple[str, int, pb.PartialQuery | pb.ShardStore]]:
         step = frame + rng.choice([0, 0, 0, 2, 7])  # the querier's replay ahead of the frame
         desc = _slice(rng, robot, frame, 0 if step == frame else step, group)
         serving = rng.randrange(N_ROBOTS)
-        out.append(("query", serving, pb.PartialQuery(query_id=i, descriptor=desc, include_scores=True)))
         store = pb.PartialDescriptor()
         store.CopyFrom(desc)
         store.query_step = 0
+        if rng.random() < 0.2:
+            # A replica's store got to the shard before the query did (a querier's stores
+            # leave with its queries, and a query retried goes to another owner).
+            out.append(("store", serving, pb.ShardStore(descriptor=store)))
+        out.append(("query", serving, pb.PartialQuery(query_id=i, descriptor=desc, include_scores=True)))
         out.append(("store", 1 - serving, pb.ShardStore(descriptor=store)))
         if rng.random() < 0.3:
             probe = _slice(rng, robot, frame, 0, rng.randrange(len(GROUPS)))
@@ -138,6 +142,21 @@ def test_the_compiled_shard_answers_a_tie_heavy_stream_as_the_python_reference(
     assert len(python) == len(compiled) > 1000
     for i, (p, c) in enumerate(zip(python, compiled, strict=True)):
         assert p == c, (i, p, c)
+    # A frame is never its own candidate, its slice stored there before its query or not
+    # (in range of its own query where the querier's step is ahead of the frame).
+    requests = stream(20261127)
+    stored_first = 0
+    previous = [None, *requests]
+    for before, (endpoint, shard, req), (ok, code, _) in zip(previous, requests, python, strict=False):
+        if endpoint != "query" or not ok or code:
+            continue
+        assert isinstance(req, pb.PartialQuery)
+        reply = pb.CandidatesReply.FromString(ok)
+        own = (req.descriptor.robot_id, req.descriptor.frame_index)
+        assert own not in set(zip(reply.robot_ids, reply.frame_indices, strict=True)), (req, reply)
+        ahead = req.descriptor.query_step > own[1]
+        stored_first += ahead and before is not None and before[:2] == ("store", shard)
+    assert stored_first > 10
     # About something: candidates with ties at the cut, and refusals of every kind.
     replies = [pb.CandidatesReply.FromString(ok) for ok, code, _ in python if ok and not code]
     full = [r for r in replies if len(r.robot_ids) >= 3]

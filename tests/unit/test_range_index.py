@@ -197,6 +197,18 @@ def test_before_limits_every_robot_to_earlier_frames() -> None:
     assert index.candidates([1, 1], 100, before=0) == []
 
 
+@pytest.mark.parametrize("before", [None, 3])
+def test_the_excluded_frame_is_never_named_and_the_others_keep_their_order(before: int | None) -> None:
+    index = RangeIndex(0, 2, 2)
+    index.add(0, 0, [1, 0])
+    index.add(1, 0, [1, 1])
+    index.add(1, 1, [1, 1])
+    every = [(c.robot, c.frame) for c in index.candidates([1, 1], 10, before=before)]
+    assert every == [(1, 0), (1, 1), (0, 0)]
+    got = [(c.robot, c.frame) for c in index.candidates([1, 1], 10, before=before, exclude=(1, 1))]
+    assert got == [(1, 0), (0, 0)]
+
+
 def test_before_past_the_stored_frames_searches_everything() -> None:
     index = RangeIndex(0, 2, 2)
     index.add(0, 1, [1, 0])
