@@ -25,6 +25,7 @@ so a caller can catch the whole family in one place::
     │   ├── Unavailable            [UNAVAILABLE]
     │   ├── FailedPrecondition     [FAILED_PRECONDITION]
     │   ├── AlreadyExists          [ALREADY_EXISTS] stored already, with other content
+    │   ├── PermissionDenied       [PERMISSION_DENIED] the caller may not act for whom it names
     │   └── Internal               [INTERNAL]
     ├── CallError                  a request to a peer did not get the expected answer
     │   ├── NoReply                nobody answered (gone, crashed, not discovered yet)
@@ -92,6 +93,7 @@ __all__ = [
     "MissingFieldError",
     "NoReply",
     "NotFound",
+    "PermissionDenied",
     "PkiConflictError",
     "RemoteError",
     "ReplyTimeout",
@@ -118,6 +120,7 @@ class ErrorCode(IntEnum):
     INTERNAL = 8
     FAILED_PRECONDITION = 9
     ALREADY_EXISTS = 10
+    PERMISSION_DENIED = 11
 
     @property
     def wire_name(self) -> str:
@@ -290,6 +293,14 @@ class AlreadyExists(RequestError):
     """
 
     code = ErrorCode.ALREADY_EXISTS
+
+
+class PermissionDenied(RequestError):
+    """A request that acts for another robot than its caller (a slice of robot 2 stored by
+    robot 3), or a placement from a shard that is not the coordinator: the caller is the
+    robot its key names, which the router lets each certificate name for itself only."""
+
+    code = ErrorCode.PERMISSION_DENIED
 
 
 class Internal(RequestError):

@@ -27,7 +27,7 @@ use zenoh::Wait;
 
 use crate::metrics::{scope_between, ServiceMetrics};
 use crate::pb;
-use crate::runtime::{declared, encoding, schema_of, Dispatcher, LocalEndpoints};
+use crate::runtime::{declared, encoding, request_key, schema_of, Dispatcher, LocalEndpoints};
 use crate::wirecheck::unknown_field;
 
 /// Why a request got no usable reply (`NoReply`, `ReplyTimeout`, `RemoteError`).
@@ -180,7 +180,12 @@ impl Caller {
                 payload,
                 schema: format!("swarmrec.v1.{schema}"),
             }
-        } else if let Some((session, key)) = self.session.get().and_then(|s| Some((s, declared(s, key)?))) {
+        } else if let Some((session, key)) = self
+            .session
+            .get()
+            // A caller-bound endpoint's request names its sender in the key (`CALLER_BOUND`).
+            .and_then(|s| Some((s, declared(s, &request_key(key, self.robot))?)))
+        {
             let mut get = session
                 .get(key)
                 .payload(payload)

@@ -418,6 +418,7 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
                 max_message_bytes: s.max_message_bytes,
                 metrics: h.metrics.clone(),
                 log: h.log.clone(),
+                bound: runtime::caller_bound(&h.kind, name),
             });
             local.add(&key, h.robot, d.clone());
             if blocking {

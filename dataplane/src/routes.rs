@@ -1,5 +1,6 @@
-//! One queryable per hosted service, `swarmrec/v1/<swarm>/<kind>/<robot>/*`, and the
-//! endpoint a query names found in a map.
+//! One queryable per hosted service, `swarmrec/v1/<swarm>/<kind>/<robot>/**`, and the
+//! endpoint a query names found in a map (a caller-bound endpoint's requests name their
+//! sender in one more chunk, `<endpoint>/<caller>`: `runtime::CALLER_BOUND`).
 //!
 //! Why: zenoh's session matches an incoming query against every queryable it declared,
 //! one key-expression intersection each. A process hosting 50 robots declared one
@@ -12,11 +13,13 @@
 //! served by every endpoint whose key it intersects, each replying on its own key; a
 //! query naming an endpoint the service does not have gets no reply, as no queryable
 //! would have answered it. The router's access control allows exactly this key to the
-//! service's identity (`<kind>/<robot>/*`).
+//! service's identity (`<kind>/<robot>/**`).
 
 use std::collections::HashMap;
 
 use zenoh::key_expr::{keyexpr, OwnedKeyExpr};
+
+use crate::runtime::caller_bound;
 
 /// What a route is given: something with the key expression it was asked on.
 pub trait Keyed: Clone {
@@ -36,6 +39,7 @@ pub type Route<Q> = Box<dyn Fn(Q) + Send + Sync>;
 pub struct Routes<Q> {
     /// `swarmrec/v1/<swarm>/<kind>/<robot>/`
     prefix: String,
+    kind: String,
     by_name: HashMap<String, usize>,
     /// In the order added: (the endpoint's full key, its route).
     routes: Vec<(OwnedKeyExpr, Route<Q>)>,
@@ -45,6 +49,7 @@ impl<Q: Keyed> Routes<Q> {
     pub fn new(swarm: &str, kind: &str, robot: u32) -> Self {
         Routes {
             prefix: format!("swarmrec/v1/{swarm}/{kind}/{robot}/"),
+            kind: kind.to_owned(),
             by_name: HashMap::new(),
             routes: Vec::new(),
         }
@@ -52,11 +57,13 @@ impl<Q: Keyed> Routes<Q> {
 
     /// The key to declare: every endpoint of the service.
     pub fn key(&self) -> String {
-        format!("{}*", self.prefix)
+        format!("{}**", self.prefix)
     }
 
     pub fn add(&mut self, name: &str, route: Route<Q>) -> anyhow::Result<()> {
-        let key = OwnedKeyExpr::try_from(format!("{}{name}", self.prefix))
+        // A caller-bound endpoint answers at `<name>/<caller>` (and refuses `<name>` alone).
+        let tail = if caller_bound(&self.kind, name) { "/**" } else { "" };
+        let key = OwnedKeyExpr::try_from(format!("{}{name}{tail}", self.prefix))
             .map_err(|e| anyhow::anyhow!("endpoint {name}: {e}"))?;
         if self.by_name.insert(name.to_owned(), self.routes.len()).is_some() {
             anyhow::bail!("endpoint {name} declared twice");
@@ -67,12 +74,19 @@ impl<Q: Keyed> Routes<Q> {
 
     /// The endpoints a query on `key` asks, in the order they were added.
     fn matching(&self, key: &str) -> Vec<usize> {
-        // A key without wildcards that zenoh delivered here is `<prefix><one chunk>`.
-        if let Some(&i) = key
+        // A key without wildcards that zenoh delivered here is `<prefix><endpoint>`, or
+        // `<prefix><endpoint>/<caller>` for a caller-bound endpoint.
+        if let Some(rest) = key
             .strip_prefix(self.prefix.as_str())
-            .and_then(|name| self.by_name.get(name))
+            .filter(|r| !r.contains(['*', '$']))
         {
-            return vec![i];
+            let (name, tail) = rest.split_once('/').map_or((rest, None), |(n, t)| (n, Some(t)));
+            let bound = caller_bound(&self.kind, name);
+            let one_chunk = tail.is_none() || (bound && tail.is_some_and(|t| !t.contains('/')));
+            return match self.by_name.get(name) {
+                Some(&i) if one_chunk => vec![i],
+                _ => Vec::new(),
+            };
         }
         match keyexpr::new(key) {
             Ok(asked) => (0..self.routes.len())
@@ -135,7 +149,14 @@ mod tests {
             ask("swarmrec/v1/s/index-shard/3/store"),
             ["store <- swarmrec/v1/s/index-shard/3/store"]
         );
-        assert_eq!(routes(&Arc::default()).key(), "swarmrec/v1/s/index-shard/3/*");
+        assert_eq!(routes(&Arc::default()).key(), "swarmrec/v1/s/index-shard/3/**");
+        // A caller-bound endpoint's request names its sender.
+        assert_eq!(
+            ask("swarmrec/v1/s/index-shard/3/store/2"),
+            ["store <- swarmrec/v1/s/index-shard/3/store/2"]
+        );
+        // Another endpoint with a chunk too many would have had no queryable.
+        assert!(ask("swarmrec/v1/s/index-shard/3/info/2").is_empty());
     }
 
     #[test]

@@ -33,6 +33,43 @@ pub fn endpoint_key(swarm: &str, kind: &str, robot: u32, name: &str) -> String {
     format!("swarmrec/v1/{swarm}/{kind}/{robot}/{name}")
 }
 
+/// Endpoints that act for the robot that calls them (`keys.CALLER_BOUND` in Python): a
+/// request to one goes to `<endpoint key>/<caller's robot>`, which the router's access
+/// control lets each certificate use with its own robot(s) only, and the service takes
+/// the caller from the key, not from the attachment.
+pub const CALLER_BOUND: [(&str, &str); 4] = [
+    ("index-shard", "query"),
+    ("index-shard", "store"),
+    ("index-shard", "adopt"),
+    ("place-owner", "query"),
+];
+
+/// Whether `kind`'s endpoint `name` takes its caller from the key.
+pub fn caller_bound(kind: &str, name: &str) -> bool {
+    CALLER_BOUND.contains(&(kind, name))
+}
+
+/// The key a request to endpoint `key` goes to: with the caller's robot appended when the
+/// endpoint is caller-bound.
+pub fn request_key(key: &str, caller: u32) -> String {
+    let parts: Vec<&str> = key.split('/').collect();
+    if parts.len() == 6 && caller_bound(parts[3], parts[5]) {
+        format!("{key}/{caller}")
+    } else {
+        key.to_string()
+    }
+}
+
+/// The caller's robot a caller-bound request's key names (its seventh chunk).
+pub fn bound_caller(key: &str) -> Option<u32> {
+    let parts: Vec<&str> = key.split('/').collect();
+    let last = parts.get(6).filter(|_| parts.len() == 7)?;
+    if last.is_empty() || last.len() > 10 || !last.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    last.parse::<u64>().ok().and_then(|r| u32::try_from(r).ok())
+}
+
 /// At most this many key expressions are declared (a swarm's endpoints: robots x a few);
 /// past it, keys are sent as strings.
 const DECLARED_KEYS: usize = 4096;
@@ -292,10 +329,39 @@ pub struct Dispatcher {
     pub max_message_bytes: usize,
     pub metrics: Arc<ServiceMetrics>,
     pub log: Log,
+    /// The caller is the robot the request's key names (`CALLER_BOUND`); the reply goes
+    /// out on the request's own key.
+    pub bound: bool,
 }
 
 impl Dispatcher {
-    fn answer(&self, data: &[u8], schema: &str, caller: Option<u32>, scope: &str) -> Handled {
+    /// Who sent a request on `key` (None: a call from this process, whose caller is
+    /// given): the attachment's robot, or for a caller-bound endpoint the key's, which the
+    /// router checked against the sender's certificate (an attachment that says otherwise
+    /// is refused).
+    fn caller(&self, key: Option<&str>, claimed: Option<u32>) -> Result<Option<u32>, RequestError> {
+        let Some(key) = key.filter(|_| self.bound) else {
+            return Ok(claimed);
+        };
+        let denied = |m: String| RequestError::new(pb::ErrorCode::PermissionDenied, m);
+        let Some(named) = bound_caller(key) else {
+            return Err(denied(format!(
+                "{} takes its caller from the key: send it to {}/<robot>",
+                self.endpoint.name, self.key
+            )));
+        };
+        match claimed {
+            Some(c) if c != named => Err(denied(format!(
+                "the request's key names robot {named} as its sender, its attachment {c}"
+            ))),
+            _ => Ok(Some(named)),
+        }
+    }
+
+    fn answer(&self, data: &[u8], schema: &str, caller: Option<u32>, key: Option<&str>, scope: &str) -> Handled {
+        // Who sent it, first: as the Python runner, a request that names no caller or another
+        // one is refused before anything else is read.
+        let caller = self.caller(key, caller)?;
         let ep = &self.endpoint;
         self.metrics.count_received(ep.request, scope, data.len());
         let expected = format!("swarmrec.v1.{}", ep.request);
@@ -326,10 +392,13 @@ impl Dispatcher {
         let scope = scope_between(self.robot, caller);
         let data = query.payload().map(|p| p.to_bytes().into_owned()).unwrap_or_default();
         let schema = schema_of(query.encoding());
-        let (name, payload, ok) = self.handle(&data, &schema, caller, scope);
+        let (name, payload, ok) = self.handle(&data, &schema, caller, Some(query.key_expr().as_str()), scope);
         let size = payload.len();
         let sent = if ok {
             match &self.reply_key {
+                // A caller-bound request is answered on its own key (the caller in it), which
+                // the service's certificate may reply on (`<kind>/<robot>/**`).
+                _ if self.bound => query.reply(query.key_expr().clone(), payload),
                 Some(key) => query.reply(key.clone(), payload),
                 None => query.reply(&self.key, payload),
             }
@@ -373,7 +442,7 @@ impl Dispatcher {
     pub fn serve_local(&self, data: &[u8], schema: &str, caller: u32) -> (&'static str, Vec<u8>, bool) {
         let (t0, c0) = (Instant::now(), thread_cpu_s());
         let scope = scope_between(self.robot, Some(caller));
-        let (name, payload, ok) = self.handle(data, schema, Some(caller), scope);
+        let (name, payload, ok) = self.handle(data, schema, Some(caller), None, scope);
         self.metrics.count_sent(name, scope, payload.len());
         self.observe(t0, c0);
         (name, payload, ok)
@@ -389,9 +458,16 @@ impl Dispatcher {
     }
 
     /// The reply to one request: (short schema name, bytes, a reply or an ErrorReply).
-    fn handle(&self, data: &[u8], schema: &str, caller: Option<u32>, scope: &str) -> (&'static str, Vec<u8>, bool) {
+    fn handle(
+        &self,
+        data: &[u8],
+        schema: &str,
+        caller: Option<u32>,
+        key: Option<&str>,
+        scope: &str,
+    ) -> (&'static str, Vec<u8>, bool) {
         let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            self.answer(data, schema, caller, scope)
+            self.answer(data, schema, caller, key, scope)
         }))
         .unwrap_or_else(|_| Err(RequestError::new(pb::ErrorCode::Internal, "the handler panicked")));
         match outcome {
@@ -449,5 +525,31 @@ impl LocalEndpoints {
     pub fn find(&self, key: &str, robot: u32) -> Option<Arc<Dispatcher>> {
         let served = lock(&self.served);
         served.get(key).filter(|(r, _)| *r == robot).map(|(_, d)| d.clone())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_request_to_a_caller_bound_endpoint_names_its_sender_last() {
+        let store = endpoint_key("lab", "index-shard", 3, "store");
+        assert_eq!(request_key(&store, 2), "swarmrec/v1/lab/index-shard/3/store/2");
+        let verify = endpoint_key("lab", "verifier", 3, "verify");
+        assert_eq!(request_key(&verify, 2), verify);
+        assert_eq!(bound_caller(&request_key(&store, 2)), Some(2));
+        for key in [
+            store.clone(),
+            format!("{store}/x"),
+            format!("{store}/2/3"),
+            format!("{store}/*"),
+            format!("{store}/99999999999"),
+        ] {
+            assert_eq!(bound_caller(&key), None, "{key}");
+        }
+        // The same endpoints as the Python services' keys.CALLER_BOUND.
+        assert!(caller_bound("index-shard", "adopt") && caller_bound("place-owner", "query"));
+        assert!(!caller_bound("index-shard", "lookup") && !caller_bound("verifier", "store"));
     }
 }

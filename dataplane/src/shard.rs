@@ -777,7 +777,7 @@ impl IndexShard {
         Ok(())
     }
 
-    fn query(&self, data: &[u8], lookup: bool) -> Result<pb::CandidatesReply, RequestError> {
+    fn query(&self, data: &[u8], lookup: bool, caller: Option<u32>) -> Result<pb::CandidatesReply, RequestError> {
         let req: pb::PartialQuery = decode(data, "swarmrec.v1.PartialQuery")?;
         let Some(desc) = req.descriptor.as_ref() else {
             return Err(missing("swarmrec.v1.PartialQuery", "descriptor"));
@@ -786,6 +786,9 @@ impl IndexShard {
             return Err(RequestError::invalid(
                 "lookup never stores: send read_only = true (descriptors use query)",
             ));
+        }
+        if !req.read_only {
+            own_slice(desc, caller)?;
         }
         if req.n_ret > MAX_N_RET {
             return Err(RequestError::invalid(format!(
@@ -860,11 +863,12 @@ impl IndexShard {
         })
     }
 
-    fn store(&self, data: &[u8]) -> Result<pb::StoreReply, RequestError> {
+    fn store(&self, data: &[u8], caller: Option<u32>) -> Result<pb::StoreReply, RequestError> {
         let req: pb::ShardStore = decode(data, "swarmrec.v1.ShardStore")?;
         let Some(desc) = req.descriptor.as_ref() else {
             return Err(missing("swarmrec.v1.ShardStore", "descriptor"));
         };
+        own_slice(desc, caller)?;
         self.check_ids(desc)?;
         let mut st = lock(&self.state);
         let (g, counts) = self.group_for(&st, desc, req.placement_version, true)?;
@@ -1036,6 +1040,23 @@ fn load_state(
 }
 
 /// The handlers of an index shard, each with its own handle on it.
+/// Refuses a slice that is not the caller's own robot's (PERMISSION_DENIED): a robot stores
+/// and queries with its own frames only, and the caller is the robot the request's key
+/// names, which the router checks against its certificate (`runtime::CALLER_BOUND`).
+fn own_slice(desc: &pb::PartialDescriptor, caller: Option<u32>) -> Result<(), RequestError> {
+    if caller == Some(desc.robot_id) {
+        return Ok(());
+    }
+    let who = caller.map_or_else(|| "outside the swarm".to_owned(), |c| format!("robot {c}"));
+    Err(RequestError::new(
+        pb::ErrorCode::PermissionDenied,
+        format!(
+            "a request from {who} carries robot {}'s frame {}: a robot stores and queries with its own frames only",
+            desc.robot_id, desc.frame_index
+        ),
+    ))
+}
+
 fn handler<R: Message + 'static>(
     shard: &Arc<IndexShard>,
     reply: &'static str,
@@ -1051,19 +1072,19 @@ impl Service for IndexShard {
             Endpoint {
                 name: "query",
                 request: "PartialQuery",
-                handler: handler(&self, "CandidatesReply", |s, d, _| s.query(d, false)),
+                handler: handler(&self, "CandidatesReply", |s, d, c| s.query(d, false, c)),
                 blocking: false,
             },
             Endpoint {
                 name: "lookup",
                 request: "PartialQuery",
-                handler: handler(&self, "CandidatesReply", |s, d, _| s.query(d, true)),
+                handler: handler(&self, "CandidatesReply", |s, d, c| s.query(d, true, c)),
                 blocking: false,
             },
             Endpoint {
                 name: "store",
                 request: "ShardStore",
-                handler: handler(&self, "StoreReply", |s, d, _| s.store(d)),
+                handler: handler(&self, "StoreReply", |s, d, c| s.store(d, c)),
                 blocking: false,
             },
             Endpoint {

@@ -7,6 +7,9 @@ sharing one router never see each other's messages.
     swarmrec/v1/<swarm>/<kind>/<robot>/<endpoint>     request/response (queryables), and the
                                                       subscriptions a service declares beside its
                                                       endpoints (fusion/<robot>/inbox: flooded outputs)
+    swarmrec/v1/<swarm>/<kind>/<robot>/<endpoint>/<caller>
+                                                      a request to a caller-bound endpoint
+                                                      (``CALLER_BOUND``): the sender's robot last
     swarmrec/v1/<swarm>/alive/<kind>/<robot>          liveliness token, one per service
     swarmrec/v1/<swarm>/events/<event>/<robot>        published events
 
@@ -20,13 +23,17 @@ import re
 from swarmrec.errors import ConfigError
 
 __all__ = [
+    "CALLER_BOUND",
     "PREFIX",
     "alive",
     "alive_all",
+    "bound_caller",
+    "caller_bound",
     "endpoint",
     "event",
     "parse_alive",
     "parse_event",
+    "request_key",
     "validate_swarm_name",
 ]
 
@@ -53,6 +60,40 @@ def _robot(robot: int | str) -> str:
 def endpoint(swarm: str, kind: str, robot: int | str, name: str) -> str:
     """Key of a service's request/response endpoint (``robot="*"``: every robot)."""
     return f"{PREFIX}/{swarm}/{kind}/{_robot(robot)}/{name}"
+
+
+#: Endpoints that act for the robot that calls them: a shard stores the querying robot's
+#: slices (``query``, ``store``) and takes a placement from the coordinator (``adopt``), a
+#: place owner stores the querying robot's descriptor. A request to one goes to
+#: ``<endpoint key>/<caller's robot>``, and the router's access control lets each
+#: certificate send them under its own robot(s) only; the service takes the caller from
+#: the key, not from what the message or its attachment claims (docs/security.md).
+CALLER_BOUND: frozenset[tuple[str, str]] = frozenset(
+    {("index-shard", "query"), ("index-shard", "store"), ("index-shard", "adopt"), ("place-owner", "query")}
+)
+
+
+def caller_bound(kind: str, name: str) -> bool:
+    """Whether ``kind``'s endpoint ``name`` takes its caller from the key."""
+    return (kind, name) in CALLER_BOUND
+
+
+def request_key(key: str, caller: int | str | None) -> str:
+    """The key a request to endpoint ``key`` goes to: with the caller's robot (``"*"``:
+    any robot's, for access rules) appended when the endpoint is caller-bound."""
+    parts = key.split("/")
+    if caller is None or len(parts) != 6 or not caller_bound(parts[3], parts[5]):
+        return key
+    return f"{key}/{_robot(caller)}"
+
+
+def bound_caller(key: str) -> int | None:
+    """The caller's robot a caller-bound request's key names (its last chunk); None when
+    the key names none."""
+    parts = key.split("/")
+    if len(parts) != 7 or not parts[6].isdigit() or len(parts[6]) > 10:
+        return None
+    return int(parts[6])
 
 
 def alive(swarm: str, kind: str, robot: int | str) -> str:

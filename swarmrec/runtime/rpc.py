@@ -36,6 +36,7 @@ import zenoh
 from google.protobuf.message import Message  # type: ignore[import-untyped, unused-ignore]
 
 from swarmrec.errors import CallError, ErrorCode, NoReply, RemoteError, ReplyTimeout, WireError
+from swarmrec.runtime import keys
 from swarmrec.runtime.metrics import ServiceMetrics, scope_between
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import decode, encode, schema_name
@@ -288,8 +289,10 @@ class Caller:
         kwargs: dict[str, Any] = {}
         if scatter:
             kwargs = {"target": zenoh.QueryTarget.ALL, "consolidation": zenoh.ConsolidationMode.NONE}
+        # A caller-bound endpoint's request names its sender in the key (keys.CALLER_BOUND).
+        wire_key = keys.request_key(key, self.robot)
         replies = self.session.get(
-            self.keys(key) if self.keys is not None else key,
+            self.keys(wire_key) if self.keys is not None else wire_key,
             payload=payload,
             encoding=encoding_for(request),
             attachment=None if self.robot is None else str(self.robot).encode(),

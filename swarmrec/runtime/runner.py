@@ -62,6 +62,7 @@ from swarmrec.errors import (
     ErrorCode,
     InvalidArgument,
     MessageTooLargeError,
+    PermissionDenied,
     RequestError,
     Unavailable,
     WireError,
@@ -416,7 +417,26 @@ class _EndpointDispatcher(_Dispatcher):
         # Replies go out on the service's own key, not the query's (which may be a wildcard:
         # detector/*/step): a router's access control allows a robot to reply on its own keys only.
         self.key = keys.endpoint(ctx.bus.swarm, ctx.kind, ctx.bus.robot, endpoint.name)
+        #: The caller is the robot the request's key names (keys.CALLER_BOUND).
+        self.bound = keys.caller_bound(ctx.kind, endpoint.name)
         self.inbox: queue.Queue[zenoh.Query | None] = queue.Queue(maxsize=ENDPOINT_CAPACITY)
+
+    def caller(self, key: str, claimed: int | None) -> int | None:
+        """Who sent a request on ``key``: the attachment's robot, or for a caller-bound
+        endpoint the key's, which the router checked against the sender's certificate (an
+        attachment that says otherwise is refused)."""
+        if not self.bound:
+            return claimed
+        named = keys.bound_caller(key)
+        if named is None:
+            raise PermissionDenied(
+                f"{self.name} takes its caller from the key: send it to {self.key}/<robot>"
+            )
+        if claimed is not None and claimed != named:
+            raise PermissionDenied(
+                f"the request's key names robot {named} as its sender, its attachment {claimed}"
+            )
+        return named
 
     def on_query(self, query: zenoh.Query) -> None:
         # zenoh's thread: hand the query over and return; a full queue is answered now.
@@ -472,13 +492,17 @@ class _EndpointDispatcher(_Dispatcher):
             try:
                 data = query.payload.to_bytes() if query.payload is not None else b""
                 schema, key = schema_of(query.encoding), str(query.key_expr)
+                robot = self.caller(key, robot)
             except Exception as e:  # a query that cannot be read is answered too, never fatal
                 msg, payload, ok = self._error(e, robot)
             else:
                 msg, payload, ok = self.answer(data, schema, robot, key)
             try:
                 if ok:
-                    query.reply(self.key, payload, encoding=encoding_for(msg))
+                    # A caller-bound request is answered on its own key (the caller's robot
+                    # in it), which the service's certificate may reply on (`<kind>/<robot>/**`).
+                    reply_key = keys.request_key(self.key, robot) if self.bound else self.key
+                    query.reply(reply_key, payload, encoding=encoding_for(msg))
                 else:
                     query.reply_err(payload, encoding=encoding_for(msg))
             except zenoh.ZError:
@@ -674,12 +698,15 @@ def _start(r: _Running, queues: bool) -> None:
     for ep in service.ENDPOINTS:
         key = keys.endpoint(bus.swarm, h.kind, bus.robot, ep.name)
         endpoint = _EndpointDispatcher(ctx, service, ep)
+        # A caller-bound endpoint is asked at <key>/<caller>; a request at <key> alone is
+        # answered too, with the refusal that says so.
+        declared = f"{key}/**" if endpoint.bound else key
         if queues:
             work: Callable[[], None] = endpoint.work
             r.inboxes.append((endpoint.inbox, bus.workers))
-            r.declared.append(session.declare_queryable(key, endpoint.on_query))
+            r.declared.append(session.declare_queryable(declared, endpoint.on_query))
         else:
-            q = session.declare_queryable(key)
+            q = session.declare_queryable(declared)
             r.declared.append(q)
             work = functools.partial(endpoint.work_channel, q)
         for i in range(bus.workers):

@@ -166,14 +166,20 @@ def grants(
         return out
     if identity.role == "service":
         kind, r = identity.kind, identity.robot
-        own = keys.endpoint(s, kind, r, "*")
+        # Its endpoints (caller-bound ones asked and answered at <endpoint>/<caller>).
+        own = keys.endpoint(s, kind, r, "**")
         out += [
             Grant("ingress", ("declare_queryable", "reply"), (own,)),
             Grant("ingress", ("liveliness_token",), (keys.alive(s, kind, r),)),
             Grant("ingress", ("put",), (keys.event(s, "*", r),)),
         ]
         # A kind a plugin added serves its own endpoints and calls nothing (no rule for it).
-        queries = tuple(keys.endpoint(s, k, _robot(rob, r), ep) for k, rob, ep in _QUERIES.get(kind, ()))
+        # A caller-bound endpoint only with this robot as the caller (keys.CALLER_BOUND):
+        # so no robot stores, queries or places in another's name.
+        queries = tuple(
+            keys.request_key(keys.endpoint(s, k, _robot(rob, r), ep), r)
+            for k, rob, ep in _QUERIES.get(kind, ())
+        )
         if queries:
             out.append(Grant("ingress", ("query",), queries))
         if kind in ("descriptor", "index-shard"):

@@ -59,6 +59,7 @@ from swarmrec.errors import (
     FailedPrecondition,
     InvalidArgument,
     LimitExceededError,
+    PermissionDenied,
     RemoteError,
     WireError,
 )
@@ -84,6 +85,18 @@ __all__ = ["IndexShard"]
 _MAX_ROW = 1 << 40
 #: How long a request routed with a newer placement than the shard's waits for it.
 BEHIND_WAIT_S = 1.0
+
+
+def _own_slice(desc: pb.PartialDescriptor, ctx: RequestContext) -> None:
+    """Refuses a slice that is not the caller's own robot's (PERMISSION_DENIED): a robot
+    stores and queries with its own frames only, and the caller is the robot the
+    request's key names, which the router checks against its certificate."""
+    if desc.robot_id != ctx.caller_robot:
+        who = "outside the swarm" if ctx.caller_robot is None else f"robot {ctx.caller_robot}"
+        raise PermissionDenied(
+            f"a request from {who} carries robot {desc.robot_id}'s frame {desc.frame_index}: "
+            "a robot stores and queries with its own frames only"
+        )
 
 
 class IndexShard(ServiceBase, ShardSettings):
@@ -447,8 +460,10 @@ class IndexShard(ServiceBase, ShardSettings):
         index.add(desc.robot_id, desc.frame_index, counts)
         self.metrics.stored_descriptors.set(self.stored)
 
-    def query(self, req: pb.PartialQuery, _ctx: RequestContext) -> pb.CandidatesReply:
+    def query(self, req: pb.PartialQuery, ctx: RequestContext) -> pb.CandidatesReply:
         check_fields(req, "descriptor")
+        if not req.read_only:
+            _own_slice(req.descriptor, ctx)
         if req.n_ret > MAX_N_RET:
             raise InvalidArgument(f"n_ret must be at most {MAX_N_RET}, got {req.n_ret}")
         n_ret = req.n_ret or self.n_ret
@@ -499,8 +514,9 @@ class IndexShard(ServiceBase, ShardSettings):
             raise InvalidArgument("lookup never stores: send read_only = true (descriptors use query)")
         return self.query(req, ctx)
 
-    def store(self, req: pb.ShardStore, _ctx: RequestContext) -> pb.StoreReply:
+    def store(self, req: pb.ShardStore, ctx: RequestContext) -> pb.StoreReply:
         check_fields(req, "descriptor")
+        _own_slice(req.descriptor, ctx)
         desc = req.descriptor
         self._check_ids(desc)
         with self.lock:

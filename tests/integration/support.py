@@ -59,13 +59,20 @@ def raw_request(
     payload: bytes,
     encoding: zenoh.Encoding | None,
     timeout_s: float = 5.0,
+    caller: int | None = None,
+    attachment: bytes | None = None,
 ) -> Answer:
-    """Send ``payload`` as is to ``key``; exactly one answer is expected.
+    """Send ``payload`` as is to ``key``; exactly one answer is expected. ``caller``: the
+    robot a caller-bound endpoint's key names as the sender (``keys.CALLER_BOUND``);
+    ``attachment``: what the request says of its sender besides (a robot's id).
 
     Zero replies raise NoReply (never read as success), a zenoh timeout raises
     AssertionError; an error reply must carry a decodable ErrorReply.
     """
-    replies = list(session.get(key, payload=payload, encoding=encoding, timeout=timeout_s))
+    key = keys.request_key(key, caller)
+    replies = list(
+        session.get(key, payload=payload, encoding=encoding, timeout=timeout_s, attachment=attachment)
+    )
     if not replies:
         raise NoReply(key, "no service answered")
     assert len(replies) == 1, f"{key}: {len(replies)} replies to one request"
@@ -80,9 +87,30 @@ def raw_request(
     return Answer(None, schema, pb.ErrorReply.FromString(data))
 
 
-def request(session: zenoh.Session, key: str, msg: Message, timeout_s: float = 5.0) -> Answer:
-    """A well-formed request: ``msg`` with its schema in the encoding."""
-    return raw_request(session, key, msg.SerializeToString(), protobuf(schema_name(msg)), timeout_s)
+def request(
+    session: zenoh.Session,
+    key: str,
+    msg: Message,
+    timeout_s: float = 5.0,
+    caller: int | None = None,
+    attachment: bytes | None = None,
+) -> Answer:
+    """A well-formed request: ``msg`` with its schema in the encoding. To a caller-bound
+    endpoint it goes as ``caller``, by default the robot whose frame it carries (a test
+    client speaks for that robot, as its descriptor or place owner would)."""
+    if caller is None:
+        caller = carried_robot(msg)
+    payload, encoding = msg.SerializeToString(), protobuf(schema_name(msg))
+    return raw_request(session, key, payload, encoding, timeout_s, caller, attachment)
+
+
+def carried_robot(msg: Message) -> int | None:
+    """The robot whose frame a shard's or place owner's request carries, if any."""
+    if isinstance(msg, pb.PartialQuery | pb.ShardStore) and msg.HasField("descriptor"):
+        return int(msg.descriptor.robot_id)
+    if isinstance(msg, pb.PlaceQuery):
+        return int(msg.robot_id)
+    return None
 
 
 def reply_of(answer: Answer, cls: type[T]) -> T:

@@ -73,6 +73,7 @@ from swarmrec.wire.codec import (
 from tests.integration.conftest import running_swarm, swarm_name
 from tests.integration.support import (
     Answer,
+    carried_robot,
     endpoint_key,
     metric,
     metrics_url,
@@ -302,10 +303,25 @@ class Case:
     payload: Callable[[], bytes]
     encoding: str | None  # schema in application/protobuf;<schema>; None: no encoding at all
     code: str
+    #: Sent as a client: the key names no robot (a caller-bound endpoint refuses that).
+    as_client: bool = False
 
     def send(self, s: Swarm) -> Answer:
         enc = protobuf(self.encoding) if self.encoding is not None else None
-        return raw_request(s.session, s.key(self.kind, self.robot, self.endpoint), self.payload(), enc)
+        payload = self.payload()
+        key = s.key(self.kind, self.robot, self.endpoint)
+        caller = None if self.as_client else self.sender(payload)
+        return raw_request(s.session, key, payload, enc, caller=caller)
+
+    def sender(self, payload: bytes) -> int:
+        """The robot a caller-bound endpoint's key names: the one whose frame the request
+        carries (a request for another robot would be refused before what is tested), else
+        the served robot."""
+        try:
+            carried = carried_robot(REQUEST_OF[(self.kind, self.endpoint)].FromString(payload))
+        except DecodeError:
+            carried = None
+        return self.robot if carried is None else carried
 
 
 def msg_case(kind: str, robot: int, endpoint: str, make: Callable[[], Message], code: str) -> Case:
@@ -445,10 +461,6 @@ SPECIFIC: dict[tuple[str, int, str], list[tuple[str, Callable[[], Message], str]
     ],
     ("index-shard", 1, "adopt"): [
         ("empty payload (no placement)", lambda: pb.AdoptRequest(), INVALID),
-        ("a placement from a client, not from the coordinator (the lowest live shard)",
-         lambda: pb.AdoptRequest(placement=pb.Placement(
-             version=9, group_bounds=[0, 40, 80], members=[1], replicas=1,
-             groups=[pb.GroupOwners(owners=[1]), pb.GroupOwners(owners=[1])])), PRECONDITION),
     ],
     ("index-shard", 1, "transfer"): [
         ("a group the swarm does not have", lambda: pb.TransferRequest(group=5), INVALID),
@@ -531,6 +543,14 @@ SPECIFIC: dict[tuple[str, int, str], list[tuple[str, Callable[[], Message], str]
 for (_kind, _r, _ep), _cases in SPECIFIC.items():
     for _what, _make, _code in _cases:
         CASES[f"{_kind} {_r} {_ep}: {_what}"] = msg_case(_kind, _r, _ep, _make, _code)
+# A placement from a client: a caller-bound endpoint's key must name the sending robot.
+_client_placement = pb.AdoptRequest(placement=pb.Placement(
+    version=9, group_bounds=[0, 40, 80], members=[1], replicas=1,
+    groups=[pb.GroupOwners(owners=[1]), pb.GroupOwners(owners=[1])]))  # fmt: skip
+CASES["index-shard 1 adopt: a placement from a client, not from the coordinator"] = Case(
+    "index-shard", 1, "adopt", _client_placement.SerializeToString, schema_name(_client_placement),
+    "ERROR_CODE_PERMISSION_DENIED", as_client=True,
+)  # fmt: skip
 
 # Every queryable of every robot service kind is covered (info is read-only and takes no payload).
 assert {(c.kind, c.endpoint) for c in CASES.values()} == set(REQUEST_OF)

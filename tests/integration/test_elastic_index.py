@@ -37,7 +37,7 @@ from swarmrec.datasets.constellations import read_constellations
 from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.local import LocalDeployment
-from swarmrec.errors import ErrorCode, RemoteError
+from swarmrec.errors import ErrorCode, NoReply, RemoteError
 from swarmrec.experiments.places import PlacesSettings, main
 from swarmrec.runtime import keys
 from swarmrec.runtime.rpc import Caller
@@ -48,7 +48,7 @@ from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import partial_descriptor_to_proto
 from swarmrec.wire.placement import placement_from_proto
 from tests.integration.conftest import index_shards
-from tests.integration.support import group_rows, wait_until
+from tests.integration.support import group_rows, request, wait_until
 
 ROBOTS, FRAMES = 4, 400
 STEPS = FRAMES // ROBOTS
@@ -264,6 +264,16 @@ def test_stale_and_far_ahead_placement_versions_are_refused_and_placements_come_
                 keys.endpoint(s, "index-shard", 0, "adopt"), bogus, pb.ShardState, target_robot=0
             )
         assert refused.value.code == ErrorCode.FAILED_PRECONDITION and "coordinator" in refused.value.message
+        # Posing as the coordinator: in shard 0's name the router never delivers it (the key
+        # names the sender, and shard 1's certificate may name robot 1 only) ...
+        with pytest.raises(NoReply):
+            Caller(c.session, 0, 5.0).call(
+                keys.endpoint(s, "index-shard", 0, "adopt"), bogus, pb.ShardState, target_robot=0
+            )
+        # ... and an attachment that says shard 0 under shard 1's key is refused unread.
+        adopt0 = keys.endpoint(s, "index-shard", 0, "adopt")
+        forged = request(c.session, adopt0, bogus, caller=1, attachment=b"0")
+        assert forged.code == "ERROR_CODE_PERMISSION_DENIED", forged
     with shards.client(5.0) as client:
         after = {st.shard_id: placement_from_proto(st.placement, 30).version for st in client.shard_states()}
     assert after == {0: version, 1: version}

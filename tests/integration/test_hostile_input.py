@@ -182,7 +182,7 @@ def test_claimed_frame_indices_grow_neither_a_shards_memory_nor_its_query_time(h
     for i in range(1, 257):
         payload = claim(MAX_FRAME_GAP * i).SerializeToString()
         assert len(payload) <= 24
-        answers.append(raw_request(hostile.session, key, payload, None))
+        answers.append(raw_request(hostile.session, key, payload, None, caller=0))  # robot 0's claims
     accepted = [a for a in answers if a.error is None]
     refused = [a for a in answers if a.error is not None]
     assert len(accepted) == 255  # the last one claims 2^20, the first index refused

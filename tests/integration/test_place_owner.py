@@ -314,6 +314,7 @@ def test_malformed_bytes_are_refused_as_malformed(swarm: Swarm) -> None:
         swarm.key("place-owner", 1, "query"),
         b"\x09" + bytes(8),
         protobuf("swarmrec.v1.PlaceQuery"),
+        caller=1,  # a robot's (a request that names none is refused before it is read)
     )
     assert answer.code in ("ERROR_CODE_MALFORMED",), answer.error
     assert rejected(swarm.url("place-owner", 1)).get(("query", "ERROR_CODE_MALFORMED"), 0) >= 1

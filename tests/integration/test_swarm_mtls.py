@@ -6,8 +6,10 @@ certificate of the run's PKI; the router enforces the PKI's acl.json). A
 session is then opened as one identity or another: the read-only client is
 served; no certificate, or a certificate of another CA, is refused when the
 session opens; robot 3's descriptor identity cannot store into robot 2's
-verifier nor put on robot 2's keys, and the stores are unchanged (each denial
-measured behind an allowed request that would have arrived after it).
+verifier nor put on robot 2's keys, nor store or query the index shards with
+robot 2's frames, whatever the request's key or attachment claims, and the
+stores are unchanged (each denial measured behind an allowed request that
+would have arrived after it).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import zenoh
 
 from swarmrec.client import ZenohClient
 from swarmrec.deployments.local import LocalDeployment
-from swarmrec.errors import NoReply
+from swarmrec.errors import ErrorCode, NoReply, RemoteError
 from swarmrec.runtime import keys
 from swarmrec.runtime.rpc import Caller
 from swarmrec.runtime.tls import TlsFiles, configure_client_tls
@@ -206,4 +208,44 @@ def test_a_client_may_look_up_but_never_store_into_a_shard(swarm: LocalDeploymen
             )
         looked = pb.PartialQuery(descriptor=desc, read_only=True)
         caller.call(keys.endpoint(s, "index-shard", 0, "lookup"), looked, pb.CandidatesReply, target_robot=0)
+    assert _stored(swarm) == before
+
+
+def test_a_robot_stores_and_queries_the_index_with_its_own_frames_only(swarm: LocalDeployment) -> None:
+    """Robot 3's descriptor certificate and a slice of robot 2's frame, to every shard: in
+    robot 2's name the router never delivers it (the key names the sender, and this
+    certificate may name robot 3 only); in its own name, or with an attachment that says
+    robot 2, the shard refuses it (PERMISSION_DENIED). Nothing is stored."""
+    s = swarm.spec_swarm
+    before = _stored(swarm)
+    theirs = pb.PartialDescriptor(
+        robot_id=2, frame_index=0, label_lo=0, label_hi=20, label_offsets=[1], counts=[2]
+    )
+    requests = (
+        ("store", pb.ShardStore(descriptor=theirs), pb.StoreReply),
+        ("query", pb.PartialQuery(descriptor=theirs), pb.CandidatesReply),
+    )
+    with _as(swarm, f"r3.descriptor.{s}") as robot3:
+        for shard in range(ROBOTS):
+            for endpoint, msg, reply in requests:
+                key = keys.endpoint(s, "index-shard", shard, endpoint)
+                with pytest.raises(NoReply):  # the router: robot 3 may not name robot 2
+                    Caller(robot3.session, 2, 3.0).call(key, msg, reply, target_robot=shard)
+                with pytest.raises(RemoteError) as own_name:
+                    Caller(robot3.session, 3, 3.0).call(key, msg, reply, target_robot=shard)
+                assert own_name.value.code == ErrorCode.PERMISSION_DENIED, own_name.value
+                assert "robot 3" in own_name.value.message and "robot 2's frame 0" in own_name.value.message
+                # The key says robot 3, the attachment robot 2: refused before it is read.
+                replies = list(
+                    robot3.session.get(
+                        keys.request_key(key, 3),
+                        payload=msg.SerializeToString(),
+                        encoding=protobuf(schema_name(msg)),
+                        attachment=b"2",
+                        timeout=3.0,
+                    )
+                )
+                assert len(replies) == 1 and replies[0].err is not None
+                err = pb.ErrorReply.FromString(replies[0].err.payload.to_bytes())
+                assert err.code == ErrorCode.PERMISSION_DENIED, err
     assert _stored(swarm) == before

@@ -665,12 +665,14 @@ def test_identities_and_access_control_cover_every_shard_up_to_max_robots(tmp_pa
     )
     acl = json.loads((folder / "acl.json").read_text())
     shard5 = _ingress(acl, "r5.index-shard.lab")
-    assert ("declare_queryable", "swarmrec/v1/lab/index-shard/5/*") in shard5
+    assert ("declare_queryable", "swarmrec/v1/lab/index-shard/5/**") in shard5
+    # Placements only as itself (the coordinator is whichever shard is lowest alive).
+    assert ("query", "swarmrec/v1/lab/index-shard/*/adopt/5") in shard5
     assert ("liveliness_token", "swarmrec/v1/lab/alive/index-shard/5") in shard5
     # The descriptors of a 3-robot swarm reach every shard id; shard 5 reaches the others' transfer.
     assert {
-        ("query", "swarmrec/v1/lab/index-shard/*/query"),
-        ("query", "swarmrec/v1/lab/index-shard/*/store"),
+        ("query", "swarmrec/v1/lab/index-shard/*/query/0"),
+        ("query", "swarmrec/v1/lab/index-shard/*/store/0"),
     } <= _ingress(acl, "r0.descriptor.lab")
     assert ("query", "swarmrec/v1/lab/index-shard/*/transfer") in shard5
 

@@ -4,19 +4,24 @@ that two swarms sharing a router can never reach each other's keys."""
 from __future__ import annotations
 
 import itertools
+import re
+from pathlib import Path
 
 import pytest
 import zenoh
 
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.keys import (
+    CALLER_BOUND,
     alive,
     alive_all,
+    bound_caller,
     draining,
     endpoint,
     event,
     parse_alive,
     parse_draining,
+    request_key,
     validate_swarm_name,
 )
 from swarmrec.services.registry import kinds
@@ -27,6 +32,19 @@ KINDS = kinds()
 def test_endpoint_keys_are_swarm_kind_robot_name() -> None:
     assert endpoint("lab", "index-shard", 3, "query") == "swarmrec/v1/lab/index-shard/3/query"
     assert endpoint("lab", "verifier", "*", "verify") == "swarmrec/v1/lab/verifier/*/verify"
+
+
+def test_a_request_to_a_caller_bound_endpoint_names_its_sender_last() -> None:
+    assert ("index-shard", "store") in CALLER_BOUND and ("verifier", "verify") not in CALLER_BOUND
+    store = endpoint("lab", "index-shard", 3, "store")
+    assert request_key(store, 2) == "swarmrec/v1/lab/index-shard/3/store/2"
+    assert request_key(store, "*") == "swarmrec/v1/lab/index-shard/3/store/*"  # for access rules
+    assert request_key(store, None) == store  # a client names nobody
+    verify = endpoint("lab", "verifier", 3, "verify")
+    assert request_key(verify, 2) == verify  # not caller-bound
+    assert bound_caller(request_key(store, 2)) == 2
+    for key in (store, f"{store}/x", f"{store}/2/3", f"{store}/-1", f"{store}/{10**11}", f"{store}/*"):
+        assert bound_caller(key) is None, key
 
 
 def test_endpoint_accepts_a_robot_id_given_as_a_digit_string() -> None:
@@ -126,3 +144,11 @@ def test_keys_of_one_swarm_reach_each_other() -> None:
     assert k(endpoint("lab", "verifier", "*", "query")).includes(k(endpoint("lab", "verifier", 3, "query")))
     assert k(alive_all("lab")).includes(k(alive("lab", "index-shard", 3)))
     assert k(event("lab", "loop-closure", "*")).intersects(k(event("lab", "loop-closure", 2)))
+
+
+def test_the_compiled_services_bind_the_same_endpoints_to_their_caller() -> None:
+    """``runtime::CALLER_BOUND`` in dataplane/src/runtime.rs is the same set."""
+    source = (Path(__file__).resolve().parents[2] / "dataplane" / "src" / "runtime.rs").read_text()
+    block = source.split("pub const CALLER_BOUND", 1)[1].split("];", 1)[0]
+    compiled = set(re.findall(r'\("([a-z-]+)", "([a-z_]+)"\)', block))
+    assert compiled == set(CALLER_BOUND)

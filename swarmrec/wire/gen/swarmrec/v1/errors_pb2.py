@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18swarmrec/v1/errors.proto\x12\x0bswarmrec.v1\"C\n\nErrorReply\x12$\n\x04\x63ode\x18\x01 \x01(\x0e\x32\x16.swarmrec.v1.ErrorCode\x12\x0f\n\x07message\x18\x02 \x01(\t*\xc4\x02\n\tErrorCode\x12\x1a\n\x16\x45RROR_CODE_UNSPECIFIED\x10\x00\x12\x1f\n\x1b\x45RROR_CODE_INVALID_ARGUMENT\x10\x01\x12\x18\n\x14\x45RROR_CODE_MALFORMED\x10\x02\x12\x1c\n\x18\x45RROR_CODE_UNKNOWN_LABEL\x10\x03\x12\x18\n\x14\x45RROR_CODE_TOO_LARGE\x10\x04\x12\x18\n\x14\x45RROR_CODE_NOT_FOUND\x10\x05\x12\x1a\n\x16\x45RROR_CODE_UNAVAILABLE\x10\x06\x12\x16\n\x12\x45RROR_CODE_TIMEOUT\x10\x07\x12\x17\n\x13\x45RROR_CODE_INTERNAL\x10\x08\x12\"\n\x1e\x45RROR_CODE_FAILED_PRECONDITION\x10\t\x12\x1d\n\x19\x45RROR_CODE_ALREADY_EXISTS\x10\nb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18swarmrec/v1/errors.proto\x12\x0bswarmrec.v1\"C\n\nErrorReply\x12$\n\x04\x63ode\x18\x01 \x01(\x0e\x32\x16.swarmrec.v1.ErrorCode\x12\x0f\n\x07message\x18\x02 \x01(\t*\xe6\x02\n\tErrorCode\x12\x1a\n\x16\x45RROR_CODE_UNSPECIFIED\x10\x00\x12\x1f\n\x1b\x45RROR_CODE_INVALID_ARGUMENT\x10\x01\x12\x18\n\x14\x45RROR_CODE_MALFORMED\x10\x02\x12\x1c\n\x18\x45RROR_CODE_UNKNOWN_LABEL\x10\x03\x12\x18\n\x14\x45RROR_CODE_TOO_LARGE\x10\x04\x12\x18\n\x14\x45RROR_CODE_NOT_FOUND\x10\x05\x12\x1a\n\x16\x45RROR_CODE_UNAVAILABLE\x10\x06\x12\x16\n\x12\x45RROR_CODE_TIMEOUT\x10\x07\x12\x17\n\x13\x45RROR_CODE_INTERNAL\x10\x08\x12\"\n\x1e\x45RROR_CODE_FAILED_PRECONDITION\x10\t\x12\x1d\n\x19\x45RROR_CODE_ALREADY_EXISTS\x10\n\x12 \n\x1c\x45RROR_CODE_PERMISSION_DENIED\x10\x0b\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -32,7 +32,7 @@ _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, __name__, _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_ERRORCODE']._serialized_start=111
-  _globals['_ERRORCODE']._serialized_end=435
+  _globals['_ERRORCODE']._serialized_end=469
   _globals['_ERRORREPLY']._serialized_start=41
   _globals['_ERRORREPLY']._serialized_end=108
 # @@protoc_insertion_point(module_scope)
