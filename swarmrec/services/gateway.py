@@ -128,6 +128,16 @@ _SERVICE_STREAM_METHODS = frozenset(
 )
 
 
+def _stream_caller(context: grpc.ServicerContext) -> str:
+    """Who holds a stream, for the per-caller limit: its certificate's common name, or
+    without one (plaintext) its address without the port."""
+    names = context.auth_context().get("x509_common_name")
+    if names:
+        return names[0].decode("utf-8", "replace")
+    peer = context.peer()  # ipv4:127.0.0.1:5555, ipv6:[::1]:5555
+    return peer.rsplit(":", 1)[0] if peer.count(":") >= 2 else peer
+
+
 def caller_allowed(common_name: str, swarm: str) -> str:
     """Why a client certificate's holder may not use this swarm's gateway ("" when it may):
     only the swarm's clients and operators (``client.<name>.<swarm>``, ``operator.<name>.<swarm>``,
@@ -281,6 +291,8 @@ class Gateway(ServiceBase):
         self.stopping = threading.Event()
         self.lock = threading.Lock()
         self.open_streams = 0
+        #: Event streams open, by caller (`_stream_caller`).
+        self.streams_by_caller: dict[str, int] = {}
         self.ready = False
         self.health = health.HealthServicer(experimental_non_blocking=True)
         self._set_health(health_pb2.HealthCheckResponse.NOT_SERVING)
@@ -520,20 +532,20 @@ class Gateway(ServiceBase):
             self._abort(
                 context, grpc.StatusCode.UNAVAILABLE, ErrorCode.UNAVAILABLE, "the gateway is not serving"
             )
+        caller, per_caller = _stream_caller(context), self.settings.grpc_max_streams_per_caller
         with self.lock:
+            held = self.streams_by_caller.get(caller, 0)
             if self.open_streams >= self.settings.grpc_max_streams:
-                full = True
+                full = f"{self.settings.grpc_max_streams} streams are open already (grpc_max_streams)"
+            elif held >= per_caller:
+                full = f"{caller} holds {held} streams open already (grpc_max_streams_per_caller)"
             else:
-                full = False
+                full = ""
                 self.open_streams += 1
+                self.streams_by_caller[caller] = held + 1
                 self.metrics.streams_open.set(self.open_streams)
         if full:
-            self._abort(
-                context,
-                grpc.StatusCode.RESOURCE_EXHAUSTED,
-                ErrorCode.UNAVAILABLE,
-                f"{self.settings.grpc_max_streams} streams are open already (grpc_max_streams)",
-            )
+            self._abort(context, grpc.StatusCode.RESOURCE_EXHAUSTED, ErrorCode.UNAVAILABLE, full)
         inbox: queue.Queue[_Event] = queue.Queue(maxsize=self.settings.grpc_stream_buffer)
         overflow = threading.Event()
 
@@ -547,7 +559,27 @@ class Gateway(ServiceBase):
             except queue.Full:
                 overflow.set()
 
-        subscribers = subscribe(on_sample)
+        subscribers: list[Any] = []
+        released = threading.Lock()
+
+        def release() -> None:
+            # Once, when the call ends: from the loop below, or from gRPC's termination
+            # callback when the client leaves while the stream waits at a `yield` (gRPC then
+            # never resumes it, and the slot would stay taken until the generator is collected).
+            if not released.acquire(blocking=False):
+                return
+            for sub in subscribers:
+                sub.undeclare()
+            with self.lock:
+                self.open_streams -= 1
+                left = self.streams_by_caller.pop(caller) - 1
+                if left:
+                    self.streams_by_caller[caller] = left
+                self.metrics.streams_open.set(self.open_streams)
+
+        subscribers += subscribe(on_sample)
+        if not context.add_callback(release):
+            release()  # the call has ended already
         sent = self.metrics.events_sent.labels(name)
         try:
             context.send_initial_metadata(((SUBSCRIBED_METADATA, "1"),))
@@ -572,11 +604,7 @@ class Gateway(ServiceBase):
                     sent.inc()
                     yield msg
         finally:
-            for sub in subscribers:
-                sub.undeclare()
-            with self.lock:
-                self.open_streams -= 1
-                self.metrics.streams_open.set(self.open_streams)
+            release()
 
     def event_stream(
         self, name: str, event: str, cls: type[M], robots: Sequence[int], context: grpc.ServicerContext

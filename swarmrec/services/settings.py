@@ -473,6 +473,11 @@ class GatewaySettings(Component):
     )
     grpc_workers: int = setting(16, "threads serving gRPC calls (each open stream holds one)")
     grpc_max_streams: int = setting(8, "event streams open at once; more are refused RESOURCE_EXHAUSTED")
+    grpc_max_streams_per_caller: int = setting(
+        4,
+        "event streams one caller (its certificate's name; without TLS, its address) may hold open "
+        "at once, so one cannot take every stream; more are refused RESOURCE_EXHAUSTED",
+    )
     grpc_stream_buffer: int = setting(
         4096, "events queued for a slow stream reader; past it the stream ends RESOURCE_EXHAUSTED"
     )
@@ -494,6 +499,11 @@ class GatewaySettings(Component):
             problems.append(
                 f"grpc_max_streams must be 1 .. grpc_workers - 1 ({self.grpc_workers - 1}), "
                 f"got {self.grpc_max_streams}"
+            )
+        if not 1 <= self.grpc_max_streams_per_caller <= self.grpc_max_streams:
+            problems.append(
+                f"grpc_max_streams_per_caller must be 1 .. grpc_max_streams ({self.grpc_max_streams}), "
+                f"got {self.grpc_max_streams_per_caller}"
             )
         if self.grpc_stream_buffer < 1:
             problems.append(f"grpc_stream_buffer must be >= 1, got {self.grpc_stream_buffer}")

@@ -41,7 +41,7 @@ from swarmrec.runtime.tls import TlsFiles
 from swarmrec.security.identity import Identity
 from swarmrec.security.pki import PkiSettings, ensure_identity, init_pki
 from swarmrec.services.gateway import SERVICE_NAME, SERVICE_STREAMS, SUBSCRIBED_METADATA
-from swarmrec.services.settings import DetectorSettings, PlaceSettings
+from swarmrec.services.settings import DetectorSettings, GatewaySettings, PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import constellation_to_proto
 from swarmrec.wire.gen.swarmrec.v1 import gateway_pb2, gateway_pb2_grpc
@@ -427,6 +427,44 @@ def test_grpcurl_lists_by_reflection_calls_members_and_query_and_reads_a_stream(
         text = text[end:].strip()
     alive = {(c["kind"], c.get("robot_id", 0)) for c in changes if c.get("alive")}
     assert {(k, r) for k in KINDS for r in range(N_ROBOTS)} <= alive, stream.stdout + stream.stderr
+
+
+def test_one_caller_cannot_hold_every_event_stream(running: Running) -> None:
+    """``grpc_max_streams_per_caller`` (4 of the 8 by default): the fifth event stream of
+    one certificate is refused RESOURCE_EXHAUSTED while another identity's is served, and
+    a stream closed frees its caller's slot."""
+    per_caller = GatewaySettings().grpc_max_streams_per_caller
+    assert per_caller < GatewaySettings().grpc_max_streams
+    pki, swarm = running.swarm.pki_dir, running.swarm.spec_swarm
+    assert pki is not None
+    with (
+        running.channel(client_tls(pki, swarm, "client")) as mine,
+        running.channel(client_tls(pki, swarm, "operator")) as theirs,
+    ):
+        stub, other = gateway_pb2_grpc.SwarmGatewayStub(mine), gateway_pb2_grpc.SwarmGatewayStub(theirs)
+        held = [stub.WatchLoopClosures(gateway_pb2.WatchRequest()) for _ in range(per_caller)]
+        try:
+            for call in held:
+                assert dict(call.initial_metadata()).get(SUBSCRIBED_METADATA) == "1"  # open
+            with pytest.raises(grpc.RpcError) as info:
+                next(stub.WatchLoopClosures(gateway_pb2.WatchRequest(), timeout=10))
+            assert info.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+            assert "grpc_max_streams_per_caller" in (info.value.details() or "")
+            theirs_open = other.WatchLoopClosures(gateway_pb2.WatchRequest())
+            assert dict(theirs_open.initial_metadata()).get(SUBSCRIBED_METADATA) == "1"
+            theirs_open.cancel()
+            held.pop().cancel()
+
+            def reopened() -> bool:
+                call = stub.WatchLoopClosures(gateway_pb2.WatchRequest())
+                served = dict(call.initial_metadata()).get(SUBSCRIBED_METADATA) == "1"
+                (held.append(call) if served else call.cancel())
+                return served
+
+            wait_until(reopened, 10, "the closed stream's slot free again")
+        finally:
+            for call in held:
+                call.cancel()
 
 
 def test_health_turns_not_serving_when_the_gateway_stops(running: Running) -> None:
