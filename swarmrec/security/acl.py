@@ -204,8 +204,10 @@ def grants(
         if kind == "fusion":
             # Flooding puts onto the neighbours' inboxes; who is a neighbour
             # changes with the radio graph, so every other robot of the swarm.
-            inboxes = tuple(keys.endpoint(s, "fusion", j, "inbox") for j in robots if j != r)
-            out.append(Grant("ingress", ("declare_subscriber",), (keys.endpoint(s, "fusion", r, "inbox"),)))
+            # The key's last segment names the sender (as the SLAM inboxes): no robot puts
+            # in another's name.
+            inboxes = tuple(keys.endpoint(s, "fusion", j, f"inbox/{r}") for j in robots if j != r)
+            out.append(Grant("ingress", ("declare_subscriber",), (keys.endpoint(s, "fusion", r, "inbox/*"),)))
             if inboxes:
                 out.append(Grant("ingress", ("put",), inboxes))
         if kind == "slam":

@@ -8,8 +8,8 @@ Algorithm 1 of Brent, Yuan and Stegagno, a weighted naive Bayes posterior per
 round, early messages, the neighbour check) is pure logic; this service adapts it
 to the bus::
 
-    start_round --> own ClassifierOutput (hop_count 0) --put--> fusion/<j>/inbox  for each neighbour j
-    fusion/<i>/inbox (a subscription: the runner decodes, checks and counts) --> FusionRobot.receive
+    start_round --> own ClassifierOutput (hop_count 0) --put--> fusion/<j>/inbox/<i>  for each neighbour j
+    fusion/<i>/inbox/<sender> (a subscription: the runner decodes, checks and counts) --> FusionRobot.receive
         new origin  -> incorporated, event, the forward (hop_count + 1) put to every neighbour
         duplicate   -> counted, ignored (Algorithm 1 line 11)
         rejected    -> counted by reason, logged, ignored
@@ -17,8 +17,11 @@ to the bus::
 A radio broadcast reaches exactly the robots in range; on a zenoh router every
 robot could reach every other, so the service emulates the broadcast by putting
 one copy on each current neighbour's inbox, and the robot refuses anything whose
-sender is not a current neighbour or whose attachment names another robot than the
-message's sender.
+sender is not a current neighbour. The sender is the last segment of the key, which
+the router's access control lets each robot's certificate write with its own robot
+only (as the SLAM inboxes): a message whose body, or attachment, names another
+sender than its key is refused (``sender_mismatch``). What a relay says about the
+origin of what it forwards is not checked (docs/security.md, known gaps).
 """
 
 from __future__ import annotations
@@ -41,6 +44,12 @@ from swarmrec.wire.fusion import (
 )
 
 __all__ = ["FusionService"]
+
+
+def _sender_of(key: str) -> int | None:
+    """The robot an inbox key names as the sender (its last segment)."""
+    last = key.rsplit("/", 1)[-1]
+    return int(last) if last.isdigit() and len(last) <= 6 else None
 
 
 class FusionService(ServiceBase):
@@ -142,8 +151,11 @@ class FusionService(ServiceBase):
         check_fields(msg)
         message = classifier_output_to_flood(msg)
         with self.lock:
-            if ctx.caller_robot is not None and ctx.caller_robot != msg.sender_robot_id:
-                # The bus says who put it; a robot claiming another's id is refused.
+            sender = _sender_of(ctx.key)
+            claimed = {msg.sender_robot_id} | ({ctx.caller_robot} - {None})
+            if sender is None or claimed != {sender}:
+                # The key says who put it (the router checked it against the certificate);
+                # a body or attachment claiming another robot is refused.
                 self._apply(self.robot.reject(Reason.SENDER_MISMATCH, message))
                 return
             self._apply(self.robot.receive(message))
@@ -178,7 +190,7 @@ class FusionService(ServiceBase):
         msg = flood_to_classifier_output(broadcast.message)
         payload = encode(msg)
         for target in broadcast.targets:
-            key = keys.endpoint(self.bus.swarm, "fusion", target, "inbox")
+            key = keys.endpoint(self.bus.swarm, "fusion", target, f"inbox/{self.bus.robot}")
             self.ctx.put(key, msg, target_robot=target, payload=payload)
 
     def _publish(self, handled: Handled) -> None:
@@ -210,5 +222,7 @@ class FusionService(ServiceBase):
         ),
     )
     SUBSCRIPTIONS = (
-        Subscription("inbox", pb.ClassifierOutput, inbox, "outputs flooded by the current neighbours"),
+        Subscription(
+            "inbox/*", pb.ClassifierOutput, inbox, "outputs flooded by the current neighbours (key: sender)"
+        ),
     )

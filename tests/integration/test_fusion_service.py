@@ -84,14 +84,22 @@ def speaking_as(swarm: LocalDeployment, kind: str, robot: int) -> ZenohClient:
 
 
 def put(
-    session: zenoh.Session, swarm: str, robot: int, payload: bytes, schema: str, sender: int | None = None
+    session: zenoh.Session,
+    swarm: str,
+    robot: int,
+    payload: bytes,
+    schema: str,
+    *,
+    key_sender: int,
+    attachment: int | None = None,
 ) -> None:
-    """A raw put on a robot's inbox, as a faulty or lying robot would send it."""
+    """A raw put on a robot's inbox (``inbox/<key_sender>``), as a faulty or lying robot
+    would send it."""
     session.put(
-        keys.endpoint(swarm, "fusion", robot, "inbox"),
+        keys.endpoint(swarm, "fusion", robot, f"inbox/{key_sender}"),
         payload,
         encoding=protobuf(schema),
-        attachment=None if sender is None else str(sender).encode(),
+        attachment=None if attachment is None else str(attachment).encode(),
         congestion_control=zenoh.CongestionControl.BLOCK,
     )
 
@@ -114,7 +122,7 @@ def rejected(url: str, reason: str) -> float:
 
 def refused(url: str, code: str) -> float:
     """Inbox messages the runner refused before the robot saw them (bytes, schema, size)."""
-    return metric(url, "swarmrec_rejected_requests_total", endpoint="inbox", code=code)
+    return metric(url, "swarmrec_rejected_requests_total", endpoint="inbox/*", code=code)
 
 
 def test_five_robots_on_a_line_flood_to_neighbours_only_and_fuse_as_the_core_does(
@@ -127,6 +135,7 @@ def test_five_robots_on_a_line_flood_to_neighbours_only_and_fuse_as_the_core_doe
     with ExitStack() as stack:
         client = stack.enter_context(fusion_swarm.client(5.0))
         robot4 = stack.enter_context(speaking_as(fusion_swarm, "fusion", 4))
+        robot1, robot3 = (stack.enter_context(speaking_as(fusion_swarm, "fusion", r)) for r in (1, 3))
         detectors = [stack.enter_context(speaking_as(fusion_swarm, "detector", r)) for r in range(N)]
         session = client.session
         # The bad messages come from robot 4's fusion: a faulty or lying robot of the swarm.
@@ -141,25 +150,31 @@ def test_five_robots_on_a_line_flood_to_neighbours_only_and_fuse_as_the_core_doe
         try:
             # --- bad messages, before any round starts ---------------------------------
             good = [float(p) for p in PROBS[1]]
-            put(radio, swarm, 2, b"\x1a\x05\x00", CLASSIFIER)  # truncated: does not decode
-            put(radio, swarm, 2, output(1, 1, 0, good), schema_name(pb.FusionUpdate))
-            put(radio, swarm, 2, output(1, 1, 0, good), CLASSIFIER, sender=4)  # robot 4 claims to be 1
-            put(radio, swarm, 0, output(1, 1, 0, [math.nan] * N_CLASSES), CLASSIFIER)  # from a neighbour
-            put(radio, swarm, 0, output(3, 3, 0, good), CLASSIFIER)  # robot 3 is out of robot 0's range
+            put(radio, swarm, 2, b"\x1a\x05\x00", CLASSIFIER, key_sender=4)  # truncated: does not decode
+            put(radio, swarm, 2, output(1, 1, 0, good), schema_name(pb.FusionUpdate), key_sender=4)
+            # Robot 4 claims to be robot 1: in the body, in the attachment (refused by robot 2),
+            # and in the key (dropped by the router: robot 4's certificate names robot 4 only).
+            put(radio, swarm, 2, output(1, 1, 0, good), CLASSIFIER, key_sender=4)
+            put(radio, swarm, 2, output(4, 4, 0, good), CLASSIFIER, key_sender=4, attachment=1)
+            put(radio, swarm, 2, output(1, 1, 0, good), CLASSIFIER, key_sender=1)
+            nan = output(1, 1, 0, [math.nan] * N_CLASSES)
+            put(robot1.session, swarm, 0, nan, CLASSIFIER, key_sender=1)  # from a neighbour
+            put(robot3.session, swarm, 0, output(3, 3, 0, good), CLASSIFIER, key_sender=3)  # out of range
 
             def bad_counts() -> tuple[float, ...]:
                 return (
                     refused(urls[2], "ERROR_CODE_MALFORMED"),
                     refused(urls[2], "ERROR_CODE_INVALID_ARGUMENT"),  # another message's schema
                     rejected(urls[2], "sender_mismatch"),
+                    metric(urls[2], "swarmrec_fusion_early_messages_total"),  # the one the router dropped
                     metric(urls[0], "swarmrec_fusion_early_messages_total"),
                 )
 
             try:
-                wait_until(lambda: bad_counts() == (1, 1, 1, 2), 10.0, "bad messages counted")
+                wait_until(lambda: bad_counts() == (1, 1, 2, 0, 2), 10.0, "bad messages counted")
             except AssertionError as e:
                 raise AssertionError(
-                    f"{e}: (malformed, schema, sender_mismatch, early) = {bad_counts()}"
+                    f"{e}: (malformed, schema, sender_mismatch, early at 2, early at 0) = {bad_counts()}"
                 ) from None
 
             # --- the round, last robot first ---------------------------------------------

@@ -263,14 +263,14 @@ def test_a_round_id_of_2_to_the_32_minus_1_no_longer_locks_a_robots_fusion(
     assert current(1) == 0
 
     # The inbox: another message's bytes are refused (MALFORMED), a round far ahead is not kept.
-    session.put(key(0, "inbox"), start(7).SerializeToString(), attachment=b"1")
+    session.put(key(0, "inbox/1"), start(7).SerializeToString(), attachment=b"1")
     far = pb.ClassifierOutput(
         origin_robot_id=1, round_id=6 + 2000, probabilities=UNIFORM, hop_count=0, sender_robot_id=1
     )
-    session.put(key(0, "inbox"), far.SerializeToString(), attachment=b"1")
+    session.put(key(0, "inbox/1"), far.SerializeToString(), attachment=b"1")
     wait_until(
         lambda: (
-            metric(url, "swarmrec_rejected_requests_total", endpoint="inbox", code=MALFORMED) == 1
+            metric(url, "swarmrec_rejected_requests_total", endpoint="inbox/*", code=MALFORMED) == 1
             and metric(url, "swarmrec_fusion_rejected_total", reason="too_far_ahead") == 1
         ),
         10.0,
@@ -289,7 +289,7 @@ def test_refused_oversized_messages_leave_no_memory_behind(
     local, client = fusion
     process = local.find("fusion", 0)
     url = metrics_url(process)
-    key = endpoint_key(local, "fusion", 0, "inbox")
+    key = endpoint_key(local, "fusion", 0, "inbox/1")
     rss_before = rss_mib(process.proc.pid)
     big = bytes(1_200_000)
 
@@ -297,7 +297,7 @@ def test_refused_oversized_messages_leave_no_memory_behind(
         # (blocking, not zenoh's default of dropping a put under congestion: all 400 arrive)
         client.session.put(key, big, attachment=b"1", congestion_control=zenoh.CongestionControl.BLOCK)
     wait_until(
-        lambda: metric(url, "swarmrec_rejected_requests_total", endpoint="inbox", code=TOO_LARGE) == 400,
+        lambda: metric(url, "swarmrec_rejected_requests_total", endpoint="inbox/*", code=TOO_LARGE) == 400,
         60.0,
         "400 oversized messages refused",
     )

@@ -455,11 +455,15 @@ def test_only_fusion_services_put_on_a_neighbours_inbox(acl_swarm: tuple[zenoh.S
         open_as(cn) for cn in (f"r2.fusion.{SWARM}", f"r3.fusion.{SWARM}", f"r3.descriptor.{SWARM}")
     )
     inbox = Inbox()
-    key = keys.endpoint(SWARM, "fusion", 2, "inbox")
-    f2.declare_subscriber(key, lambda s: inbox.add(s.payload.to_bytes().decode()))
+    key = keys.endpoint(SWARM, "fusion", 2, "inbox/3")
+    f2.declare_subscriber(
+        keys.endpoint(SWARM, "fusion", 2, "inbox/*"), lambda s: inbox.add(s.payload.to_bytes().decode())
+    )
     wait_subscribed(d3, key)
     wait_subscribed(f3, key)
     d3.put(key, b"descriptor 3")
+    # Robot 3's fusion in robot 1's name: the key's last segment names the sender.
+    f3.put(keys.endpoint(SWARM, "fusion", 2, "inbox/1"), b"fusion 3 as 1")
     # A round trip through the router on d3's link: the put above was handled before it.
     v2 = open_as(f"r2.verifier.{SWARM}")
     answer(v2, keys.endpoint(SWARM, "verifier", 2, "*"), Inbox(), own_key)
