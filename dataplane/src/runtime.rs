@@ -16,7 +16,7 @@
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, OnceLock};
-use std::time::{Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use prost::Message;
 use zenoh::bytes::{Encoding, ZBytes};
@@ -240,12 +240,22 @@ pub fn thread_cpu_s() -> f64 {
     ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
 }
 
+/// Warnings of one text logged at most this many times a window (`WARNING_WINDOW`), as the
+/// Python runner's `WarningBudget`: a flood of refused input is counted in full by the
+/// metrics and must not also be a log line each.
+pub const WARNING_BURST: u32 = 20;
+pub const WARNING_WINDOW: Duration = Duration::from_secs(10);
+
+/// Per message text: (window start, let through in it, dropped since the last let through).
+type Budget = HashMap<String, (Instant, u32, u64)>;
+
 /// JSON lines on stderr, the Python services' log format.
 #[derive(Clone)]
 pub struct Log {
     pub kind: String,
     pub robot: u32,
     pub level: u8,
+    budget: Arc<Mutex<Budget>>,
 }
 
 impl Log {
@@ -260,12 +270,45 @@ impl Log {
             kind: kind.to_string(),
             robot,
             level,
+            budget: Arc::default(),
         }
     }
 
-    pub fn emit(&self, level: u8, msg: &str, fields: serde_json::Value) {
+    /// Whether a warning of text `msg` may be logged now, and how many like it were not
+    /// since the last one that was.
+    fn within_budget(&self, msg: &str) -> Option<u64> {
+        let now = Instant::now();
+        let mut seen = lock(&self.budget);
+        if seen.len() > 1024 && !seen.contains_key(msg) {
+            seen.clear(); // texts are few; a runaway set of them is dropped
+        }
+        let entry = seen.entry(msg.to_string()).or_insert((now, 0, 0));
+        if now.duration_since(entry.0) >= WARNING_WINDOW {
+            entry.0 = now;
+            entry.1 = 0;
+        }
+        if entry.1 >= WARNING_BURST {
+            entry.2 += 1;
+            return None;
+        }
+        entry.1 += 1;
+        Some(std::mem::take(&mut entry.2))
+    }
+
+    pub fn emit(&self, level: u8, msg: &str, mut fields: serde_json::Value) {
         if level < self.level {
             return;
+        }
+        if level == 30 {
+            match self.within_budget(msg) {
+                None => return,
+                Some(0) => {}
+                Some(dropped) => {
+                    if let serde_json::Value::Object(f) = &mut fields {
+                        f.insert("not_logged".into(), dropped.into());
+                    }
+                }
+            }
         }
         let name = match level {
             10 => "DEBUG",
@@ -531,6 +574,23 @@ impl LocalEndpoints {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn warnings_of_one_text_are_logged_at_a_bounded_rate() {
+        let log = Log::new("verifier", 3, "INFO");
+        let passed = (0..1500)
+            .filter(|_| log.within_budget("rejected request").is_some())
+            .count();
+        assert_eq!(passed, WARNING_BURST as usize);
+        assert_eq!(log.within_budget("another text"), Some(0));
+        // The next window's first says how many were not logged.
+        lock(&log.budget).get_mut("rejected request").unwrap().0 -= WARNING_WINDOW;
+        assert_eq!(
+            log.within_budget("rejected request"),
+            Some(1500 - u64::from(WARNING_BURST))
+        );
+        assert_eq!(log.within_budget("rejected request"), Some(0));
+    }
 
     #[test]
     fn a_request_to_a_caller_bound_endpoint_names_its_sender_last() {

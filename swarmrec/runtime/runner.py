@@ -273,11 +273,51 @@ class _JsonFormatter(logging.Formatter):
         return json.dumps(entry)
 
 
+#: Warnings of one text a service logs at most this many times a window (``WARNING_WINDOW_S``):
+#: a flood of refused input is counted in full (``swarmrec_rejected_requests_total``) and
+#: must not also be a log line each (1,500 refusals were 0.45 MB of log).
+WARNING_BURST = 20
+WARNING_WINDOW_S = 10.0
+
+
+class WarningBudget(logging.Filter):
+    """Lets through at most ``burst`` WARNING records of one message text per ``window_s``;
+    the first one let through after a window that dropped some says how many
+    (``not_logged``). Errors and other levels always pass."""
+
+    def __init__(self, burst: int = WARNING_BURST, window_s: float = WARNING_WINDOW_S) -> None:
+        super().__init__()
+        self.burst, self.window_s = burst, window_s
+        self._lock = threading.Lock()
+        #: message text -> (window start, let through in it, dropped since last let through)
+        self._seen: dict[str, tuple[float, int, int]] = {}
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno != logging.WARNING:
+            return True
+        key, now = record.getMessage(), time.monotonic()
+        with self._lock:
+            start, passed, dropped = self._seen.get(key, (now, 0, 0))
+            if now - start >= self.window_s:
+                start, passed = now, 0
+            if passed >= self.burst:
+                self._seen[key] = (start, passed, dropped + 1)
+                return False
+            self._seen[key] = (start, passed + 1, 0)
+            if len(self._seen) > 1024:  # texts are few; a runaway set of them is dropped
+                self._seen = {key: self._seen[key]}
+        if dropped:
+            record.fields = {**getattr(record, "fields", {}), "not_logged": dropped}
+        return True
+
+
 def service_logger(kind: str, robot: int, level: str) -> logging.Logger:
-    """JSON lines on stderr, one logger per (kind, robot)."""
+    """JSON lines on stderr, one logger per (kind, robot); warnings of one text at a
+    bounded rate (:class:`WarningBudget`)."""
     log = logging.getLogger(f"swarmrec.{kind}.{robot}")
     log.handlers.clear()
     handler = logging.StreamHandler(sys.stderr)
+    handler.addFilter(WarningBudget())
     handler.setFormatter(_JsonFormatter(kind, robot))
     log.addHandler(handler)
     log.setLevel(level.upper())

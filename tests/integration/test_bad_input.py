@@ -60,6 +60,7 @@ from swarmrec.datasets.constellations import read_constellations
 from swarmrec.deployments.base import SwarmStartError
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.deployments.metrics import read_metrics
+from swarmrec.runtime.runner import WARNING_BURST
 from swarmrec.services.limits import MAX_FRAME_GAP, MAX_FRAME_INDEX, MAX_N_RET
 from swarmrec.services.registry import WORKLOADS, spec
 from swarmrec.services.settings import DetectorSettings, IndexSettings, PlaceSettings
@@ -640,6 +641,26 @@ def test_a_step_past_the_end_of_the_replay_answers_finished_and_stores_nothing(s
         )
         assert reply.finished and reply.step == step and not reply.HasField("report")
     assert_unchanged(before, snapshot(swarm))
+
+
+def test_a_flood_of_refused_requests_is_counted_in_full_and_logged_at_a_bounded_rate(swarm: Swarm) -> None:
+    # 1,500 refusals were 0.45 MB of warnings; the counter has them all, the log a few.
+    url, sp = swarm.url("verifier", 1), swarm.local.find("verifier", 1)
+    before = rejected(url).get(("verify", MALFORMED), 0)
+    lines_before = sp.log_path.read_text().count("rejected request")
+    for _ in range(1500):
+        garbage = raw_request(
+            swarm.session,
+            swarm.key("verifier", 1, "verify"),
+            b"\xff" * 8,
+            protobuf("swarmrec.v1.VerifyRequest"),
+        )
+        assert garbage.code == MALFORMED, garbage
+    assert rejected(url).get(("verify", MALFORMED), 0) == before + 1500
+    logged = sp.log_path.read_text().count("rejected request") - lines_before
+    # At most a window's budget, or two if a window turned during the flood (none at all if
+    # the requests before this one had spent the window's).
+    assert logged <= 2 * WARNING_BURST, logged
 
 
 def test_after_all_the_bad_input_the_swarm_still_runs_a_lock_step_step(swarm: Swarm) -> None:
