@@ -133,8 +133,8 @@ def _stream_caller(context: grpc.ServicerContext) -> str:
     without one (plaintext) its address without the port."""
     names = context.auth_context().get("x509_common_name")
     if names:
-        return names[0].decode("utf-8", "replace")
-    peer = context.peer()  # ipv4:127.0.0.1:5555, ipv6:[::1]:5555
+        return str(names[0].decode("utf-8", "replace"))
+    peer = str(context.peer())  # ipv4:127.0.0.1:5555, ipv6:[::1]:5555
     return peer.rsplit(":", 1)[0] if peer.count(":") >= 2 else peer
 
 
