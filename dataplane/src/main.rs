@@ -419,6 +419,7 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
                 metrics: h.metrics.clone(),
                 log: h.log.clone(),
                 bound: runtime::caller_bound(&h.kind, name),
+                session: session.clone(),
             });
             local.add(&key, h.robot, d.clone());
             if blocking {

@@ -373,8 +373,10 @@ pub struct Dispatcher {
     pub metrics: Arc<ServiceMetrics>,
     pub log: Log,
     /// The caller is the robot the request's key names (`CALLER_BOUND`); the reply goes
-    /// out on the request's own key.
+    /// out on the request's own key, declared (`declared`) the first time.
     pub bound: bool,
+    /// The session the replies go out on (to declare a caller-bound request's key).
+    pub session: zenoh::Session,
 }
 
 impl Dispatcher {
@@ -441,7 +443,10 @@ impl Dispatcher {
             match &self.reply_key {
                 // A caller-bound request is answered on its own key (the caller in it), which
                 // the service's certificate may reply on (`<kind>/<robot>/**`).
-                _ if self.bound => query.reply(query.key_expr().clone(), payload),
+                _ if self.bound => match declared(&self.session, query.key_expr().as_str()) {
+                    Some(key) => query.reply(key, payload),
+                    None => query.reply(query.key_expr().clone(), payload),
+                },
                 Some(key) => query.reply(key.clone(), payload),
                 None => query.reply(&self.key, payload),
             }
