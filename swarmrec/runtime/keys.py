@@ -33,6 +33,7 @@ __all__ = [
     "event",
     "parse_alive",
     "parse_event",
+    "parse_sender",
     "request_key",
     "validate_swarm_name",
 ]
@@ -94,6 +95,14 @@ def bound_caller(key: str) -> int | None:
     if len(parts) != 7 or not parts[6].isdigit() or len(parts[6]) > 10:
         return None
     return int(parts[6])
+
+
+def parse_sender(key: str) -> int | None:
+    """The robot an inbox key names as the sender (``slam/<r>/inbox/<sender>``,
+    ``fusion/<r>/inbox/<sender>``: its last segment, at most 6 digits); None when it names
+    none. The router lets each robot's certificate put there under its own robot only."""
+    last = key.rsplit("/", 1)[-1]
+    return int(last) if last.isdigit() and len(last) <= 6 else None
 
 
 def alive(swarm: str, kind: str, robot: int | str) -> str:

@@ -46,12 +46,6 @@ from swarmrec.wire.fusion import (
 __all__ = ["FusionService"]
 
 
-def _sender_of(key: str) -> int | None:
-    """The robot an inbox key names as the sender (its last segment)."""
-    last = key.rsplit("/", 1)[-1]
-    return int(last) if last.isdigit() and len(last) <= 6 else None
-
-
 class FusionService(ServiceBase):
     """The runner's adapter around :class:`~swarmrec.fusion.robot.FusionRobot`."""
 
@@ -151,7 +145,7 @@ class FusionService(ServiceBase):
         check_fields(msg)
         message = classifier_output_to_flood(msg)
         with self.lock:
-            sender = _sender_of(ctx.key)
+            sender = keys.parse_sender(ctx.key)
             claimed = {msg.sender_robot_id} | ({ctx.caller_robot} - {None})
             if sender is None or claimed != {sender}:
                 # The key says who put it (the router checked it against the certificate);

@@ -70,11 +70,6 @@ _STATES = {
 _PAGE_SHARE = 0.5
 
 
-def _sender_of(key: str) -> int | None:
-    last = key.rsplit("/", 1)[-1]
-    return int(last) if last.isdigit() and len(last) <= 6 else None
-
-
 class SlamService(ServiceBase):
     """The runner's adapter around :class:`~swarmrec.slam.live.TeamRobot` (see the module docstring)."""
 
@@ -252,7 +247,7 @@ class SlamService(ServiceBase):
         raise InvalidArgument(f"{e.reason}: {e}") from None
 
     def _check_sender(self, key: str, sender: int) -> None:
-        if _sender_of(key) != sender:
+        if keys.parse_sender(key) != sender:
             raise TurnRejected(
                 "not_in_team", f"a message put on {key} says it is from robot {sender}: not the key's robot"
             )

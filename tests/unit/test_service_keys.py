@@ -21,6 +21,7 @@ from swarmrec.runtime.keys import (
     event,
     parse_alive,
     parse_draining,
+    parse_sender,
     request_key,
     validate_swarm_name,
 )
@@ -152,3 +153,10 @@ def test_the_compiled_services_bind_the_same_endpoints_to_their_caller() -> None
     block = source.split("pub const CALLER_BOUND", 1)[1].split("];", 1)[0]
     compiled = set(re.findall(r'\("([a-z-]+)", "([a-z_]+)"\)', block))
     assert compiled == set(CALLER_BOUND)
+
+
+def test_an_inbox_key_names_its_sender_last() -> None:
+    assert parse_sender(endpoint("lab", "fusion", 2, "inbox/3")) == 3
+    assert parse_sender(endpoint("lab", "slam", 2, "control/17")) == 17
+    for key in (endpoint("lab", "fusion", 2, "inbox"), "swarmrec/v1/lab/fusion/2/inbox/*", "x/1234567"):
+        assert parse_sender(key) is None, key
