@@ -129,9 +129,21 @@ ENDPOINT_CAPACITY = 256
 class RequestContext:
     """What a handler knows about a request or message besides its content."""
 
-    #: The sender's robot id (from the attachment); None for a client outside the swarm.
+    #: The sender's robot id (from the attachment, or for a caller-bound endpoint from the
+    #: key: keys.CALLER_BOUND); None for a client outside the swarm.
     caller_robot: int | None
     key: str
+
+    def require_own(self, robot: int, frame: int) -> None:
+        """Refuses (PERMISSION_DENIED) a request that acts on another robot's frame than the
+        caller's own: a robot stores and queries with its own frames only. The same words
+        as the compiled shard's (``own_slice``)."""
+        if robot != self.caller_robot:
+            who = "outside the swarm" if self.caller_robot is None else f"robot {self.caller_robot}"
+            raise PermissionDenied(
+                f"a request from {who} carries robot {robot}'s frame {frame}: "
+                "a robot stores and queries with its own frames only"
+            )
 
 
 @dataclass(frozen=True)

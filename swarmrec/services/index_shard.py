@@ -59,7 +59,6 @@ from swarmrec.errors import (
     FailedPrecondition,
     InvalidArgument,
     LimitExceededError,
-    PermissionDenied,
     RemoteError,
     WireError,
 )
@@ -85,18 +84,6 @@ __all__ = ["IndexShard"]
 _MAX_ROW = 1 << 40
 #: How long a request routed with a newer placement than the shard's waits for it.
 BEHIND_WAIT_S = 1.0
-
-
-def _own_slice(desc: pb.PartialDescriptor, ctx: RequestContext) -> None:
-    """Refuses a slice that is not the caller's own robot's (PERMISSION_DENIED): a robot
-    stores and queries with its own frames only, and the caller is the robot the
-    request's key names, which the router checks against its certificate."""
-    if desc.robot_id != ctx.caller_robot:
-        who = "outside the swarm" if ctx.caller_robot is None else f"robot {ctx.caller_robot}"
-        raise PermissionDenied(
-            f"a request from {who} carries robot {desc.robot_id}'s frame {desc.frame_index}: "
-            "a robot stores and queries with its own frames only"
-        )
 
 
 class IndexShard(ServiceBase, ShardSettings):
@@ -463,7 +450,7 @@ class IndexShard(ServiceBase, ShardSettings):
     def query(self, req: pb.PartialQuery, ctx: RequestContext) -> pb.CandidatesReply:
         check_fields(req, "descriptor")
         if not req.read_only:
-            _own_slice(req.descriptor, ctx)
+            ctx.require_own(req.descriptor.robot_id, req.descriptor.frame_index)
         if req.n_ret > MAX_N_RET:
             raise InvalidArgument(f"n_ret must be at most {MAX_N_RET}, got {req.n_ret}")
         n_ret = req.n_ret or self.n_ret
@@ -516,7 +503,7 @@ class IndexShard(ServiceBase, ShardSettings):
 
     def store(self, req: pb.ShardStore, ctx: RequestContext) -> pb.StoreReply:
         check_fields(req, "descriptor")
-        _own_slice(req.descriptor, ctx)
+        ctx.require_own(req.descriptor.robot_id, req.descriptor.frame_index)
         desc = req.descriptor
         self._check_ids(desc)
         with self.lock:

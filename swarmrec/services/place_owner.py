@@ -54,7 +54,6 @@ from swarmrec.errors import (
     ErrorCode,
     FailedPrecondition,
     InvalidArgument,
-    PermissionDenied,
     RemoteError,
     Unavailable,
     WireError,
@@ -176,12 +175,7 @@ class PlaceOwner(ServiceBase):
     def query(self, req: pb.PlaceQuery, ctx: RequestContext) -> pb.PlaceMatch:
         check_fields(req, "robot_id", "frame_index", "cluster")
         robot, frame, cluster = req.robot_id, req.frame_index, req.cluster
-        if robot != ctx.caller_robot:
-            # The caller is the robot the key names (keys.CALLER_BOUND): it stores its own frames.
-            raise PermissionDenied(
-                f"robot {ctx.caller_robot} sent robot {robot}'s frame {frame}: "
-                "a robot queries with its own frames only"
-            )
+        ctx.require_own(robot, frame)  # the caller is the robot the key names (keys.CALLER_BOUND)
         if robot >= self.bus.n_robots:
             raise InvalidArgument(f"robot {robot} is not in this swarm of {self.bus.n_robots} robots")
         if frame >= MAX_FRAME_INDEX:

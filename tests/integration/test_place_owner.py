@@ -338,6 +338,15 @@ def test_a_stored_frame_sent_again_is_answered_once_stored_and_other_content_is_
     assert stored_state(swarm) == before
 
 
+def test_a_frame_of_another_robot_than_the_sender_is_refused_and_stores_nothing(swarm: Swarm) -> None:
+    # The sender is the robot the key names (keys.CALLER_BOUND): robot 1 with robot 0's frame.
+    item = _x(swarm, 0)
+    before = stored_state(swarm)
+    answer = request(swarm.session, swarm.key("place-owner", 0, "query"), item.query(), caller=item.robot + 1)
+    check_refused(swarm, 0, "query", answer, "ERROR_CODE_PERMISSION_DENIED", "its own frames only")
+    assert stored_state(swarm) == before
+
+
 PROCESS_CASES: list[tuple[str, dict[str, Any], str, str]] = [
     ("another robot's frame", {"robot_id": 1}, "ERROR_CODE_INVALID_ARGUMENT", "only its own robot's"),
     ("NaN descriptor", {"descriptor": "nan"}, "ERROR_CODE_INVALID_ARGUMENT", "NaN or inf"),
