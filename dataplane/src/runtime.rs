@@ -63,11 +63,20 @@ pub fn request_key(key: &str, caller: u32) -> String {
 /// The caller's robot a caller-bound request's key names (its seventh chunk).
 pub fn bound_caller(key: &str) -> Option<u32> {
     let parts: Vec<&str> = key.split('/').collect();
-    let last = parts.get(6).filter(|_| parts.len() == 7)?;
-    if last.is_empty() || last.len() > 10 || !last.bytes().all(|b| b.is_ascii_digit()) {
+    robot_id(parts.get(6).filter(|_| parts.len() == 7)?.as_bytes())
+}
+
+/// A robot id written in decimal digits (at most 10, within u32), as a request's key or
+/// attachment names its sender; None for anything else.
+fn robot_id(raw: &[u8]) -> Option<u32> {
+    if raw.is_empty() || raw.len() > 10 || !raw.iter().all(u8::is_ascii_digit) {
         return None;
     }
-    last.parse::<u64>().ok().and_then(|r| u32::try_from(r).ok())
+    std::str::from_utf8(raw)
+        .ok()?
+        .parse::<u64>()
+        .ok()
+        .and_then(|r| u32::try_from(r).ok())
 }
 
 /// At most this many key expressions are declared (a swarm's endpoints: robots x a few);
@@ -340,15 +349,7 @@ impl Log {
 /// The caller's robot id from a query's attachment (decimal digits, at most 10);
 /// None for a client outside the swarm.
 pub fn caller_robot(attachment: Option<&ZBytes>) -> Option<u32> {
-    let raw = attachment?.to_bytes();
-    if raw.is_empty() || raw.len() > 10 || !raw.iter().all(u8::is_ascii_digit) {
-        return None;
-    }
-    std::str::from_utf8(&raw)
-        .ok()?
-        .parse::<u64>()
-        .ok()
-        .and_then(|r| u32::try_from(r).ok())
+    robot_id(&attachment?.to_bytes())
 }
 
 pub fn schema_of(encoding: Option<&Encoding>) -> String {
