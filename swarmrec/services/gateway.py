@@ -128,12 +128,18 @@ _SERVICE_STREAM_METHODS = frozenset(
 )
 
 
+def _common_name(context: grpc.ServicerContext) -> str:
+    """The caller's certificate's common name; "" without one (plaintext)."""
+    names = context.auth_context().get("x509_common_name") or [b""]
+    return str(names[0].decode("utf-8", "replace"))
+
+
 def _stream_caller(context: grpc.ServicerContext) -> str:
     """Who holds a stream, for the per-caller limit: its certificate's common name, or
     without one (plaintext) its address without the port."""
-    names = context.auth_context().get("x509_common_name")
-    if names:
-        return str(names[0].decode("utf-8", "replace"))
+    name = _common_name(context)
+    if name:
+        return name
     peer = str(context.peer())  # ipv4:127.0.0.1:5555, ipv6:[::1]:5555
     return peer.rsplit(":", 1)[0] if peer.count(":") >= 2 else peer
 
@@ -163,8 +169,7 @@ class _Guard(grpc.ServerInterceptor):  # type: ignore[misc, unused-ignore]  # gr
         """Abort the call PERMISSION_DENIED (counted) unless the caller may use the gateway."""
         if not self.check_identity:
             return
-        names = context.auth_context().get("x509_common_name") or [b""]
-        why = caller_allowed(names[0].decode("utf-8", "replace"), self.swarm)
+        why = caller_allowed(_common_name(context), self.swarm)
         if why:
             self.metrics.calls.labels(method=method.rsplit("/", 1)[-1], code="PERMISSION_DENIED").inc()
             context.abort(
