@@ -664,16 +664,8 @@ impl Descriptor {
             asks.push(ask);
         }
         for ask in &asks {
-            let Some(&asked) = ask.tried.first() else { continue };
-            let (lo, hi) = placement.groups[ask.group];
-            let msg = pb::ShardStore {
-                descriptor: Some(partial(desc, lo, hi, robot, frame)),
-                placement_version: placement.version,
-            };
-            for shard in placement.store_targets(ask.group) {
-                if shard != asked {
-                    stores.push(self.store_to(ask.group, shard, &msg));
-                }
+            if let Some(&asked) = ask.tried.first() {
+                self.store_group(stores, &placement, ask.group, desc, frame, Some(asked));
             }
         }
         let mut replies = Vec::new();
@@ -765,16 +757,31 @@ impl Descriptor {
     ) {
         let placement = self.routing.placement();
         for &(g, served_by) in answered {
-            let (lo, hi) = placement.groups[g];
-            let msg = pb::ShardStore {
-                descriptor: Some(partial(desc, lo, hi, self.robot, frame)),
-                placement_version: placement.version,
-            };
-            for shard in placement.store_targets(g) {
-                let sent = stores.iter().any(|st| st.group == g && st.shard == shard);
-                if shard != served_by && !sent {
-                    stores.push(self.store_to(g, shard, &msg));
-                }
+            self.store_group(stores, &placement, g, desc, frame, Some(served_by));
+        }
+    }
+
+    /// A ShardStore of `group`'s slice, under `placement`, to each of the group's owners and
+    /// learners but `skip` (the shard that stored it with its search) and those `stores`
+    /// holds already.
+    fn store_group<'a>(
+        &'a self,
+        stores: &mut Vec<Store<'a>>,
+        placement: &Placement,
+        group: usize,
+        desc: &[u32],
+        frame: u32,
+        skip: Option<u32>,
+    ) {
+        let (lo, hi) = placement.groups[group];
+        let msg = pb::ShardStore {
+            descriptor: Some(partial(desc, lo, hi, self.robot, frame)),
+            placement_version: placement.version,
+        };
+        for shard in placement.store_targets(group) {
+            let sent = stores.iter().any(|st| st.group == group && st.shard == shard);
+            if Some(shard) != skip && !sent {
+                stores.push(self.store_to(group, shard, &msg));
             }
         }
     }
@@ -823,14 +830,7 @@ impl Descriptor {
             }
             let placement = self.refresh(&refused_by);
             for g in stale {
-                let (lo, hi) = groups[g];
-                let msg = pb::ShardStore {
-                    descriptor: Some(partial(desc, lo, hi, self.robot, frame)),
-                    placement_version: placement.version,
-                };
-                for shard in placement.store_targets(g) {
-                    stores.push(self.store_to(g, shard, &msg));
-                }
+                self.store_group(&mut stores, &placement, g, desc, frame, None);
             }
         }
         let mut pending = lock(&self.pending);
