@@ -92,17 +92,21 @@ def bound_caller(key: str) -> int | None:
     """The caller's robot a caller-bound request's key names (its last chunk); None when
     the key names none."""
     parts = key.split("/")
-    if len(parts) != 7 or not parts[6].isdigit() or len(parts[6]) > 10:
-        return None
-    return int(parts[6])
+    return _robot_id(parts[6], 10) if len(parts) == 7 else None
+
+
+def _robot_id(text: str, max_digits: int) -> int | None:
+    """A robot id written in ASCII digits (at most ``max_digits``); None for anything else
+    (``"²".isdigit()`` holds, and ``int`` refuses it)."""
+    ok = text.isascii() and text.isdigit() and len(text) <= max_digits
+    return int(text) if ok else None
 
 
 def parse_sender(key: str) -> int | None:
     """The robot an inbox key names as the sender (``slam/<r>/inbox/<sender>``,
     ``fusion/<r>/inbox/<sender>``: its last segment, at most 6 digits); None when it names
     none. The router lets each robot's certificate put there under its own robot only."""
-    last = key.rsplit("/", 1)[-1]
-    return int(last) if last.isdigit() and len(last) <= 6 else None
+    return _robot_id(key.rsplit("/", 1)[-1], 6)
 
 
 def alive(swarm: str, kind: str, robot: int | str) -> str:

@@ -44,7 +44,15 @@ def test_a_request_to_a_caller_bound_endpoint_names_its_sender_last() -> None:
     verify = endpoint("lab", "verifier", 3, "verify")
     assert request_key(verify, 2) == verify  # not caller-bound
     assert bound_caller(request_key(store, 2)) == 2
-    for key in (store, f"{store}/x", f"{store}/2/3", f"{store}/-1", f"{store}/{10**11}", f"{store}/*"):
+    for key in (
+        store,
+        f"{store}/x",
+        f"{store}/2/3",
+        f"{store}/-1",
+        f"{store}/{10**11}",
+        f"{store}/*",
+        f"{store}/²",
+    ):
         assert bound_caller(key) is None, key
 
 
@@ -158,5 +166,10 @@ def test_the_compiled_services_bind_the_same_endpoints_to_their_caller() -> None
 def test_an_inbox_key_names_its_sender_last() -> None:
     assert parse_sender(endpoint("lab", "fusion", 2, "inbox/3")) == 3
     assert parse_sender(endpoint("lab", "slam", 2, "control/17")) == 17
-    for key in (endpoint("lab", "fusion", 2, "inbox"), "swarmrec/v1/lab/fusion/2/inbox/*", "x/1234567"):
+    for key in (
+        endpoint("lab", "fusion", 2, "inbox"),
+        "swarmrec/v1/lab/fusion/2/inbox/*",
+        "x/1234567",
+        "x/²",
+    ):
         assert parse_sender(key) is None, key
