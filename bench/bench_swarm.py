@@ -21,6 +21,11 @@ For each hosting two runs, and two baselines measured in the same run:
   (``bare_round_trip_paced_ms``: each thread on the way is idle by then, and
   waking it costs more than the work): a two-step query makes two rounds of
   parallel requests, so twice the paced round trip is the floor.
+  The paced run is repeated (``--paced-repeats``, 3 by default), each time right
+  after its own paced bare round trip: on a shared machine the wake-up cost
+  moves from one minute to the next, and one run can land in a busy one. The
+  targets are judged on the median repeat (``paced``; every repeat is in
+  ``paced_repeats`` with its baseline).
 
 ``targets`` says, per hosting, whether issue 17's targets were met on this
 machine: whole lock-step run under 10 s, cold start under 3 s, paced query
@@ -124,6 +129,18 @@ def targets(lock: dict[str, Any], paced: dict[str, Any]) -> dict[str, dict[str, 
     }
 
 
+def median_repeat(repeats: list[dict[str, Any]]) -> dict[str, Any]:
+    """The repeat whose p50 is the median (the lower middle one of an even count); its
+    p99 is replaced by the median of the repeats' p99s, so one busy minute does not
+    decide either figure."""
+    ordered = sorted(repeats, key=lambda r: r["latency_ms"]["p50"])
+    chosen = dict(ordered[(len(ordered) - 1) // 2])
+    p99s = sorted(r["latency_ms"]["p99"] for r in repeats)
+    chosen["latency_ms"] = {**chosen["latency_ms"], "p99": p99s[(len(p99s) - 1) // 2]}
+    chosen["repeats"] = len(repeats)
+    return chosen
+
+
 def _run(settings: PlacesSettings) -> dict[str, Any]:
     t0 = time.perf_counter()
     s = main(settings).to_dict()
@@ -149,6 +166,13 @@ def main_bench() -> None:
     ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "swarm.json")
     ap.add_argument("--rate", type=float, default=2.0, help="paced run: frames per second per robot")
     ap.add_argument("--paced-frames", type=int, default=600, help="paced run: frames of the sequence")
+    ap.add_argument(
+        "--paced-repeats",
+        type=int,
+        default=3,
+        help="paced runs per hosting, each after its own paced bare round trip; targets on the median "
+        "(default 3)",
+    )
     ap.add_argument(
         "--hostings",
         default="service,robot,robots:5",
@@ -184,21 +208,39 @@ def main_bench() -> None:
                     source=tum, robots=10, hosting=hosting, out=Path(tmp) / f"lockstep-{name}", plots=False
                 )
             )
-            print(f"[{hosting}] swarm, paced at {args.rate:g} frames/s per robot ...", flush=True)
-            paced = _run(
-                PlacesSettings(
-                    source=DatasetSource(str(TUM_ZIP), frames=args.paced_frames),
-                    robots=10,
-                    hosting=hosting,
-                    pace=f"{args.rate:g}",
-                    out=Path(tmp) / f"paced-{name}",
-                    plots=False,
+            repeats = []
+            for i in range(max(1, args.paced_repeats)):
+                what = f"paced at {args.rate:g} frames/s per robot ({i + 1})"
+                print(f"[{hosting}] swarm, {what} ...", flush=True)
+                # This repeat's own baseline, measured just before it.
+                bare_here = bare_round_trip(200, gap)
+                run = _run(
+                    PlacesSettings(
+                        source=DatasetSource(str(TUM_ZIP), frames=args.paced_frames),
+                        robots=10,
+                        hosting=hosting,
+                        pace=f"{args.rate:g}",
+                        out=Path(tmp) / f"paced-{name}-{i}",
+                        plots=False,
+                    )
                 )
-            )
+                run["bare_round_trip_paced_ms"] = bare_here
+                repeats.append(run)
+            paced = median_repeat(repeats)
             paced["rate_hz_per_robot"] = args.rate
             result["by_hosting"][hosting] = {
                 "lockstep": lock,
                 "paced": paced,
+                "paced_repeats": [
+                    {
+                        "latency_ms": r["latency_ms"],
+                        "bare_round_trip_paced_ms": r["bare_round_trip_paced_ms"],
+                        "p50_over_bare_paced": (
+                            r["latency_ms"]["p50"] / r["bare_round_trip_paced_ms"]["p50_ms"]
+                        ),
+                    }
+                    for r in repeats
+                ],
                 "ratios": {
                     "lockstep_wall_over_offline": lock["wall_s"] / result["offline_decentralized_wall_s"],
                     "paced_query_p50_over_bare_round_trip": paced["latency_ms"]["p50"] / bare,
@@ -223,7 +265,9 @@ def main_bench() -> None:
             f"replay {lock['timings']['replay_s']:.1f} s), query p50 {lock['latency_ms']['p50']:.2f} ms, "
             f"{lock['bytes_per_query']:.1f} B/query, balance {lock['balance_ratio']:.2f}, "
             f"identical to offline: {lock['offline_check'] and lock['offline_check']['identical']}; "
-            f"paced: p50 {paced['latency_ms']['p50']:.2f} ms, p99 {paced['latency_ms']['p99']:.2f} ms; "
+            f"paced (median of {paced['repeats']}): p50 {paced['latency_ms']['p50']:.2f} ms "
+            f"({', '.join(format(x['latency_ms']['p50'], '.2f') for x in r['paced_repeats'])}), "
+            f"p99 {paced['latency_ms']['p99']:.2f} ms; "
             f"targets met: {sorted(k for k, t in r['targets'].items() if t['met'])}"
         )
     print(f"written to {args.out}")

@@ -481,10 +481,19 @@ class ZenohClient(SwarmClient):
         )
 
     def call(
-        self, key: str, request: Message, reply_cls: type[M], *, target_robot: int | None, endpoint: str = ""
+        self,
+        key: str,
+        request: Message,
+        reply_cls: type[M],
+        *,
+        target_robot: int | None,
+        endpoint: str = "",
+        timeout_s: float | None = None,
     ) -> M:
         """One request to one service (``keys.endpoint(...)``) and its reply; raises CallError."""
-        return self._caller().call(key, request, reply_cls, target_robot=target_robot, endpoint=endpoint)
+        return self._caller().call(
+            key, request, reply_cls, target_robot=target_robot, endpoint=endpoint, timeout_s=timeout_s
+        )
 
     def loop_closures(
         self, robot: int, min_score: float = 0.0, *, timeout_s: float | None = None

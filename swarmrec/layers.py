@@ -5,7 +5,7 @@ of a higher one, and no two modules may import each other, even through others
 (every import statement counts, also one inside a function)::
 
     core         pure libraries: constellations, fusion, datasets, the synthetic world,
-                 detection, evaluation, SLAM back ends, errors, model lookup (no bus)
+                 detection, evaluation, SLAM back ends, errors, model lookup and loading (no bus)
     wire         the v1 protobuf messages and the codec to and from the core's types
     runtime      the bus plumbing: settings per component, keys, request/response,
                  metrics, record logs, TLS, the runner
@@ -44,6 +44,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
             "swarmrec.evaluation",
             "swarmrec.errors",
             "swarmrec.models",
+            "swarmrec.inference",
             "swarmrec.slam",
             "swarmrec.vpr",
         ),

@@ -21,6 +21,7 @@ kind it is.
 from __future__ import annotations
 
 import json
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -40,6 +41,7 @@ __all__ = [
     "DeploymentError",
     "SwarmSpec",
     "SwarmStartError",
+    "announce_live_view",
     "check_running",
     "config_env",
     "config_flags",
@@ -272,6 +274,14 @@ class Deployment(Protocol):
     def stop(self) -> dict[str, int]:
         """Stop what this deployment started; the exit code of each process it ran."""
         ...
+
+
+def announce_live_view(deployment: Deployment, progress: bool) -> None:
+    """Say where the swarm's live view is (stderr, beside the progress bars), when the
+    deployment serves one on this machine and the run shows its progress."""
+    url = getattr(deployment, "live_view_url", "")
+    if progress and isinstance(url, str) and url:
+        print(f"live view of the swarm: {url}", file=sys.stderr, flush=True)
 
 
 def shared_env(spec: SwarmSpec) -> dict[str, str]:

@@ -13,13 +13,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 import numpy.typing as npt
-import onnxruntime as ort  # type: ignore[import-untyped]  # onnxruntime ships no type hints
 
 from swarmrec.detection.decode import Layout, decode_output, detect_layout
 from swarmrec.detection.errors import DetectionError, ModelError, OutputLayoutError
 from swarmrec.detection.letterbox import letterbox
 from swarmrec.detection.nms import non_max_suppression
 from swarmrec.errors import ConfigError
+from swarmrec.inference import onnx_session, static_dim
 
 __all__ = ["Detection", "DetectorSettings", "OnnxDetector"]
 
@@ -79,11 +79,6 @@ class Detection:
         return (self.x1, self.y1, self.x2, self.y2)
 
 
-def _static_dim(dim: object) -> int | None:
-    """A dimension's size, or None when the model leaves it dynamic (a name or nothing)."""
-    return dim if isinstance(dim, int) and dim > 0 else None
-
-
 class OnnxDetector:
     """A YOLO-style ONNX model, ready to detect objects in BGR images.
 
@@ -95,17 +90,10 @@ class OnnxDetector:
     def __init__(self, model: str | Path, settings: DetectorSettings | None = None) -> None:
         self.settings = settings or DetectorSettings()
         self.model = str(model)
-        if not Path(model).is_file():
-            raise ModelError(self.model, "no such model file")
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = self.settings.intra_op_threads
-        try:
-            self._session = ort.InferenceSession(
-                self.model, sess_options=options, providers=["CPUExecutionProvider"]
-            )
-        # onnxruntime's errors share no base class below Exception (Fail, InvalidProtobuf, ...).
-        except Exception as exc:
-            raise ModelError(self.model, f"onnxruntime cannot load it: {exc}") from exc
+        # (onnxruntime's own choice of inter-op threads, as the detector has always had.)
+        self._session = onnx_session(
+            model, ModelError, intra_op_threads=self.settings.intra_op_threads, inter_op_threads=None
+        )
         inputs = self._session.get_inputs()
         if len(inputs) != 1:
             raise ModelError(self.model, f"expected one image input, the model has {len(inputs)}")
@@ -115,7 +103,7 @@ class OnnxDetector:
         shape = list(image_input.shape)
         if len(shape) != 4:
             raise ModelError(self.model, f"expected an input [1, 3, H, W], got {shape}")
-        batch, channels, height, width = (_static_dim(d) for d in shape)
+        batch, channels, height, width = (static_dim(d) for d in shape)
         if batch not in (None, 1) or channels not in (None, 3):
             raise ModelError(self.model, f"expected an input [1, 3, H, W], got {shape}")
         self._input_name = image_input.name
@@ -124,7 +112,7 @@ class OnnxDetector:
         output = self._session.get_outputs()[0]
         self._output_name = output.name
         self.layout = self.settings.layout
-        out_shape = [_static_dim(d) for d in output.shape]
+        out_shape = [static_dim(d) for d in output.shape]
         if all(d is not None for d in out_shape):
             try:
                 self.layout = detect_layout(

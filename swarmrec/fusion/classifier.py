@@ -22,10 +22,10 @@ from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
-import onnxruntime as ort  # type: ignore[import-untyped]  # onnxruntime ships no type hints
 
 from swarmrec.errors import ConfigError, SwarmrecError
 from swarmrec.fusion.wnbc import N_LANDMARKS
+from swarmrec.inference import image_input_size, onnx_session, static_dim
 from swarmrec.models import LANDMARK_MODEL, ModelNotFound, shipped_model
 
 __all__ = ["ClassifierError", "ClassifierModelError", "LandmarkClassifier", "default_model_path"]
@@ -61,11 +61,6 @@ def default_model_path() -> Path:
         raise ClassifierModelError(str(e.model), str(e)) from None
 
 
-def _static_dim(dim: object) -> int | None:
-    """A dimension's size, or None when the model leaves it dynamic (a name or nothing)."""
-    return dim if isinstance(dim, int) and dim > 0 else None
-
-
 class LandmarkClassifier:
     """An ONNX landmark classifier on onnxruntime's CPU provider.
 
@@ -83,35 +78,11 @@ class LandmarkClassifier:
         path = default_model_path() if model is None else Path(model)
         self.model = str(path)
         self.n_classes = n_classes
-        if not path.is_file():
-            raise ClassifierModelError(self.model, "no such model file")
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = intra_op_threads
-        options.inter_op_num_threads = 1
-        try:
-            self._session = ort.InferenceSession(
-                self.model, sess_options=options, providers=["CPUExecutionProvider"]
-            )
-        # onnxruntime's errors share no base class below Exception (Fail, InvalidProtobuf, ...).
-        except Exception as exc:
-            raise ClassifierModelError(self.model, f"onnxruntime cannot load it: {exc}") from exc
-        inputs, outputs = self._session.get_inputs(), self._session.get_outputs()
-        if len(inputs) != 1 or len(outputs) != 1:
-            raise ClassifierModelError(
-                self.model, f"expected one input and one output, got {len(inputs)} and {len(outputs)}"
-            )
-        image, probabilities = inputs[0], outputs[0]
-        shape = [_static_dim(d) for d in image.shape]
-        height, width = (shape[2], shape[3]) if len(shape) == 4 else (None, None)
-        if image.type != "tensor(float)" or len(shape) != 4 or shape[1] != 3 or not (height and width):
-            raise ClassifierModelError(
-                self.model,
-                f"expected a float32 input [N, 3, H, W] of fixed size, got {image.type} {image.shape}",
-            )
-        if shape[0] is not None:
-            # A robot classifies one view, a test or benchmark many: the export must leave N free.
-            raise ClassifierModelError(self.model, f"the batch dimension must be dynamic, got {image.shape}")
-        out_shape = [_static_dim(d) for d in probabilities.shape]
+        self._session = onnx_session(path, ClassifierModelError, intra_op_threads=intra_op_threads)
+        image, probabilities, height, width = image_input_size(
+            self._session, self.model, ClassifierModelError
+        )
+        out_shape = [static_dim(d) for d in probabilities.shape]
         if len(out_shape) != 2 or out_shape[1] != n_classes:
             raise ClassifierModelError(
                 self.model, f"expected an output [N, {n_classes}], got {probabilities.shape}"

@@ -6,12 +6,17 @@ nothing fetched from outside: one HTML page (:mod:`.live_view_page`, plain
 JavaScript), ``/api/state`` (JSON, read when the page asks, at most every
 :data:`STATE_CACHE_S`) and ``/api/events`` (server-sent events as they happen).
 
-What it shows: the members and their health (liveliness: a member that left is
-shown as gone), each index shard's label groups and stored frames, the load on each
-shard (partial queries, from the shards' metrics) and the placement's version
-history, loop closures as they arrive, the loop-closure funnel of the queries seen
-(queried, candidates returned, pairs verified, closures), the bytes between robots
-by message type (from every member's metrics), and fusion decisions.
+What it shows, for every method the swarm runs: the members and their health
+(liveliness: a member that left is shown as gone) and loop closures as they arrive;
+for constellations, each index shard's label groups and stored frames, the load on
+each shard (partial queries, from the shards' metrics), the placement's version
+history and the loop-closure funnel of the queries seen (queried, candidates
+returned, pairs verified, closures); for full-image descriptors, the load on each
+cluster owner, the cluster table's version history and the place queries' funnel
+(answered, matched, verified, closures); for SLAM, each robot's solve (state, stage,
+iteration) and its trajectory, objects and separators (:mod:`.live_view_slam`); the
+bytes between robots by message type (from every member's metrics), and fusion
+decisions.
 
 It listens on ``web_host`` (loopback by default) and every request must carry the
 token printed with its address (``?token=``, as Jupyter does), since the page
@@ -40,16 +45,19 @@ from typing import Any, TypeVar
 from urllib.parse import parse_qs, urlsplit
 
 import zenoh
+from google.protobuf.message import Message  # type: ignore[import-untyped, unused-ignore]
 from prometheus_client.parser import text_string_to_metric_families
 
 from swarmrec.client import ZenohClient
 from swarmrec.runtime import keys
 from swarmrec.services.live_view_page import PAGE
+from swarmrec.services.live_view_slam import separator_keys, slam_robot_view
 from swarmrec.wire import messages as pb
 
 __all__ = ["MAX_CONNECTIONS", "STATE_CACHE_S", "LiveView", "event_is_publishers"]
 
-E = TypeVar("E", pb.LoopClosure, pb.QueryReport, pb.FusionUpdate)
+M = TypeVar("M", bound=Message)
+E = TypeVar("E", pb.LoopClosure, pb.QueryReport, pb.FusionUpdate, pb.PlaceReport)
 
 #: The page's state is read from the swarm at most this often, however many pages ask.
 STATE_CACHE_S = 1.0
@@ -64,6 +72,8 @@ SCRAPE_TIMEOUT_S = 1.0
 MAX_CONNECTIONS = 32
 #: A connection that sends nothing (or reads nothing) this long is closed.
 IDLE_TIMEOUT_S = 30.0
+#: SLAM robots whose solve and estimate the page shows (each costs three requests a poll).
+MAX_SLAM_ROBOTS = 26
 
 
 def _closure_json(c: pb.LoopClosure) -> dict[str, Any]:
@@ -100,6 +110,10 @@ class LiveView:
         self.closures: deque[dict[str, Any]] = deque(maxlen=RECENT_EVENTS)
         self.fusion: deque[dict[str, Any]] = deque(maxlen=50)
         self.funnel = {"queries": 0, "queried": 0, "candidates": 0, "verified_pairs": 0, "closures": 0}
+        self.place_funnel = {"queries": 0, "answered": 0, "matched": 0, "verified": 0, "closures": 0}
+        # The separators each SLAM robot sent, by (robot, solve): read once a solve.
+        self.separators: dict[tuple[int, int], dict[int, list[int]]] = {}
+        self.tables: list[tuple[float, int]] = []  # the cluster table's versions, as seen
         self.left: dict[str, float] = {}  # members whose liveliness token went away, and when
         self.placements: list[tuple[float, int]] = []
         self.started = time.time()
@@ -109,6 +123,7 @@ class LiveView:
         self._subscribers = [
             session.declare_subscriber(keys.event(swarm, "loop_closure", "*"), self._on_closure),
             session.declare_subscriber(keys.event(swarm, "query", "*"), self._on_report),
+            session.declare_subscriber(keys.event(swarm, "place_query", "*"), self._on_place_report),
             session.declare_subscriber(keys.event(swarm, "fusion", "*"), self._on_fusion),
             session.liveliness().declare_subscriber(keys.alive_all(swarm), self._on_alive),
         ]
@@ -168,6 +183,23 @@ class LiveView:
             {"robot": r.robot_id, "frame": r.frame_index, "duration_us": r.duration_us, "funnel": counts},
         )
 
+    def _on_place_report(self, sample: zenoh.Sample) -> None:
+        r = _decode(pb.PlaceReport, sample)
+        if r is None:
+            return
+        with self.lock:
+            f = self.place_funnel
+            f["queries"] += 1
+            f["answered"] += int(r.answered)
+            f["matched"] += int(r.answered and r.match.found)
+            f["verified"] += int(r.verified)
+            f["closures"] += int(r.loop_closure)
+            counts = dict(f)
+        self._publish(
+            "place_report",
+            {"robot": r.robot_id, "frame": r.frame_index, "duration_us": r.duration_us, "funnel": counts},
+        )
+
     def _on_fusion(self, sample: zenoh.Sample) -> None:
         u = _decode(pb.FusionUpdate, sample)
         if u is None:
@@ -222,24 +254,32 @@ class LiveView:
         # Each member's /metrics once (several members of one process have paths of their own).
         urls = sorted({m.metrics_url for m in members if m.metrics_url})
         scraped = dict(zip(urls, self._scraper.map(_scrape, urls), strict=True))
-        # A shard's load is read from a URL that serves that shard alone.
-        shards_at: dict[str, list[int]] = {}
+        # A shard's (an owner's) load is read from a URL that serves that member alone.
+        alone_at: dict[tuple[str, str], list[int]] = {}
         for m in members:
-            if m.kind == "index-shard":
-                shards_at.setdefault(m.metrics_url, []).append(m.robot)
+            if m.kind in _LOAD_METRIC:
+                alone_at.setdefault((m.kind, m.metrics_url), []).append(m.robot)
         by_message: dict[str, float] = {}
-        shard_load: dict[int, float] = {}
+        load: dict[str, dict[int, float]] = {kind: {} for kind in _LOAD_METRIC}
         for url, series in scraped.items():
             for name, labels, value in series:
                 # scope "swarm": what crossed between robots (the report's bytes are these too).
                 if name == "swarmrec_message_bytes_sent_total" and labels.get("scope") == "swarm":
                     by_message[labels["message"]] = by_message.get(labels["message"], 0.0) + value
-                elif name == "swarmrec_shard_partial_queries_total" and len(shards_at.get(url, ())) == 1:
-                    robot = shards_at[url][0]
-                    shard_load[robot] = shard_load.get(robot, 0.0) + value
+                for kind, metric in _LOAD_METRIC.items():
+                    robots = alone_at.get((kind, url), [])
+                    if name == metric and len(robots) == 1:
+                        load[kind][robots[0]] = load[kind].get(robots[0], 0.0) + value
+        table = self._cluster_table(sorted(m.robot for m in members if m.kind == "place-owner"))
+        slam = self._slam_state(sorted(m.robot for m in members if m.kind == "slam"))
         with self.lock:
+            if table >= 0 and (not self.tables or self.tables[-1][1] != table):
+                self.tables.append((time.time(), table))
+                del self.tables[:-50]
+            tables = list(self.tables)
             closures = list(self.closures)[-50:]
             funnel = dict(self.funnel)
+            place_funnel = dict(self.place_funnel)
             fusion = list(self.fusion)[-10:]
             left = dict(self.left)
         return {
@@ -260,13 +300,57 @@ class LiveView:
             ],
             "left": sorted(left),
             "placement": placement,
-            "shard_load": {str(r): shard_load[r] for r in sorted(shard_load)},
+            "shard_load": {str(r): v for r, v in sorted(load["index-shard"].items())},
+            "owner_load": {str(r): v for r, v in sorted(load["place-owner"].items())},
+            "cluster_table": {"version": table, "history": tables},
+            "place_funnel": place_funnel,
+            "slam": slam,
             "bytes_by_message": dict(sorted(by_message.items(), key=lambda kv: -kv[1])),
             "closures": closures,
             "closures_total": funnel["closures"],
             "funnel": funnel,
             "fusion": fusion,
         }
+
+    def _cluster_table(self, owners: list[int]) -> int:
+        """The cluster table's version, as the first place owner that answers has it (-1: none)."""
+        for robot in owners[:3]:
+            key = keys.endpoint(self.swarm, "place-owner", robot, "assignment")
+            try:
+                reply = self.client.call(
+                    key,
+                    pb.AssignmentRequest(),
+                    pb.AssignmentReply,
+                    target_robot=robot,
+                    timeout_s=SCRAPE_TIMEOUT_S,
+                )
+            except Exception:
+                continue
+            return int(reply.version)
+        return -1
+
+    def _slam_state(self, robots: list[int]) -> list[dict[str, Any]]:
+        """Each SLAM robot's solve and drawing (:mod:`.live_view_slam`), read in parallel."""
+        return list(self._scraper.map(self._slam_robot, robots[:MAX_SLAM_ROBOTS]))
+
+    def _slam_robot(self, robot: int) -> dict[str, Any]:
+        def call(endpoint: str, request: Any, reply: type[M]) -> M:
+            key = keys.endpoint(self.swarm, "slam", robot, endpoint)
+            return self.client.call(key, request, reply, target_robot=robot, timeout_s=SCRAPE_TIMEOUT_S)
+
+        try:
+            status = call("status", pb.SlamStatusRequest(), pb.SlamStatus)
+            estimate = call("estimate", pb.SlamEstimateRequest(), pb.SlamEstimate)
+            shared = self.separators.get((robot, status.solve_id))
+            if shared is None and status.order:
+                # The first page holds a step to every neighbour once the team has stepped.
+                page = call("sent", pb.SlamSentRequest(offset=0), pb.SlamSentPage)
+                shared = separator_keys(page.steps)
+                if shared or status.state in _SLAM_ENDED:
+                    self.separators[(robot, status.solve_id)] = shared
+        except Exception as e:  # the page shows why, and keeps polling
+            return slam_robot_view(None, None, {}, robot, error=str(e))
+        return slam_robot_view(status, estimate, shared or {}, robot)
 
     # --- event streams ----------------------------------------------------------------
 
@@ -286,7 +370,19 @@ class LiveView:
 
 
 #: The field of each streamed event that names the robot it is about.
-_EVENT_ROBOT_FIELD = {"LoopClosure": "query_robot_id", "QueryReport": "robot_id", "FusionUpdate": "robot_id"}
+_EVENT_ROBOT_FIELD = {
+    "LoopClosure": "query_robot_id",
+    "QueryReport": "robot_id",
+    "FusionUpdate": "robot_id",
+    "PlaceReport": "robot_id",
+}
+#: The load of a shard or a cluster owner: the robots' queries it answered.
+_LOAD_METRIC = {
+    "index-shard": "swarmrec_shard_partial_queries_total",
+    "place-owner": "swarmrec_place_owner_queries_total",
+}
+#: States after which a SLAM robot sends nothing more in its solve.
+_SLAM_ENDED = (pb.SlamState.SLAM_STATE_DONE, pb.SlamState.SLAM_STATE_ABORTED, pb.SlamState.SLAM_STATE_FAILED)
 
 
 def event_is_publishers(msg: Any, key: str) -> bool:

@@ -19,9 +19,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import numpy.typing as npt
-import onnxruntime as ort  # type: ignore[import-untyped]  # onnxruntime ships no type hints
 
 from swarmrec.errors import ConfigError
+from swarmrec.inference import image_input_size, onnx_session, static_dim
 from swarmrec.models import DESCRIPTOR_MODEL, ModelNotFound, shipped_model
 from swarmrec.vpr.errors import DescriptorError, DescriptorModelError
 
@@ -45,11 +45,6 @@ def default_model_path() -> Path:
         raise DescriptorModelError(str(e.model), str(e)) from None
 
 
-def _static_dim(dim: object) -> int | None:
-    """A dimension's size, or None when the model leaves it dynamic (a name or nothing)."""
-    return dim if isinstance(dim, int) and dim > 0 else None
-
-
 class DescriptorModel:
     """An ONNX full-image descriptor on onnxruntime's CPU provider.
 
@@ -69,35 +64,9 @@ class DescriptorModel:
         path = default_model_path() if model is None else Path(model)
         self.model = str(path)
         self.dimension = dimension
-        if not path.is_file():
-            raise DescriptorModelError(self.model, "no such model file")
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = intra_op_threads
-        options.inter_op_num_threads = 1
-        try:
-            self._session = ort.InferenceSession(
-                self.model, sess_options=options, providers=["CPUExecutionProvider"]
-            )
-        # onnxruntime's errors share no base class below Exception (Fail, InvalidProtobuf, ...).
-        except Exception as exc:
-            raise DescriptorModelError(self.model, f"onnxruntime cannot load it: {exc}") from exc
-        inputs, outputs = self._session.get_inputs(), self._session.get_outputs()
-        if len(inputs) != 1 or len(outputs) != 1:
-            raise DescriptorModelError(
-                self.model, f"expected one input and one output, got {len(inputs)} and {len(outputs)}"
-            )
-        image, descriptor = inputs[0], outputs[0]
-        shape = [_static_dim(d) for d in image.shape]
-        height, width = (shape[2], shape[3]) if len(shape) == 4 else (None, None)
-        if image.type != "tensor(float)" or len(shape) != 4 or shape[1] != 3 or not (height and width):
-            raise DescriptorModelError(
-                self.model,
-                f"expected a float32 input [N, 3, H, W] of fixed size, got {image.type} {image.shape}",
-            )
-        if shape[0] is not None:
-            # A robot describes one frame, an evaluation thousands: the export must leave N free.
-            raise DescriptorModelError(self.model, f"the batch dimension must be dynamic, got {image.shape}")
-        out_shape = [_static_dim(d) for d in descriptor.shape]
+        self._session = onnx_session(path, DescriptorModelError, intra_op_threads=intra_op_threads)
+        image, descriptor, height, width = image_input_size(self._session, self.model, DescriptorModelError)
+        out_shape = [static_dim(d) for d in descriptor.shape]
         if descriptor.type != "tensor(float)" or len(out_shape) != 2 or out_shape[1] != dimension:
             raise DescriptorModelError(
                 self.model,

@@ -24,7 +24,6 @@ replaying constellations, and the report scores the constellations they made
 from __future__ import annotations
 
 import shutil
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -43,7 +42,7 @@ from swarmrec.core.split import split_frames
 from swarmrec.core.types import ConstellationSequence, Trajectory
 from swarmrec.datasets.constellations import write_constellations
 from swarmrec.datasets.source import load_dataset
-from swarmrec.deployments.base import Deployment, SwarmSpec
+from swarmrec.deployments.base import Deployment, SwarmSpec, announce_live_view
 from swarmrec.deployments.compose import ComposeSettings, SwarmFile, write_compose
 from swarmrec.deployments.identities import Security
 from swarmrec.deployments.kubernetes import KubernetesDeployment, KubernetesSettings
@@ -319,8 +318,7 @@ def main(
         deployment.start(spec, progress=settings.progress)
         deployment.wait_ready()
         timings["start_s"] = time.perf_counter() - t0
-        if settings.progress and isinstance(deployment, LocalDeployment) and deployment.live_view_url:
-            print(f"live view of the swarm: {deployment.live_view_url}", file=sys.stderr, flush=True)
+        announce_live_view(deployment, settings.progress)
         # The operator identity: it drives the replay (detector step/replay).
         with deployment.client(settings.request_timeout_s) as client:
             holding = {f"{m.kind}-{m.robot}": m.stored_items for m in client.members() if m.stored_items}

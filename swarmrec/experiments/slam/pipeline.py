@@ -33,7 +33,7 @@ from google.protobuf.message import Message  # type: ignore[import-untyped, unus
 from tqdm import tqdm
 
 from swarmrec.client import ZenohClient
-from swarmrec.deployments.base import Deployment, DeploymentError, SwarmSpec
+from swarmrec.deployments.base import Deployment, DeploymentError, SwarmSpec, announce_live_view
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.errors import CallError
 from swarmrec.experiments.slam.report import LiveRecord, LiveSlamSummary, RobotResult, write_report
@@ -90,10 +90,11 @@ def prepare(settings: LiveSlamSettings) -> Prepared:
 
 
 def swarm_spec(settings: LiveSlamSettings, folder: Path, robots: int) -> SwarmSpec:
-    """One slam service per robot, all reading the same folder (each only its own file)."""
+    """One slam service per robot, all reading the same folder (each only its own file), and
+    the swarm's gateway (its live view draws the team's solve as it runs)."""
     bus = BusSettings(swarm=settings.swarm, n_robots=robots, request_timeout_s=settings.request_timeout_s)
     parts = (SlamServiceSettings(slam_folder=folder.resolve(), slam_peer_timeout_s=settings.peer_timeout_s),)
-    return SwarmSpec(bus, WORKLOADS["slam"], parts, workload="slam", swarm_kinds=())
+    return SwarmSpec(bus, WORKLOADS["slam"], parts, workload="slam")
 
 
 M = TypeVar("M", bound=Message)
@@ -204,6 +205,7 @@ def main(
         deployment.start(spec, progress=settings.progress)
         deployment.wait_ready()
         timings["start_s"] = time.perf_counter() - t0
+        announce_live_view(deployment, settings.progress)
         if swarm_hook is not None:
             swarm_hook(deployment)
         with deployment.client(settings.request_timeout_s) as client:

@@ -35,7 +35,7 @@ import numpy.typing as npt
 from swarmrec.core.association import warm_up
 from swarmrec.core.presets import get_preset
 from swarmrec.core.split import split_frames
-from swarmrec.deployments.base import Deployment, SwarmSpec
+from swarmrec.deployments.base import Deployment, SwarmSpec, announce_live_view
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.deployments.metrics import Scrape
 from swarmrec.errors import ConfigError
@@ -180,9 +180,12 @@ def run_dvpr(
     out: Path,
     *,
     swarm_hook: Callable[[Deployment], None] | None = None,
+    replayed_hook: Callable[[Deployment], None] | None = None,
     timings: dict[str, float] | None = None,
 ) -> DvprSummary:
-    """Deploy the full-image swarm on ``px``'s frames, replay, collect and report into ``out``."""
+    """Deploy the full-image swarm on ``px``'s frames, replay, collect and report into ``out``.
+    ``swarm_hook`` sees the swarm once it is up, ``replayed_hook`` once the replay and its
+    collection are done, before it stops (tests look at the swarm there)."""
     run = settings.run
     timings = dict(timings or {})
     spec = spec_for(settings, px, centres)
@@ -195,6 +198,7 @@ def run_dvpr(
         deployment.start(spec, progress=run.progress)
         deployment.wait_ready()
         timings["start_s"] = time.perf_counter() - t0
+        announce_live_view(deployment, run.progress)
         with deployment.client(run.request_timeout_s) as client:
             holding = {f"{m.kind}-{m.robot}": m.stored_items for m in client.members() if m.stored_items}
             if holding:
@@ -211,6 +215,8 @@ def run_dvpr(
             timings["replay_s"] = result.wall_s
             metrics = deployment.metrics()
             closures = collect_loop_closures(client, run.robots, result)
+            if replayed_hook is not None:
+                replayed_hook(deployment)
     finally:
         t0 = time.perf_counter()
         exit_codes = deployment.stop()
@@ -275,6 +281,7 @@ def main(
     *,
     say: Callable[[str], None] = lambda _text: None,
     swarm_hook: Callable[[Deployment], None] | None = None,
+    replayed_hook: Callable[[Deployment], None] | None = None,
 ) -> DvprSummary | BothSummary:
     """Run ``settings.method`` (dvpr, or both one after the other on the same frames); the
     summary is also written under ``settings.out``."""
@@ -295,7 +302,16 @@ def main(
         timings["render_s"] = float(px.render["total_s"])
     both = settings.method == "both"
     dvpr_out = out / "dvpr" if both else out
-    dvpr = run_dvpr(settings, px, centres, table, dvpr_out, swarm_hook=swarm_hook, timings=timings)
+    dvpr = run_dvpr(
+        settings,
+        px,
+        centres,
+        table,
+        dvpr_out,
+        swarm_hook=swarm_hook,
+        replayed_hook=replayed_hook,
+        timings=timings,
+    )
     if not both:
         return dvpr
     # The same frames: the folder rendered (or given) above, read by the constellation detectors.
