@@ -109,6 +109,7 @@ class LiveView:
         self.streams: list[_Stream] = []
         self.closures: deque[dict[str, Any]] = deque(maxlen=RECENT_EVENTS)
         self.fusion: deque[dict[str, Any]] = deque(maxlen=50)
+        self.fusion_total = 0
         self.funnel = {"queries": 0, "queried": 0, "candidates": 0, "verified_pairs": 0, "closures": 0}
         self.place_funnel = {"queries": 0, "answered": 0, "matched": 0, "verified": 0, "closures": 0}
         # The separators each SLAM robot sent, by (robot, solve): read once a solve.
@@ -207,6 +208,7 @@ class LiveView:
         data = {"robot": u.robot_id, "round": u.round_id, "decision": u.decision, "heard_all": u.heard_all}
         with self.lock:
             self.fusion.append(data)
+            self.fusion_total += 1
         self._publish("fusion", data)
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
@@ -281,6 +283,7 @@ class LiveView:
             funnel = dict(self.funnel)
             place_funnel = dict(self.place_funnel)
             fusion = list(self.fusion)[-10:]
+            fusion_total = self.fusion_total
             left = dict(self.left)
         return {
             "swarm": self.swarm,
@@ -310,6 +313,7 @@ class LiveView:
             "closures_total": funnel["closures"],
             "funnel": funnel,
             "fusion": fusion,
+            "fusion_total": fusion_total,
         }
 
     def _cluster_table(self, owners: list[int]) -> int:

@@ -90,6 +90,8 @@ PAGE = """<!doctype html>
       vertices a robot shares with another robot's map (the inter-robot loop closures).</p></section>
   <section><h2>Bytes between robots, by message</h2><div id="bytes"></div></section>
   <section data-method="landmarks"><h2>Fusion decisions</h2>
+    <p class="muted"><b id="n-fusion">0</b> updates heard (a robot's decision after each view it
+      folded in); the newest:</p>
     <table><thead><tr><th>robot</th><th>round</th><th>class</th><th>heard all</th></tr></thead>
       <tbody id="fusion"></tbody></table></section>
 </main>
@@ -267,10 +269,12 @@ function render(s) {
   renderSlam(s.slam);
   showMethods(s);
   bars("bytes", Object.entries(s.bytes_by_message), "message", (v) => (v / 1024).toFixed(1) + " kB");
+  $("n-fusion").textContent = s.fusion_total;
   const fusion = $("fusion");
   fusion.replaceChildren();
   for (const d of s.fusion.slice().reverse()) {
     const tr = document.createElement("tr");
+    tr.dataset.fusion = [d.robot, d.round, d.decision, d.heard_all ? 1 : 0].join("/");
     tr.append(text("td", d.robot), text("td", d.round), text("td", d.decision),
               text("td", d.heard_all ? "yes" : "no"));
     fusion.append(tr);

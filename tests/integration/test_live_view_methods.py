@@ -6,6 +6,9 @@
   owner as the run's summary counts it, the place-query funnel (every frame queried and
   answered, the closures), the cluster table's version, and only the panels of the
   method that runs.
+* ``swarmrec landmarks`` (a small street): when every round has ended, the page counts
+  every fusion update the robots made (one per view a robot folded in) and each row it
+  shows is a decision a robot reached in the run.
 * ``swarmrec slam run`` on a simulated world: when the team's solve has ended, the page
   shows every robot done, draws each robot's whole trajectory (one point per pose of its
   robot file) and marks the separators: for each pair of robots, as many rings as the
@@ -26,6 +29,7 @@ import pytest
 
 from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.base import Deployment
+from swarmrec.experiments.landmarks.simulation import LandmarkSettings, parse_law, run_simulation
 from swarmrec.experiments.places import PixelSettings, PlacesSettings
 from swarmrec.experiments.slam.pipeline import TERMINAL
 from swarmrec.experiments.slam.pipeline import main as slam_main
@@ -139,6 +143,49 @@ def test_the_page_shows_a_dvpr_swarms_owners_funnel_and_closures(tmp_path: Path,
         and "slam" not in seen["visible"]
     )
     rendered(seen["png"], tmp_path / "live-view-dvpr.png")
+
+
+@pytest.mark.slow
+def test_the_page_counts_a_landmark_swarms_fusion_updates(tmp_path: Path, browser: Browser) -> None:
+    robots, configurations = 4, 3
+    seen: dict[str, Any] = {}
+
+    def up(deployment: Deployment) -> None:
+        seen["url"] = getattr(deployment, "live_view_url", "")
+
+    def progressed(done: int, total: int) -> None:
+        if done < total:
+            return
+        browser.open(seen["url"])
+        seen["count"] = browser.wait_for(
+            "Number(document.getElementById('n-fusion').textContent)", lambda n: n > 0, 30, "updates"
+        )
+        seen["rows"] = browser.evaluate(
+            "[...document.querySelectorAll('[data-fusion]')].map(r => r.dataset.fusion)"
+        )
+        seen["visible"] = browser.evaluate(VISIBLE)
+        seen["png"] = browser.screenshot()
+
+    settings = LandmarkSettings(
+        out=tmp_path / "run",
+        configurations=configurations,
+        robots=robots,
+        laws=(parse_law("paper:0"),),
+        progress=False,
+    )
+    result = run_simulation(settings, on_round=progressed, swarm_hook=up)
+    assert result.errors == [] and result.failures == {}
+    assert seen.get("url"), "a landmark swarm serves the live view"
+    # One update per view a robot folded in, every one heard by the gateway.
+    assert seen["count"] == sum(r.incorporated for r in result.rounds) > 0
+    decided = {(r.robot, d) for r in result.rounds for d in r.decisions[1:]}
+    final = {(r.robot, r.decisions[-1]) for r in result.rounds}
+    assert 0 < len(seen["rows"]) <= 10
+    for row in seen["rows"]:
+        robot, _round, decision, heard_all = (int(x) for x in row.split("/"))
+        assert (robot, decision) in (final if heard_all else decided), row
+    assert "landmarks" in seen["visible"] and "closures" not in seen["visible"]
+    rendered(seen["png"], tmp_path / "live-view-landmarks.png")
 
 
 def separators_of(folder: Path) -> dict[str, int]:
