@@ -378,7 +378,8 @@ def write_compose(
 
 def _write_secrets(spec: SwarmSpec, out: Path) -> Path:
     """The run's PKI in ``out/pki`` and, per container, ``out/secrets/<service>/`` with the CA
-    certificate and that container's own pair only (the router: and the access control)."""
+    certificate and that container's own pair only (the router: and the access control; a
+    fusion service: and the other robots' fusion certificates, public, to check origins)."""
     pki = swarm_pki(out / "pki", spec.swarm, spec.robots, router_names=("router",))
     secrets = out / "secrets"
     shutil.rmtree(secrets, ignore_errors=True)
@@ -391,6 +392,11 @@ def _write_secrets(spec: SwarmSpec, out: Path) -> Path:
         files = [("ca.pem", "ca.pem"), (f"{cn}.pem", f"{cn}.pem"), (f"{cn}.key", f"{cn}.key")]
         if kind == "router":
             files.append((ACL_FILE, ACL_FILE))
+        if kind == "fusion":
+            # The other robots' fusion certificates (public): a relayed output's origin
+            # signature is checked against its origin's (docs/security.md).
+            peers = (registry.spec(kind).common_name(spec.swarm, r) for r in range(spec.robots) if r != robot)
+            files += [(f"{peer}.pem", f"{peer}.pem") for peer in peers]
         for src, dst in files:
             shutil.copy2(pki / src, folder / dst)
         key = folder / f"{cn}.key"

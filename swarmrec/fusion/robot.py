@@ -88,6 +88,9 @@ class Reason(StrEnum):
     decode never get here: the service runner refuses and counts them."""
 
     SENDER_MISMATCH = "sender_mismatch"
+    #: No origin signature where one is required (mutual TLS), or one that is not the origin's.
+    UNSIGNED = "unsigned"
+    BAD_SIGNATURE = "bad_signature"
     NOT_NEIGHBOUR = "not_neighbour"
     STALE_ROUND = "stale_round"
     TOO_FAR_AHEAD = "too_far_ahead"

@@ -20,18 +20,30 @@ one copy on each current neighbour's inbox, and the robot refuses anything whose
 sender is not a current neighbour. The sender is the last segment of the key, which
 the router's access control lets each robot's certificate write with its own robot
 only (as the SLAM inboxes): a message whose body, or attachment, names another
-sender than its key is refused (``sender_mismatch``). What a relay says about the
-origin of what it forwards is not checked (docs/security.md, known gaps).
+sender than its key is refused (``sender_mismatch``).
+
+What a relay says about the *origin* of what it forwards is proven by the origin's
+signature (``origin_signature``, :mod:`swarmrec.runtime.origin`): under mutual TLS
+a robot signs its own output with its fusion certificate's key, relays forward the
+signature unchanged, and every receiver checks it against the origin's certificate
+(issued by the swarm's CA, named as the origin's fusion service) before the robot
+sees the message: a copy without one is refused as ``unsigned``, one whose
+signature is not the origin's over what it carries as ``bad_signature``. The
+insecure mode has no keys: it neither signs nor checks.
 """
 
 from __future__ import annotations
 
 import threading
+from collections import OrderedDict
 
 from swarmrec.errors import ConfigError, InvalidArgument, NotFound
 from swarmrec.fusion.robot import KEPT_ROUNDS, Broadcast, FusionRobot, Handled, Handling, Reason, RoundError
 from swarmrec.fusion.wnbc import WeightLaw, make_weight_law
 from swarmrec.runtime import Endpoint, RequestContext, ServiceBase, ServiceContext, Subscription, keys
+from swarmrec.runtime.origin import OriginSigner, OriginVerifier
+from swarmrec.runtime.settings import SecuritySettings
+from swarmrec.services import registry
 from swarmrec.services.metrics import FusionMetrics
 from swarmrec.services.settings import FusionSettings, LandmarkSettings
 from swarmrec.wire import messages as pb
@@ -39,6 +51,7 @@ from swarmrec.wire.codec import check_fields, encode
 from swarmrec.wire.fusion import (
     classifier_output_to_flood,
     flood_to_classifier_output,
+    origin_statement,
     step_to_proto,
     weight_law_from_proto,
 )
@@ -69,6 +82,13 @@ class FusionService(ServiceBase):
         # so a robot's own message always leaves before any forward of the same round.
         self.lock = threading.Lock()
         self.event_key = keys.event(self.bus.swarm, "fusion", self.bus.robot)
+        self.signer, self.verifier = _origin_proof(ctx)
+        # Each origin's output of recent rounds, by (round, origin): the statement and the
+        # signature checked (a duplicate carrying both again needs no second check; on a dense
+        # graph most copies are duplicates), kept to forward with it. Bounded: a forward leaves
+        # as soon as its message is folded in.
+        self.signatures: OrderedDict[tuple[int, int], tuple[bytes, bytes]] = OrderedDict()
+        self.max_signatures = 4 * self.bus.n_robots + fusion.fusion_early_messages + 64
         fields = {"law": self.law.name, "lambda": fusion.fusion_lambda, "r_max": fusion.fusion_r_max}
         ctx.log.info("fusion ready", extra={"fields": fields})
 
@@ -94,6 +114,10 @@ class FusionService(ServiceBase):
             except RoundError as e:
                 raise InvalidArgument(str(e)) from None
             self.metrics.rounds.inc()
+            if self.signer is not None:
+                own = flood_to_classifier_output(started.broadcast.message)
+                statement = origin_statement(self.bus.swarm, own)
+                self._keep_signature(own, statement, self.signer.sign(statement))
             if started.stale:
                 self.metrics.rejected.labels(Reason.STALE_ROUND.value).inc(started.stale)
             self._send(started.broadcast)
@@ -152,7 +176,32 @@ class FusionService(ServiceBase):
                 # a body or attachment claiming another robot is refused.
                 self._apply(self.robot.reject(Reason.SENDER_MISMATCH, message))
                 return
+            if self.verifier is not None:
+                refused = self._check_origin(msg)
+                if refused is not None:
+                    self._apply(self.robot.reject(refused, message))
+                    return
             self._apply(self.robot.receive(message))
+
+    def _check_origin(self, msg: pb.ClassifierOutput) -> Reason | None:
+        """Why the origin's signature does not vouch for ``msg``; None when it does (and
+        then it is kept, to forward and to know a duplicate by)."""
+        assert self.verifier is not None
+        signature = msg.origin_signature
+        if not signature:
+            return Reason.UNSIGNED
+        statement = origin_statement(self.bus.swarm, msg)
+        if self.signatures.get((msg.round_id, msg.origin_robot_id)) == (statement, signature):
+            return None  # a copy of what was checked already
+        if self.verifier.verify(msg.origin_robot_id, statement, signature):
+            return Reason.BAD_SIGNATURE
+        self._keep_signature(msg, statement, signature)
+        return None
+
+    def _keep_signature(self, msg: pb.ClassifierOutput, statement: bytes, signature: bytes) -> None:
+        self.signatures[(msg.round_id, msg.origin_robot_id)] = (statement, signature)
+        while len(self.signatures) > self.max_signatures:
+            self.signatures.popitem(last=False)
 
     def _apply(self, handled: Handled) -> None:
         """Count, forward and publish what the robot did with one message (under the lock)."""
@@ -182,6 +231,10 @@ class FusionService(ServiceBase):
 
     def _send(self, broadcast: Broadcast) -> None:
         msg = flood_to_classifier_output(broadcast.message)
+        if self.signer is not None:
+            # The origin's own signature, as received (or made here for this robot's output).
+            kept = self.signatures.get((msg.round_id, msg.origin_robot_id))
+            msg.origin_signature = kept[1] if kept is not None else b""
         payload = encode(msg)
         for target in broadcast.targets:
             key = keys.endpoint(self.bus.swarm, "fusion", target, f"inbox/{self.bus.robot}")
@@ -220,3 +273,22 @@ class FusionService(ServiceBase):
             "inbox/*", pb.ClassifierOutput, inbox, "outputs flooded by the current neighbours (key: sender)"
         ),
     )
+
+
+def _origin_proof(ctx: ServiceContext) -> tuple[OriginSigner | None, OriginVerifier | None]:
+    """This robot's signer and every origin's verifier under mutual TLS (the PKI folder holds
+    this robot's fusion key, the CA and the other robots' fusion certificates); none in the
+    insecure mode."""
+    security = ctx.settings(SecuritySettings)
+    if security.security != "mtls" or security.pki_dir is None:
+        return None, None
+    pki, swarm = security.pki_dir, ctx.bus.swarm
+    entry = registry.spec("fusion")
+
+    def cn(robot: int) -> str:
+        return entry.common_name(swarm, robot)
+
+    signer = OriginSigner(pki / f"{cn(ctx.bus.robot)}.key")
+    n = ctx.bus.n_robots
+    verifier = OriginVerifier(pki / "ca.pem", lambda robot: pki / f"{cn(robot)}.pem", cn, n_robots=n)
+    return signer, verifier

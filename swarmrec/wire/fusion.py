@@ -10,6 +10,8 @@ hops) and says why it refuses one.
 
 from __future__ import annotations
 
+import struct
+
 import numpy as np
 
 from swarmrec.fusion.flooding import FloodMessage
@@ -18,8 +20,10 @@ from swarmrec.fusion.wnbc import WeightLaw, make_weight_law
 from swarmrec.wire import messages as pb
 
 __all__ = [
+    "ORIGIN_STATEMENT_TAG",
     "classifier_output_to_flood",
     "flood_to_classifier_output",
+    "origin_statement",
     "step_to_proto",
     "weight_law_from_proto",
     "weight_law_to_proto",
@@ -47,6 +51,28 @@ def flood_to_classifier_output(message: FloodMessage) -> pb.ClassifierOutput:
         yaw_rad=message.yaw,
         hop_count=message.hops,
         sender_robot_id=message.sender,
+    )
+
+
+#: What a fusion origin statement starts with (so it can be mistaken for no other signed bytes).
+ORIGIN_STATEMENT_TAG = b"swarmrec.v1.ClassifierOutput.origin\x00"
+
+
+def origin_statement(swarm: str, msg: pb.ClassifierOutput) -> bytes:
+    """The bytes an origin signs for ``msg`` (``origin_signature``): the tag, the swarm's
+    name (UTF-8, then a zero byte), then little-endian uint32 origin, round and count of
+    probabilities, the probabilities as float32 and the yaw as float32: what the origin
+    said, as the wire carries it. Not the hops nor the sender: every relay changes them."""
+    probabilities = np.asarray(msg.probabilities, dtype="<f4")
+    return b"".join(
+        (
+            ORIGIN_STATEMENT_TAG,
+            swarm.encode("utf-8"),
+            b"\x00",
+            struct.pack("<III", msg.origin_robot_id, msg.round_id, len(probabilities)),
+            probabilities.tobytes(),
+            struct.pack("<f", msg.yaw_rad),
+        )
     )
 
 

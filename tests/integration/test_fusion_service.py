@@ -3,9 +3,12 @@
 Each robot gets known class probabilities and a yaw and hears only its line
 neighbours. The robots are started last-first, so every robot but the last gets
 messages of the round before it starts it (kept and processed at the start).
-Before the round, bad messages are put on two robots' inboxes: bytes that do not
+Before the round, bad messages are put on three robots' inboxes: bytes that do not
 decode, a payload of another schema, a sender that lies about who it is, a vector
-with a NaN from a neighbour, and a good-looking message from a robot out of range.
+with a NaN from a neighbour, a good-looking message from a robot out of range (both
+signed by their robot: faulty, not forged), and relays of robot 1's output made up
+by robot 4: unsigned, signed with robot 4's own key, and signed by robot 1 for other
+probabilities than those it carries (the statement signed is built here by hand).
 
 Checked: each robot folds in the 4 others (waited for on the published events), at
 exactly ``|i - j|`` hops, each first delivered by one of its neighbours; its
@@ -20,6 +23,7 @@ from __future__ import annotations
 
 import math
 import queue
+import struct
 import time
 from collections.abc import Iterator
 from contextlib import ExitStack
@@ -28,6 +32,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
 
 from swarmrec.client import ZenohClient
 from swarmrec.deployments.local import LocalDeployment
@@ -104,7 +110,7 @@ def put(
     )
 
 
-def output(origin: int, sender: int, hops: int, probs: list[float]) -> bytes:
+def output(origin: int, sender: int, hops: int, probs: list[float], signature: bytes = b"") -> bytes:
     msg = pb.ClassifierOutput(
         origin_robot_id=origin,
         round_id=ROUND,
@@ -112,8 +118,27 @@ def output(origin: int, sender: int, hops: int, probs: list[float]) -> bytes:
         yaw_rad=0.0,
         hop_count=hops,
         sender_robot_id=sender,
+        origin_signature=signature,
     )
     return bytes(msg.SerializeToString())
+
+
+def signature(swarm: LocalDeployment, key_robot: int, origin: int, probs: list[float]) -> bytes:
+    """Robot ``key_robot``'s fusion key's ECDSA signature of what ``origin`` says in round
+    ROUND with yaw 0: the documented statement (docs/fusion.md), laid out here by hand."""
+    assert swarm.pki_dir is not None
+    name = Identity.service(swarm.spec_swarm, "fusion", key_robot).common_name
+    key = serialization.load_pem_private_key((swarm.pki_dir / f"{name}.key").read_bytes(), password=None)
+    assert isinstance(key, ec.EllipticCurvePrivateKey)
+    statement = (
+        b"swarmrec.v1.ClassifierOutput.origin\x00"
+        + swarm.spec_swarm.encode()
+        + b"\x00"
+        + struct.pack("<III", origin, ROUND, len(probs))
+        + struct.pack(f"<{len(probs)}f", *probs)
+        + struct.pack("<f", 0.0)
+    )
+    return key.sign(statement, ec.ECDSA(hashes.SHA256()))
 
 
 def rejected(url: str, reason: str) -> float:
@@ -157,9 +182,19 @@ def test_five_robots_on_a_line_flood_to_neighbours_only_and_fuse_as_the_core_doe
             put(radio, swarm, 2, output(1, 1, 0, good), CLASSIFIER, key_sender=4)
             put(radio, swarm, 2, output(4, 4, 0, good), CLASSIFIER, key_sender=4, attachment=1)
             put(radio, swarm, 2, output(1, 1, 0, good), CLASSIFIER, key_sender=1)
-            nan = output(1, 1, 0, [math.nan] * N_CLASSES)
+            nans = [math.nan] * N_CLASSES
+            nan = output(1, 1, 0, nans, signature(fusion_swarm, 1, 1, nans))
             put(robot1.session, swarm, 0, nan, CLASSIFIER, key_sender=1)  # from a neighbour
-            put(robot3.session, swarm, 0, output(3, 3, 0, good), CLASSIFIER, key_sender=3)  # out of range
+            far = output(3, 3, 0, good, signature(fusion_swarm, 3, 3, good))
+            put(robot3.session, swarm, 0, far, CLASSIFIER, key_sender=3)  # out of range
+            # Robot 4 relays an output of robot 1's it made up, to its neighbour robot 3.
+            other = [float(p) for p in PROBS[4]]
+            for forged in (
+                output(1, 4, 1, good),  # unsigned
+                output(1, 4, 1, good, signature(fusion_swarm, 4, 1, good)),  # robot 4's key
+                output(1, 4, 1, good, signature(fusion_swarm, 1, 1, other)),  # robot 1's, other values
+            ):
+                put(radio, swarm, 3, forged, CLASSIFIER, key_sender=4)
 
             def bad_counts() -> tuple[float, ...]:
                 return (
@@ -168,13 +203,17 @@ def test_five_robots_on_a_line_flood_to_neighbours_only_and_fuse_as_the_core_doe
                     rejected(urls[2], "sender_mismatch"),
                     metric(urls[2], "swarmrec_fusion_early_messages_total"),  # the one the router dropped
                     metric(urls[0], "swarmrec_fusion_early_messages_total"),
+                    rejected(urls[3], "unsigned"),
+                    rejected(urls[3], "bad_signature"),
+                    metric(urls[3], "swarmrec_fusion_early_messages_total"),
                 )
 
             try:
-                wait_until(lambda: bad_counts() == (1, 1, 2, 0, 2), 10.0, "bad messages counted")
+                wait_until(lambda: bad_counts() == (1, 1, 2, 0, 2, 1, 2, 0), 10.0, "bad messages counted")
             except AssertionError as e:
                 raise AssertionError(
-                    f"{e}: (malformed, schema, sender_mismatch, early at 2, early at 0) = {bad_counts()}"
+                    f"{e}: (malformed, schema, sender_mismatch, early at 2, early at 0, unsigned at 3, "
+                    f"bad signature at 3, early at 3) = {bad_counts()}"
                 ) from None
 
             # --- the round, last robot first ---------------------------------------------
@@ -253,7 +292,9 @@ def test_five_robots_on_a_line_flood_to_neighbours_only_and_fuse_as_the_core_doe
             sent = metric(url, "swarmrec_messages_sent_total", message="ClassifierOutput", scope="swarm")
             got = metric(url, "swarmrec_messages_received_total", message="ClassifierOutput", scope="swarm")
             assert sent == N * len(LINE[i])
-            # Robot 2 also got the put whose attachment said robot 4 (radio traffic, though refused).
+            # Robot 2 also got the put whose attachment said robot 4 (radio traffic, though refused;
+            # the puts without an attachment, robot 4's made-up relays among them, are not counted
+            # as from a robot).
             assert got == N * len(LINE[i]) + (i == 2)
             assert (
                 metric(url, "swarmrec_message_bytes_sent_total", message="ClassifierOutput", scope="swarm")
@@ -271,8 +312,12 @@ def test_five_robots_on_a_line_flood_to_neighbours_only_and_fuse_as_the_core_doe
             == 2
         )
         assert refused(urls[2], "ERROR_CODE_MALFORMED") == 1
+        # Robot 4's made-up relays: refused at robot 3 before its robot saw them.
+        assert rejected(urls[3], "unsigned") == 1 and rejected(urls[3], "bad_signature") == 2
+        assert metric(urls[3], "swarmrec_fusion_rejected_total") == 3
         for i in (1, 3, 4):
-            assert metric(urls[i], "swarmrec_fusion_rejected_total") == 0
+            if i != 3:
+                assert metric(urls[i], "swarmrec_fusion_rejected_total") == 0
             assert metric(urls[i], "swarmrec_rejected_requests_total") == 0
 
         # A round that was never started here is reported as NOT_FOUND, not as an empty posterior.

@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18swarmrec/v1/fusion.proto\x12\x0bswarmrec.v1\"\x91\x01\n\x10\x43lassifierOutput\x12\x17\n\x0forigin_robot_id\x18\x01 \x01(\r\x12\x10\n\x08round_id\x18\x02 \x01(\r\x12\x15\n\rprobabilities\x18\x03 \x03(\x02\x12\x0f\n\x07yaw_rad\x18\x04 \x01(\x02\x12\x11\n\thop_count\x18\x05 \x01(\r\x12\x17\n\x0fsender_robot_id\x18\x06 \x01(\r\"\xbb\x01\n\x10\x46usionRoundStart\x12\x15\n\x08round_id\x18\x01 \x01(\rH\x00\x88\x01\x01\x12\x15\n\rprobabilities\x18\x02 \x03(\x02\x12\x0f\n\x07yaw_rad\x18\x03 \x01(\x02\x12\x1b\n\x13neighbour_robot_ids\x18\x04 \x03(\r\x12/\n\nweight_law\x18\x05 \x01(\x0b\x32\x16.swarmrec.v1.WeightLawH\x01\x88\x01\x01\x42\x0b\n\t_round_idB\r\n\x0b_weight_law\"9\n\tWeightLaw\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x13\n\x06lambda\x18\x02 \x01(\x01H\x00\x88\x01\x01\x42\t\n\x07_lambda\"^\n\x12\x46usionRoundStarted\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x10\n\x08round_id\x18\x02 \x01(\r\x12\x0c\n\x04sent\x18\x03 \x01(\r\x12\x16\n\x0e\x65\x61rly_messages\x18\x04 \x01(\r\"6\n\x10PosteriorRequest\x12\x15\n\x08round_id\x18\x01 \x01(\rH\x00\x88\x01\x01\x42\x0b\n\t_round_id\"\x85\x01\n\nFusionStep\x12\x17\n\x0forigin_robot_id\x18\x01 \x01(\r\x12\x17\n\x0fsender_robot_id\x18\x02 \x01(\r\x12\x0c\n\x04hops\x18\x03 \x01(\r\x12\x0f\n\x07yaw_rad\x18\x04 \x01(\x02\x12\x0e\n\x06weight\x18\x05 \x01(\x01\x12\x16\n\x0e\x64\x65\x63ision_after\x18\x06 \x01(\r\"\xf0\x01\n\x0f\x46usionPosterior\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x10\n\x08round_id\x18\x02 \x01(\r\x12\x11\n\tposterior\x18\x03 \x03(\x01\x12\x10\n\x08\x64\x65\x63ision\x18\x04 \x01(\r\x12\x14\n\x0cincorporated\x18\x05 \x01(\r\x12\x12\n\nduplicates\x18\x06 \x01(\r\x12\x10\n\x08rejected\x18\x07 \x01(\r\x12\x11\n\theard_all\x18\x08 \x01(\x08\x12(\n\x07history\x18\t \x03(\x0b\x32\x17.swarmrec.v1.FusionStep\x12\x1b\n\x13neighbour_robot_ids\x18\n \x03(\r\"\xa7\x01\n\x0c\x46usionUpdate\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x10\n\x08round_id\x18\x02 \x01(\r\x12%\n\x04step\x18\x03 \x01(\x0b\x32\x17.swarmrec.v1.FusionStep\x12\x11\n\tposterior\x18\x04 \x03(\x01\x12\x10\n\x08\x64\x65\x63ision\x18\x05 \x01(\r\x12\x14\n\x0cincorporated\x18\x06 \x01(\r\x12\x11\n\theard_all\x18\x07 \x01(\x08\"\xb2\x01\n\x0f\x43lassifyRequest\x12\x15\n\x08round_id\x18\x01 \x01(\rH\x00\x88\x01\x01\x12\r\n\x05image\x18\x02 \x01(\x0c\x12\x0f\n\x07yaw_rad\x18\x03 \x01(\x02\x12\x1b\n\x13neighbour_robot_ids\x18\x04 \x03(\r\x12/\n\nweight_law\x18\x05 \x01(\x0b\x32\x16.swarmrec.v1.WeightLawH\x01\x88\x01\x01\x42\x0b\n\t_round_idB\r\n\x0b_weight_law\"\x8d\x01\n\rClassifyReply\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x10\n\x08round_id\x18\x02 \x01(\r\x12\x15\n\rprobabilities\x18\x03 \x03(\x02\x12\x10\n\x08\x64\x65\x63ision\x18\x04 \x01(\r\x12/\n\x06\x66usion\x18\x05 \x01(\x0b\x32\x1f.swarmrec.v1.FusionRoundStartedb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18swarmrec/v1/fusion.proto\x12\x0bswarmrec.v1\"\xab\x01\n\x10\x43lassifierOutput\x12\x17\n\x0forigin_robot_id\x18\x01 \x01(\r\x12\x10\n\x08round_id\x18\x02 \x01(\r\x12\x15\n\rprobabilities\x18\x03 \x03(\x02\x12\x0f\n\x07yaw_rad\x18\x04 \x01(\x02\x12\x11\n\thop_count\x18\x05 \x01(\r\x12\x17\n\x0fsender_robot_id\x18\x06 \x01(\r\x12\x18\n\x10origin_signature\x18\x07 \x01(\x0c\"\xbb\x01\n\x10\x46usionRoundStart\x12\x15\n\x08round_id\x18\x01 \x01(\rH\x00\x88\x01\x01\x12\x15\n\rprobabilities\x18\x02 \x03(\x02\x12\x0f\n\x07yaw_rad\x18\x03 \x01(\x02\x12\x1b\n\x13neighbour_robot_ids\x18\x04 \x03(\r\x12/\n\nweight_law\x18\x05 \x01(\x0b\x32\x16.swarmrec.v1.WeightLawH\x01\x88\x01\x01\x42\x0b\n\t_round_idB\r\n\x0b_weight_law\"9\n\tWeightLaw\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x13\n\x06lambda\x18\x02 \x01(\x01H\x00\x88\x01\x01\x42\t\n\x07_lambda\"^\n\x12\x46usionRoundStarted\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x10\n\x08round_id\x18\x02 \x01(\r\x12\x0c\n\x04sent\x18\x03 \x01(\r\x12\x16\n\x0e\x65\x61rly_messages\x18\x04 \x01(\r\"6\n\x10PosteriorRequest\x12\x15\n\x08round_id\x18\x01 \x01(\rH\x00\x88\x01\x01\x42\x0b\n\t_round_id\"\x85\x01\n\nFusionStep\x12\x17\n\x0forigin_robot_id\x18\x01 \x01(\r\x12\x17\n\x0fsender_robot_id\x18\x02 \x01(\r\x12\x0c\n\x04hops\x18\x03 \x01(\r\x12\x0f\n\x07yaw_rad\x18\x04 \x01(\x02\x12\x0e\n\x06weight\x18\x05 \x01(\x01\x12\x16\n\x0e\x64\x65\x63ision_after\x18\x06 \x01(\r\"\xf0\x01\n\x0f\x46usionPosterior\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x10\n\x08round_id\x18\x02 \x01(\r\x12\x11\n\tposterior\x18\x03 \x03(\x01\x12\x10\n\x08\x64\x65\x63ision\x18\x04 \x01(\r\x12\x14\n\x0cincorporated\x18\x05 \x01(\r\x12\x12\n\nduplicates\x18\x06 \x01(\r\x12\x10\n\x08rejected\x18\x07 \x01(\r\x12\x11\n\theard_all\x18\x08 \x01(\x08\x12(\n\x07history\x18\t \x03(\x0b\x32\x17.swarmrec.v1.FusionStep\x12\x1b\n\x13neighbour_robot_ids\x18\n \x03(\r\"\xa7\x01\n\x0c\x46usionUpdate\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x10\n\x08round_id\x18\x02 \x01(\r\x12%\n\x04step\x18\x03 \x01(\x0b\x32\x17.swarmrec.v1.FusionStep\x12\x11\n\tposterior\x18\x04 \x03(\x01\x12\x10\n\x08\x64\x65\x63ision\x18\x05 \x01(\r\x12\x14\n\x0cincorporated\x18\x06 \x01(\r\x12\x11\n\theard_all\x18\x07 \x01(\x08\"\xb2\x01\n\x0f\x43lassifyRequest\x12\x15\n\x08round_id\x18\x01 \x01(\rH\x00\x88\x01\x01\x12\r\n\x05image\x18\x02 \x01(\x0c\x12\x0f\n\x07yaw_rad\x18\x03 \x01(\x02\x12\x1b\n\x13neighbour_robot_ids\x18\x04 \x03(\r\x12/\n\nweight_law\x18\x05 \x01(\x0b\x32\x16.swarmrec.v1.WeightLawH\x01\x88\x01\x01\x42\x0b\n\t_round_idB\r\n\x0b_weight_law\"\x8d\x01\n\rClassifyReply\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x10\n\x08round_id\x18\x02 \x01(\r\x12\x15\n\rprobabilities\x18\x03 \x03(\x02\x12\x10\n\x08\x64\x65\x63ision\x18\x04 \x01(\r\x12/\n\x06\x66usion\x18\x05 \x01(\x0b\x32\x1f.swarmrec.v1.FusionRoundStartedb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -32,23 +32,23 @@ _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, __name__, _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_CLASSIFIEROUTPUT']._serialized_start=42
-  _globals['_CLASSIFIEROUTPUT']._serialized_end=187
-  _globals['_FUSIONROUNDSTART']._serialized_start=190
-  _globals['_FUSIONROUNDSTART']._serialized_end=377
-  _globals['_WEIGHTLAW']._serialized_start=379
-  _globals['_WEIGHTLAW']._serialized_end=436
-  _globals['_FUSIONROUNDSTARTED']._serialized_start=438
-  _globals['_FUSIONROUNDSTARTED']._serialized_end=532
-  _globals['_POSTERIORREQUEST']._serialized_start=534
-  _globals['_POSTERIORREQUEST']._serialized_end=588
-  _globals['_FUSIONSTEP']._serialized_start=591
-  _globals['_FUSIONSTEP']._serialized_end=724
-  _globals['_FUSIONPOSTERIOR']._serialized_start=727
-  _globals['_FUSIONPOSTERIOR']._serialized_end=967
-  _globals['_FUSIONUPDATE']._serialized_start=970
-  _globals['_FUSIONUPDATE']._serialized_end=1137
-  _globals['_CLASSIFYREQUEST']._serialized_start=1140
-  _globals['_CLASSIFYREQUEST']._serialized_end=1318
-  _globals['_CLASSIFYREPLY']._serialized_start=1321
-  _globals['_CLASSIFYREPLY']._serialized_end=1462
+  _globals['_CLASSIFIEROUTPUT']._serialized_end=213
+  _globals['_FUSIONROUNDSTART']._serialized_start=216
+  _globals['_FUSIONROUNDSTART']._serialized_end=403
+  _globals['_WEIGHTLAW']._serialized_start=405
+  _globals['_WEIGHTLAW']._serialized_end=462
+  _globals['_FUSIONROUNDSTARTED']._serialized_start=464
+  _globals['_FUSIONROUNDSTARTED']._serialized_end=558
+  _globals['_POSTERIORREQUEST']._serialized_start=560
+  _globals['_POSTERIORREQUEST']._serialized_end=614
+  _globals['_FUSIONSTEP']._serialized_start=617
+  _globals['_FUSIONSTEP']._serialized_end=750
+  _globals['_FUSIONPOSTERIOR']._serialized_start=753
+  _globals['_FUSIONPOSTERIOR']._serialized_end=993
+  _globals['_FUSIONUPDATE']._serialized_start=996
+  _globals['_FUSIONUPDATE']._serialized_end=1163
+  _globals['_CLASSIFYREQUEST']._serialized_start=1166
+  _globals['_CLASSIFYREQUEST']._serialized_end=1344
+  _globals['_CLASSIFYREPLY']._serialized_start=1347
+  _globals['_CLASSIFYREPLY']._serialized_end=1488
 # @@protoc_insertion_point(module_scope)
