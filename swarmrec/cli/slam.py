@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import TypedDict
 
 from swarmrec.cli.common import Subparsers
 from swarmrec.slam.centralized import METHODS
-from swarmrec.slam.dgs import DEFAULT_ETA, DEFAULT_LINEARISATIONS, MODES, DgsSettings, Mode
-from swarmrec.slam.ordering import ORDERINGS, Ordering
+from swarmrec.slam.dgs import DEFAULT_ETA, DEFAULT_LINEARISATIONS, MODES, DgsSettings
+from swarmrec.slam.ordering import ORDERINGS
 from swarmrec.slam.scenarios import WORLDS
 
 __all__ = ["add", "run"]
@@ -41,40 +40,18 @@ def _solver_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--centralized", choices=METHODS, default="gauss-newton", help="gtsam's reference method")
 
 
-class SolverArgs(TypedDict):
-    """The solver's settings as keyword arguments of the settings objects."""
-
-    mode: Mode
-    order: Ordering
-    gamma: float | None
-    eta_rotation: float
-    eta_pose: float
-    max_iterations: int
-    pose_linearisations: int
-
-
-def _solver(args: argparse.Namespace) -> SolverArgs:
-    d = (
-        DgsSettings.paper()
-        if args.paper
-        else DgsSettings(
-            args.mode,
-            args.order,
-            args.gamma,
-            args.eta_rotation,
-            args.eta_pose,
-            args.max_iterations,
-            args.pose_linearisations,
-        )
-    )
-    return SolverArgs(
-        mode=d.mode,
-        order=d.order,
-        gamma=d.gamma,
-        eta_rotation=d.eta_rotation,
-        eta_pose=d.eta_pose,
-        max_iterations=d.max_iterations,
-        pose_linearisations=d.pose_linearisations,
+def _solver(args: argparse.Namespace) -> DgsSettings:
+    """The solver's settings from its flags (``--paper``: the paper's method)."""
+    if args.paper:
+        return DgsSettings.paper()
+    return DgsSettings(
+        args.mode,
+        args.order,
+        args.gamma,
+        args.eta_rotation,
+        args.eta_pose,
+        args.max_iterations,
+        args.pose_linearisations,
     )
 
 
@@ -200,9 +177,8 @@ def run(args: argparse.Namespace) -> int:
 def run_solve(args: argparse.Namespace) -> int:
     from swarmrec.slam.offline import SlamSettings, main
 
-    solver = _solver(args)
     settings = SlamSettings(
-        args.folder, args.out, centralized=args.centralized, overwrite=args.overwrite, **solver
+        args.folder, args.out, solver=_solver(args), centralized=args.centralized, overwrite=args.overwrite
     )
     summary = main(settings)
     return 0 if summary.converged else 1
@@ -224,7 +200,7 @@ def run_live(args: argparse.Namespace) -> int:
         check=not args.no_check,
         progress=not args.quiet,
         overwrite=args.overwrite,
-        **_solver(args),
+        solver=_solver(args),
     )
     summary = main(settings)
     print(format_summary(summary))
@@ -250,7 +226,7 @@ def run_merge(args: argparse.Namespace) -> int:
         centralized=args.centralized,
         progress=not args.quiet,
         overwrite=args.overwrite,
-        **_solver(args),
+        solver=_solver(args),
     )
     summary = merge_run(settings)
     print(format_merge(summary))

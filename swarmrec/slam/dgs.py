@@ -37,7 +37,7 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 
@@ -109,19 +109,6 @@ class DgsSettings:
         if self.gamma is not None:
             return self.gamma
         return DEFAULT_GAMMA if self.mode == "gauss-seidel" else 1.0
-
-    @staticmethod
-    def of(settings: Any) -> DgsSettings:
-        """The solver settings of a command's settings that carry the same seven fields."""
-        return DgsSettings(
-            settings.mode,
-            settings.order,
-            settings.gamma,
-            settings.eta_rotation,
-            settings.eta_pose,
-            settings.max_iterations,
-            settings.pose_linearisations,
-        )
 
     @staticmethod
     def paper(eta: float = 1e-1) -> DgsSettings:

@@ -24,16 +24,12 @@ from typing import Any
 from swarmrec.errors import ConfigError
 from swarmrec.slam.centralized import METHODS, Method, solve_centralized
 from swarmrec.slam.dgs import (
-    DEFAULT_ETA,
-    DEFAULT_LINEARISATIONS,
     DgsSettings,
     DistributedResult,
-    Mode,
     run_dgs,
 )
 from swarmrec.slam.g2o import read_robot_folder, robot_file_name, write_g2o
 from swarmrec.slam.metrics import Accuracy, accuracy
-from swarmrec.slam.ordering import Ordering
 
 __all__ = ["LinkTraffic", "SlamSettings", "SolveSummary", "StageReport", "Timings", "main", "solve_folder"]
 
@@ -46,9 +42,8 @@ class SlamSettings:
 
     - ``folder``: the robot folder (``0.g2o``, ``1.g2o``, ..., optional ``fullGraph.g2o``).
     - ``out``: where the estimates and ``summary.json`` are written.
-    - ``mode``, ``order``, ``gamma``, ``eta_rotation``, ``eta_pose``, ``max_iterations``,
-      ``pose_linearisations``: the distributed solver's (:class:`~swarmrec.slam.dgs.DgsSettings`;
-      ``gamma`` None takes the mode's default). :meth:`paper` gives the paper's method.
+    - ``solver``: the distributed solver's settings (:class:`~swarmrec.slam.dgs.DgsSettings`, the
+      one class every SLAM command takes them in). :meth:`paper` gives the paper's method.
     - ``centralized``: gtsam's reference method, ``gauss-newton`` or ``levenberg-marquardt``.
     - ``bytes_per_float``: 8 (float64, what the agents compute in) or 4, for the byte model.
     - ``overwrite``: replace an earlier result in ``out``.
@@ -56,17 +51,10 @@ class SlamSettings:
 
     folder: Path
     out: Path
-    mode: Mode = "gauss-seidel"
-    order: Ordering = "flagged"
-    gamma: float | None = None
-    eta_rotation: float = DEFAULT_ETA
-    eta_pose: float = DEFAULT_ETA
-    max_iterations: int = 1000
-    pose_linearisations: int = DEFAULT_LINEARISATIONS
+    solver: DgsSettings = field(default_factory=DgsSettings)
     centralized: Method = "gauss-newton"
     bytes_per_float: int = 8
     overwrite: bool = False
-    dgs: DgsSettings = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "folder", Path(self.folder))
@@ -83,14 +71,11 @@ class SlamSettings:
             raise ConfigError(f"centralized must be one of {METHODS}, got {self.centralized!r}")
         if self.bytes_per_float not in (4, 8):
             raise ConfigError(f"bytes_per_float must be 4 or 8, got {self.bytes_per_float}")
-        object.__setattr__(self, "dgs", DgsSettings.of(self))
 
     @staticmethod
     def paper(folder: Path, out: Path, *, eta: float = 1e-1, overwrite: bool = False) -> SlamSettings:
         """The paper's method: plain Gauss-Seidel, one linearisation, eta 0.1 (or 0.01)."""
-        return SlamSettings(
-            folder, out, gamma=1.0, eta_rotation=eta, eta_pose=eta, pose_linearisations=1, overwrite=overwrite
-        )
+        return SlamSettings(folder, out, solver=DgsSettings.paper(eta), overwrite=overwrite)
 
 
 @dataclass(frozen=True)
@@ -179,7 +164,7 @@ def solve_folder(settings: SlamSettings) -> SolveSummary:
     team = read_robot_folder(settings.folder)
     graph = team.graph
     t1 = time.perf_counter()
-    result = run_dgs(graph, settings.dgs)
+    result = run_dgs(graph, settings.solver)
     t2 = time.perf_counter()
     reference = solve_centralized(graph, method=settings.centralized, anchor=result.anchor)
     t3 = time.perf_counter()
@@ -205,11 +190,11 @@ def solve_folder(settings: SlamSettings) -> SolveSummary:
         edges=len(graph.edges),
         separators=len(graph.separators()),
         order=result.order,
-        mode=settings.dgs.mode,
-        gamma=settings.dgs.over_relaxation,
-        eta_rotation=settings.eta_rotation,
-        eta_pose=settings.eta_pose,
-        pose_linearisations=settings.pose_linearisations,
+        mode=settings.solver.mode,
+        gamma=settings.solver.over_relaxation,
+        eta_rotation=settings.solver.eta_rotation,
+        eta_pose=settings.solver.eta_pose,
+        pose_linearisations=settings.solver.pose_linearisations,
         stages=tuple(
             StageReport(s.stage, s.linearisation, s.iterations, s.converged, s.floats) for s in result.stages
         ),

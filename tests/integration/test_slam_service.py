@@ -201,15 +201,11 @@ def test_the_live_solve_sends_run_dgs_messages_bit_for_bit_and_counts_their_byte
 def test_a_robot_killed_mid_solve_leaves_the_others_at_the_last_consistent_estimate(
     slam_swarm: LocalDeployment, team: Team, tmp_path: Path
 ) -> None:
-    solver = {"eta_rotation": 1e-4, "eta_pose": 1e-4}
+    solver = DgsSettings(eta_rotation=1e-4, eta_pose=1e-4)
     settings = LiveSlamSettings(
-        out=tmp_path / "out",
-        folder=team.folder,
-        swarm=slam_swarm.spec_swarm,
-        progress=False,
-        **solver,  # type: ignore[arg-type]
+        out=tmp_path / "out", folder=team.folder, swarm=slam_swarm.spec_swarm, progress=False, solver=solver
     )
-    reference = run_dgs(team.graph, DgsSettings(**solver), trace=True)  # type: ignore[arg-type]
+    reference = run_dgs(team.graph, solver, trace=True)
     trace = {(t.linearisation, t.iteration): t.poses for t in reference.trace}
     victim = slam_swarm.find("slam", 2)
     killed_at: list[tuple[int, int]] = []

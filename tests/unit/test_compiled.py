@@ -193,6 +193,10 @@ def test_a_service_process_gets_the_zenoh_runtime_its_settings_name_unless_the_e
     from swarmrec.runtime.runner import choose_zenoh_runtime
     from swarmrec.runtime.settings import SINGLE_THREAD_RUNTIME
 
+    # choose_zenoh_runtime writes os.environ itself, behind monkeypatch's back: the whole
+    # environment is restored at the end (a ZENOH_RUNTIME left set here once reached every
+    # router later tests started, and a router on one thread stalls).
+    monkeypatch.setattr(os, "environ", os.environ.copy())
     monkeypatch.delenv("ZENOH_RUNTIME", raising=False)
     choose_zenoh_runtime(BusSettings(zenoh_runtime="pools"))
     assert "ZENOH_RUNTIME" not in os.environ  # zenoh's own pools: nothing to say

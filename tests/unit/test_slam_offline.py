@@ -11,6 +11,7 @@ import pytest
 import swarmrec.slam as slam
 from swarmrec.errors import ConfigError
 from swarmrec.slam.centralized import solve_centralized
+from swarmrec.slam.dgs import DgsSettings
 from swarmrec.slam.g2o import read_g2o, write_g2o
 from swarmrec.slam.graph import PoseGraph
 from swarmrec.slam.metrics import ate_star
@@ -80,14 +81,15 @@ def test_settings_refuse_what_cannot_work(team: tuple[Path, PoseGraph], tmp_path
     with pytest.raises(ConfigError, match="bytes_per_float"):
         SlamSettings(folder, tmp_path / "out", bytes_per_float=3)
     with pytest.raises(ConfigError, match="gamma"):
-        SlamSettings(folder, tmp_path / "out", gamma=2.5)
+        SlamSettings(folder, tmp_path / "out", solver=DgsSettings(gamma=2.5))
     with pytest.raises(ConfigError, match="centralized"):
         SlamSettings(folder, tmp_path / "out", centralized="dogleg")  # type: ignore[arg-type]
     solve_folder(SlamSettings(folder, tmp_path / "out"))
     with pytest.raises(ConfigError, match="add --overwrite"):
         SlamSettings(folder, tmp_path / "out")
-    assert SlamSettings(folder, tmp_path / "out", overwrite=True).dgs.over_relaxation == 1.9
-    assert SlamSettings(folder, tmp_path / "j", mode="jacobi").dgs.over_relaxation == 1.0
+    assert SlamSettings(folder, tmp_path / "out", overwrite=True).solver.over_relaxation == 1.9
+    jacobi = SlamSettings(folder, tmp_path / "j", solver=DgsSettings(mode="jacobi"))
+    assert jacobi.solver.over_relaxation == 1.0
 
 
 def test_public_names_exist_once() -> None:

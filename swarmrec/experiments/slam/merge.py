@@ -55,14 +55,13 @@ from swarmrec.experiments.slam.report import LiveSlamSummary, plot_maps
 from swarmrec.experiments.slam.settings import SUMMARY_NAME, LiveSlamSettings
 from swarmrec.slam.alignment import ransac_rigid
 from swarmrec.slam.centralized import METHODS, Method, solve_centralized
-from swarmrec.slam.dgs import DEFAULT_ETA, DEFAULT_LINEARISATIONS, DgsSettings, Mode, run_dgs
+from swarmrec.slam.dgs import DgsSettings, run_dgs
 from swarmrec.slam.errors import AlignmentError, GraphError
 from swarmrec.slam.g2o import parse_g2o, read_g2o, read_robot_folder, robot_file_name, write_g2o
 from swarmrec.slam.graph import Edge, PoseGraph
 from swarmrec.slam.keys import pose_key
 from swarmrec.slam.lie import Pose, so3_exp, so3_log
 from swarmrec.slam.offline import finite_json
-from swarmrec.slam.ordering import Ordering
 from swarmrec.slam.robust import gnc, pcm
 from swarmrec.wire.codec import constellation_from_proto, constellation_to_proto
 
@@ -92,6 +91,7 @@ class MergeSettings:
       before the robots' graphs are written. ``pair_support``: keep a pair of robots'
       constraints only when at least this many survive (a lone one is never contradicted).
     - ``live``: solve as slam services (else :func:`~swarmrec.slam.dgs.run_dgs` in one process).
+    - ``solver``: the distributed solver's settings (:class:`~swarmrec.slam.dgs.DgsSettings`).
     """
 
     run: Path
@@ -106,17 +106,10 @@ class MergeSettings:
     pair_support: int = 1
     live: bool = True
     security: Security = "mtls"
-    mode: Mode = "gauss-seidel"
-    order: Ordering = "flagged"
-    gamma: float | None = None
-    eta_rotation: float = DEFAULT_ETA
-    eta_pose: float = DEFAULT_ETA
-    max_iterations: int = 1000
-    pose_linearisations: int = DEFAULT_LINEARISATIONS
+    solver: DgsSettings = field(default_factory=DgsSettings)
     centralized: Method = "gauss-newton"
     progress: bool = True
     overwrite: bool = False
-    dgs: DgsSettings = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "run", Path(self.run))
@@ -139,7 +132,6 @@ class MergeSettings:
             raise ConfigError(f"centralized must be one of {METHODS}, got {self.centralized!r}")
         if self.reject not in REJECTIONS:
             raise ConfigError(f"reject must be one of {REJECTIONS}, got {self.reject!r}")
-        object.__setattr__(self, "dgs", DgsSettings.of(self))
 
 
 @dataclass(frozen=True)
@@ -456,20 +448,14 @@ def merge_run(settings: MergeSettings) -> MergeSummary:
                 security=settings.security,
                 progress=settings.progress,
                 overwrite=True,
-                mode=settings.mode,
-                order=settings.order,
-                gamma=settings.gamma,
-                eta_rotation=settings.eta_rotation,
-                eta_pose=settings.eta_pose,
-                max_iterations=settings.max_iterations,
-                pose_linearisations=settings.pose_linearisations,
+                solver=settings.solver,
             )
         )
         outcome = live.outcome
         estimate = _read_estimate(out / "live", graph)
         files.append(str(out / "live"))
     else:
-        result = run_dgs(read_robots(folder), settings.dgs)
+        result = run_dgs(read_robots(folder), settings.solver)
         outcome = "converged" if result.converged else "unconverged"
         estimate = result.poses
     timings["solve_s"] = time.perf_counter() - t0

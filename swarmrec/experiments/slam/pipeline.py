@@ -117,7 +117,7 @@ def solve_live(
     team = range(robots)
     before = [_call(client, swarm, r, "status", pb.SlamStatusRequest(), pb.SlamStatus) for r in team]
     solve_id = max(s.solve_id for s in before) + 1
-    load = pb.SlamLoadRequest(solve_id=solve_id, settings=settings_to_proto(settings.dgs))
+    load = pb.SlamLoadRequest(solve_id=solve_id, settings=settings_to_proto(settings.solver))
     for r in team:
         _call(client, swarm, r, "load", load, pb.SlamProblem)
     t0 = time.perf_counter()

@@ -390,7 +390,7 @@ def write_report(record: LiveRecord, t_start: float) -> LiveSlamSummary:
     check = None
     if s.check:
         t0 = time.perf_counter()
-        reference = run_dgs(graph, s.dgs, trace=outcome not in ("converged", "unconverged"))
+        reference = run_dgs(graph, s.solver, trace=outcome not in ("converged", "unconverged"))
         timings["reference_s"] = time.perf_counter() - t0
         check = check_against_reference(results, reference, graph)
     poses = [k for k in graph.keys if k in merged and not is_landmark_key(k)]
@@ -435,7 +435,7 @@ def write_report(record: LiveRecord, t_start: float) -> LiveSlamSummary:
         edges=len(graph.edges),
         separators=len(graph.separators()),
         solve_id=record.solve_id,
-        solver=asdict(s.dgs) | {"gamma": s.dgs.over_relaxation},
+        solver=asdict(s.solver) | {"gamma": s.solver.over_relaxation},
         outcome=outcome,
         robot_outcomes=[
             RobotOutcome(
