@@ -351,7 +351,10 @@ class LiveView:
                 page = call("sent", pb.SlamSentRequest(offset=0), pb.SlamSentPage)
                 shared = separator_keys(page.steps)
                 if shared or status.state in _SLAM_ENDED:
-                    self.separators[(robot, status.solve_id)] = shared
+                    with self.lock:  # one solve a robot kept: the newest
+                        for old in [k for k in self.separators if k[0] == robot]:
+                            del self.separators[old]
+                        self.separators[(robot, status.solve_id)] = shared
         except Exception as e:  # the page shows why, and keeps polling
             return slam_robot_view(None, None, {}, robot, error=str(e))
         return slam_robot_view(status, estimate, shared or {}, robot)
