@@ -54,14 +54,11 @@ from swarmrec.services.settings import GatewaySettings, IndexSettings
 
 __all__ = ["LocalDeployment", "ServiceProcess", "free_port"]
 
-#: A router that cannot listen on the port it was given (taken between choosing and
-#: binding it) exits at once; it is started again on another port this many times.
-ROUTER_ATTEMPTS = 5
-
 
 def free_port() -> int:
     """A TCP port free on loopback right now (the OS picks it). Another process may take
-    it before it is used: :meth:`LocalDeployment.start_router` retries on another."""
+    it before it is used: servers that can bind port 0 and say their port should (the
+    router does, :meth:`LocalDeployment.start_router`)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         port: int = s.getsockname()[1]
@@ -117,6 +114,16 @@ class ServiceProcess:
             return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-n:])
         except OSError:
             return ""
+
+
+def _listening_port(ready: dict[str, object]) -> int:
+    """The port a router's readiness line says it listens on (its first endpoint)."""
+    listen = ready.get("listen")
+    if isinstance(listen, list) and listen and isinstance(listen[0], str):
+        port = listen[0].rsplit(":", 1)[-1].split("#", 1)[0]
+        if port.isdigit() and int(port) > 0:
+            return int(port)
+    raise SwarmStartError(f"the router did not say which port it listens on (its readiness line: {ready})")
 
 
 def _for_robots(timeout_s: float, robots: int) -> float:
@@ -283,8 +290,9 @@ class LocalDeployment:
         return config.replace(security)
 
     def start_router(self, spec: SwarmSpec, timeout_s: float = 30.0) -> None:
-        """The run's PKI (mutual TLS), then the router on a free port (another one if that
-        port was taken meanwhile)."""
+        """The run's PKI (mutual TLS), then the router: on the port it had (a restart, or
+        ``router_port`` given), else on the one the OS gives it (port 0), read from its
+        readiness line: no port is chosen here and then lost to another program."""
         self.spec = spec
         if self.security == "mtls":
             # A hosting process presents a host certificate covering its robots; a robot
@@ -299,17 +307,16 @@ class LocalDeployment:
             ids = max(spec.robots, index.max_shards if isinstance(index, IndexSettings) else 0)
             self.pki_dir = swarm_pki(self.data_dir / "pki", spec.swarm, ids, hosts=sorted(hosts), kinds=kinds)
         fixed = self.router_port
-        for attempt in range(1, ROUTER_ATTEMPTS + 1):
-            self.router_port = fixed or free_port()
-            config = spec.config_for("router", 0, listen=(self.endpoint,), metrics_port=0)
-            self.router = self._spawn("router", 0, config_flags(self._secured(config, "router")))
-            try:
-                self._wait([self.router], timeout_s)
-                break
-            except SwarmStartError:
-                self.router.release()
-                if fixed or attempt == ROUTER_ATTEMPTS:
-                    raise
+        self.router_port = fixed or 0
+        config = spec.config_for("router", 0, listen=(self.endpoint,), metrics_port=0)
+        self.router = self._spawn("router", 0, config_flags(self._secured(config, "router")))
+        try:
+            self._wait([self.router], timeout_s)
+        except SwarmStartError:
+            self.router.release()
+            raise
+        if not fixed:
+            self.router_port = _listening_port(self.router.info)
         if self.link.limited or self.schedule is not None:
             self._start_links(spec)
 

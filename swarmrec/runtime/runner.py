@@ -362,6 +362,11 @@ def zenoh_config(
         # zenoh holds a router's open half a second for peers it might scout; with multicast
         # off there are none to wait for (every client dials it), so its start is 0.5 s shorter.
         conf.insert_json5("scouting/delay", "0")
+        # Its admin space says where it listens (a port 0 is the port the OS gave:
+        # router_locators). Read-only; under mutual TLS the access control grants no one
+        # else its keys (@/**), so only the router's own session reads it.
+        conf.insert_json5("adminspace/enabled", "true")
+        conf.insert_json5("adminspace/permissions", json.dumps({"read": True, "write": False}))
     no_shared_memory(conf)
     if security is not None:
         apply_security(conf, bus, security, identity=identity, log=log or logging.getLogger("swarmrec"))
@@ -908,9 +913,11 @@ def run_services(
                 else {"event": "ready", "services": services}
             )
             ready["dispatch"] = "queue" if queues else "channel"
-            if bus.listen:
-                ready["listen"] = list(bus.listen)
-            host_log.info("ready", extra={"fields": {"services": services, "listen": list(bus.listen)}})
+            listen = router_locators(session) if bus.mode == "router" else []
+            listen = listen or list(bus.listen)
+            if listen:
+                ready["listen"] = listen
+            host_log.info("ready", extra={"fields": {"services": services, "listen": listen}})
             print(json.dumps(ready), flush=True)
             if on_ready is not None:
                 for r in running:
@@ -932,6 +939,20 @@ def run_services(
                 server.close()
     host_log.info("stopped")
     return 0
+
+
+def router_locators(session: zenoh.Session, timeout_s: float = 2.0) -> list[str]:
+    """Where a router session listens, as zenoh bound it (a port 0 replaced by the port the
+    OS gave), from its own admin space; [] when it does not say."""
+    key = f"@/{session.info.zid()}/router"
+    try:
+        for reply in session.get(key, timeout=timeout_s):
+            if reply.ok is not None:
+                found = json.loads(reply.ok.payload.to_string()).get("locators", [])
+                return [str(x) for x in found if isinstance(x, str)]
+    except (zenoh.ZError, ValueError):
+        pass
+    return []
 
 
 def open_session(conf: zenoh.Config, stop: threading.Event) -> zenoh.Session | None:

@@ -85,6 +85,21 @@ def test_every_service_process_runs_with_its_own_certificate_and_the_router_with
     }
 
 
+def test_the_router_says_its_port_and_shows_its_admin_space_to_no_one_else(swarm: LocalDeployment) -> None:
+    # It listened on port 0: the port the OS gave it is the one its readiness line names.
+    assert swarm.router is not None
+    (listen,) = swarm.router.info["listen"]  # type: ignore[misc]
+    assert listen == swarm.endpoint and not swarm.endpoint.endswith(":0")
+    # Its admin space (where it learns that port) is enabled, and the access control keeps
+    # every other identity out of it: a client's and a robot's queries get no reply.
+    for cn in (f"client.cli.{swarm.spec_swarm}", f"r1.verifier.{swarm.spec_swarm}"):
+        with _as(swarm, cn) as client:
+            own = str(client.session.info.zid())  # a session answers for its own admin space
+            replies = [r.ok for r in client.session.get("@/**", timeout=2.0) if r.ok is not None]
+            others = [str(r.key_expr) for r in replies if not str(r.key_expr).startswith(f"@/{own}/")]
+            assert others == [], cn
+
+
 def test_a_client_with_a_valid_certificate_is_served(swarm: LocalDeployment) -> None:
     with _as(swarm, f"client.cli.{swarm.spec_swarm}") as client:
         assert len(client.members()) == 1 + 2 * ROBOTS
