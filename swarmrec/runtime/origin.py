@@ -18,6 +18,7 @@ every :data:`RETRY_S`, so a refused certificate costs no repeated work.
 from __future__ import annotations
 
 import datetime as dt
+import stat
 import threading
 import time
 from collections.abc import Callable
@@ -32,10 +33,27 @@ from cryptography.x509.oid import NameOID
 
 from swarmrec.errors import SecurityError
 
-__all__ = ["RETRY_S", "OriginSigner", "OriginVerifier"]
+__all__ = ["RETRY_S", "OriginSigner", "OriginVerifier", "PrivateKey", "load_private_key"]
 
 #: How often a robot's certificate that did not pass (missing, foreign, expired) is read again.
 RETRY_S = 10.0
+
+PrivateKey = ec.EllipticCurvePrivateKey | ed25519.Ed25519PrivateKey
+
+
+def load_private_key(path: Path) -> PrivateKey:
+    """The PKI's private key in ``path`` (unencrypted PEM, ECDSA or Ed25519, readable by its
+    owner only); SecurityError saying which file and why otherwise."""
+    mode = path.stat().st_mode
+    if mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise SecurityError(f"{path}: private key is accessible to group or others (mode {mode & 0o777:o})")
+    try:
+        key = serialization.load_pem_private_key(path.read_bytes(), password=None)
+    except (OSError, ValueError, TypeError) as e:
+        raise SecurityError(f"{path}: not a readable unencrypted PEM private key ({e})") from None
+    if not isinstance(key, ec.EllipticCurvePrivateKey | ed25519.Ed25519PrivateKey):
+        raise SecurityError(f"{path}: key type {type(key).__name__} is not EC or Ed25519")
+    return key
 
 
 class OriginSigner:
@@ -43,12 +61,9 @@ class OriginSigner:
 
     def __init__(self, key_path: Path) -> None:
         try:
-            key = serialization.load_pem_private_key(key_path.read_bytes(), password=None)
-        except (OSError, ValueError, TypeError) as e:
+            self._key = load_private_key(key_path)
+        except OSError as e:  # no such file: said as every other unreadable key
             raise SecurityError(f"{key_path}: cannot read the signing key: {e}") from e
-        if not isinstance(key, ec.EllipticCurvePrivateKey | ed25519.Ed25519PrivateKey):
-            raise SecurityError(f"{key_path}: an ECDSA or Ed25519 key is needed, got {type(key).__name__}")
-        self._key = key
 
     def sign(self, statement: bytes) -> bytes:
         if isinstance(self._key, ec.EllipticCurvePrivateKey):

@@ -11,7 +11,6 @@ from __future__ import annotations
 import datetime as dt
 import ipaddress
 import re
-import stat
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Literal
@@ -23,6 +22,7 @@ from cryptography.hazmat.primitives.asymmetric import ec, ed25519
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from swarmrec.errors import CertificateExpiredError, ConfigError, SecurityError
+from swarmrec.runtime.origin import PrivateKey, load_private_key
 from swarmrec.security.identity import Identity
 
 __all__ = [
@@ -43,7 +43,6 @@ __all__ = [
 ]
 
 KeyType = Literal["p256", "ed25519"]
-PrivateKey = ec.EllipticCurvePrivateKey | ed25519.Ed25519PrivateKey
 
 # Certificates start a little in the past: a robot whose clock is a few
 # minutes behind the machine that issued its certificate must still accept it.
@@ -197,19 +196,6 @@ def load_certificate(path: Path) -> x509.Certificate:
         return x509.load_pem_x509_certificate(path.read_bytes())
     except (OSError, ValueError) as e:
         raise SecurityError(f"{path}: not a readable PEM certificate ({e})") from None
-
-
-def load_private_key(path: Path) -> PrivateKey:
-    mode = path.stat().st_mode
-    if mode & (stat.S_IRWXG | stat.S_IRWXO):
-        raise SecurityError(f"{path}: private key is accessible to group or others (mode {mode & 0o777:o})")
-    try:
-        key = serialization.load_pem_private_key(path.read_bytes(), password=None)
-    except (OSError, ValueError, TypeError) as e:
-        raise SecurityError(f"{path}: not a readable unencrypted PEM private key ({e})") from None
-    if not isinstance(key, ec.EllipticCurvePrivateKey | ed25519.Ed25519PrivateKey):
-        raise SecurityError(f"{path}: key type {type(key).__name__} is not EC or Ed25519")
-    return key
 
 
 def check_validity(
