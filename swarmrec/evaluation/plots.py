@@ -96,6 +96,43 @@ def plot_similarity(
     plt.close(fig)
 
 
+def plot_closures_map(
+    positions: npt.NDArray[np.float64],
+    robot_starts: Sequence[int],
+    closures: Sequence[tuple[int, int]],
+    truth: npt.NDArray[np.bool_] | None,
+    title: str,
+    path: Path,
+) -> tuple[int, int]:
+    """The camera trajectory seen from above (x, y of ``positions``, one colour per robot's
+    block of frames from ``robot_starts``) with each loop closure (two frame indices) drawn
+    between its frames: green where ``truth`` says the pair is a true closure, red where not,
+    grey without a truth. Returns (true, false) closures drawn."""
+    n = positions.shape[0]
+    edges = [*[int(s) for s in robot_starts], n] if robot_starts else [0, n]
+    colours = plt.get_cmap("tab10")
+    fig, ax = plt.subplots(figsize=(6.2, 5.6))
+    for r, (a, b) in enumerate(pairwise(edges)):
+        ax.plot(positions[a:b, 0], positions[a:b, 1], lw=0.8, color=colours(r % 10), label=f"robot {r}")
+    right = wrong = 0
+    for q, m in closures:
+        ok = None if truth is None else bool(truth[q, m])
+        right, wrong = right + (ok is True), wrong + (ok is False)
+        colour = "0.4" if ok is None else ("tab:green" if ok else "tab:red")
+        ax.plot(*zip(positions[q, :2], positions[m, :2], strict=True), lw=0.7, color=colour, alpha=0.8)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    said = f"{right} true, {wrong} false" if truth is not None else f"{len(closures)}"
+    ax.set_title(f"{title}: loop closures on the trajectory ({said})", fontsize=9)
+    if len(edges) - 1 <= 12:
+        ax.legend(loc="best", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return right, wrong
+
+
 def plot_pr(curves: dict[str, PRCurve], path: Path) -> None:
     """Precision over recall, one line per mode, AUC in the legend (paper Fig. 5)."""
     fig, ax = plt.subplots(figsize=(5, 4))

@@ -77,6 +77,7 @@ def test_synthetic_swarm_of_four_scores_every_pair_as_the_offline_evaluation(
         "precision_recall.png",
         "shard_load.png",
         "bytes_per_query.png",
+        "closures_map.png",  # the synthetic world's camera poses are known
         "loop_closures.csv",
     ):
         assert (tmp_path / "run" / name).stat().st_size > 0

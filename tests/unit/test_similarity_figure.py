@@ -7,7 +7,7 @@ from pathlib import Path
 import matplotlib.image as mpimg
 import numpy as np
 
-from swarmrec.evaluation.plots import block_max, plot_similarity
+from swarmrec.evaluation.plots import block_max, plot_closures_map, plot_similarity
 
 
 def test_block_maxima_keep_a_single_score_of_a_big_matrix() -> None:
@@ -47,3 +47,23 @@ def test_the_figure_is_drawn_with_robot_blocks_and_an_empty_matrix_too(tmp_path:
 
     for name in ("a.png", "b.png"):
         assert mpimg.imread(tmp_path / name).shape[2] in (3, 4)
+
+
+def test_closures_on_the_trajectory_are_counted_true_and_false(tmp_path: Path) -> None:
+    # Two robots of two frames each, seen from above; one true and one false closure.
+    positions = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 0.1, 1.0], [5.0, 5.0, 1.0]])
+    truth = np.zeros((4, 4), dtype=bool)
+    truth[0, 2] = truth[2, 0] = True
+    path = tmp_path / "map.png"
+
+    drawn = plot_closures_map(positions, [0, 2], [(0, 2), (1, 3)], truth, "two robots", path)
+
+    assert drawn == (1, 1)
+    pixels = mpimg.imread(path)
+    # The true closure in green and the false one in red are both on the figure.
+    rgb = pixels[..., :3]
+    green = (rgb[..., 1] > 0.45) & (rgb[..., 0] < 0.35) & (rgb[..., 2] < 0.35)
+    red = (rgb[..., 0] > 0.75) & (rgb[..., 1] < 0.3) & (rgb[..., 2] < 0.3)
+    assert green.any() and red.any()
+    # Without a truth nothing is called true or false.
+    assert plot_closures_map(positions, [0, 2], [(0, 2)], None, "no truth", tmp_path / "grey.png") == (0, 0)

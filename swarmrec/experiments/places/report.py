@@ -35,7 +35,14 @@ from swarmrec.datasets.constellations import label_counts
 from swarmrec.deployments.metrics import Scrape
 from swarmrec.evaluation.bandwidth import HolderLoad
 from swarmrec.evaluation.groundtruth import GroundTruth, ground_truth
-from swarmrec.evaluation.plots import plot_bytes, plot_funnel, plot_holder_load, plot_pr, plot_similarity
+from swarmrec.evaluation.plots import (
+    plot_bytes,
+    plot_closures_map,
+    plot_funnel,
+    plot_holder_load,
+    plot_pr,
+    plot_similarity,
+)
 from swarmrec.evaluation.pr import PRCurve, precision_recall
 from swarmrec.evaluation.scoring import ScoreMatrix, decentralized_marks, same_objects, score_decentralized
 from swarmrec.experiments.places.replay import Replay
@@ -671,6 +678,17 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
     write_funnel(out, replay.reports, run.closures, run.blocks, seq)
     if settings.plots:
         _plots(settings, summary, dense, curves, wire_seq, run.bounds, run.blocks, loads)
+        if gt is not None and offline.trajectory is not None:
+            # Where poses are known, the closures on the camera trajectory.
+            positions = offline.trajectory.positions[gt.poses.index]
+            pairs = [
+                (run.blocks[c.query_robot_id].start + c.query_frame_index,
+                 run.blocks[c.match_robot_id].start + c.match_frame_index)
+                for c in run.closures
+            ]  # fmt: skip
+            starts = [b.start for b in run.blocks]
+            title = f"{wire_seq.name}, {settings.robots} robots"
+            plot_closures_map(positions, starts, pairs, gt.closures, title, out / "closures_map.png")
     (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
     return summary
 
