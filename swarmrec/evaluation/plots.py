@@ -96,6 +96,19 @@ def plot_similarity(
     plt.close(fig)
 
 
+#: The robots' trajectories: no green and no red, which mark true and false closures.
+_ROBOT_COLOURS = (
+    "tab:blue",
+    "tab:orange",
+    "tab:purple",
+    "tab:brown",
+    "tab:pink",
+    "tab:gray",
+    "tab:olive",
+    "tab:cyan",
+)
+
+
 def plot_closures_map(
     positions: npt.NDArray[np.float64],
     robot_starts: Sequence[int],
@@ -110,16 +123,16 @@ def plot_closures_map(
     grey without a truth. Returns (true, false) closures drawn."""
     n = positions.shape[0]
     edges = [*[int(s) for s in robot_starts], n] if robot_starts else [0, n]
-    colours = plt.get_cmap("tab10")
     fig, ax = plt.subplots(figsize=(6.2, 5.6))
     for r, (a, b) in enumerate(pairwise(edges)):
-        ax.plot(positions[a:b, 0], positions[a:b, 1], lw=0.8, color=colours(r % 10), label=f"robot {r}")
+        colour = _ROBOT_COLOURS[r % len(_ROBOT_COLOURS)]
+        ax.plot(positions[a:b, 0], positions[a:b, 1], lw=1.4, color=colour, label=f"robot {r}")
     right = wrong = 0
     for q, m in closures:
         ok = None if truth is None else bool(truth[q, m])
         right, wrong = right + (ok is True), wrong + (ok is False)
         colour = "0.4" if ok is None else ("tab:green" if ok else "tab:red")
-        ax.plot(*zip(positions[q, :2], positions[m, :2], strict=True), lw=0.7, color=colour, alpha=0.8)
+        ax.plot(*zip(positions[q, :2], positions[m, :2], strict=True), lw=0.7, color=colour, alpha=0.85)
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")

@@ -62,8 +62,9 @@ def test_closures_on_the_trajectory_are_counted_true_and_false(tmp_path: Path) -
     pixels = mpimg.imread(path)
     # The true closure in green and the false one in red are both on the figure.
     rgb = pixels[..., :3]
-    green = (rgb[..., 1] > 0.45) & (rgb[..., 0] < 0.35) & (rgb[..., 2] < 0.35)
-    red = (rgb[..., 0] > 0.75) & (rgb[..., 1] < 0.3) & (rgb[..., 2] < 0.3)
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    green = (g > 0.45) & (r < 0.45) & (b < 0.45) & (g - r > 0.2)
+    red = (r > 0.7) & (g < 0.45) & (b < 0.45) & (r - g > 0.35)  # orange (a robot's) has g 0.5
     assert green.any() and red.any()
     # Without a truth nothing is called true or false.
     assert plot_closures_map(positions, [0, 2], [(0, 2)], None, "no truth", tmp_path / "grey.png") == (0, 0)
