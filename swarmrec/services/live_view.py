@@ -316,17 +316,17 @@ class LiveView:
             "fusion_total": fusion_total,
         }
 
+    def _ask(self, kind: str, robot: int, endpoint: str, request: Message, reply: type[M]) -> M:
+        """One read-only request to ``kind`` of ``robot``, waited for at most SCRAPE_TIMEOUT_S."""
+        key = keys.endpoint(self.swarm, kind, robot, endpoint)
+        return self.client.call(key, request, reply, target_robot=robot, timeout_s=SCRAPE_TIMEOUT_S)
+
     def _cluster_table(self, owners: list[int]) -> int:
         """The cluster table's version, as the first place owner that answers has it (-1: none)."""
         for robot in owners[:3]:
-            key = keys.endpoint(self.swarm, "place-owner", robot, "assignment")
             try:
-                reply = self.client.call(
-                    key,
-                    pb.AssignmentRequest(),
-                    pb.AssignmentReply,
-                    target_robot=robot,
-                    timeout_s=SCRAPE_TIMEOUT_S,
+                reply = self._ask(
+                    "place-owner", robot, "assignment", pb.AssignmentRequest(), pb.AssignmentReply
                 )
             except Exception:
                 continue
@@ -338,17 +338,14 @@ class LiveView:
         return list(self._scraper.map(self._slam_robot, robots[:MAX_SLAM_ROBOTS]))
 
     def _slam_robot(self, robot: int) -> dict[str, Any]:
-        def call(endpoint: str, request: Any, reply: type[M]) -> M:
-            key = keys.endpoint(self.swarm, "slam", robot, endpoint)
-            return self.client.call(key, request, reply, target_robot=robot, timeout_s=SCRAPE_TIMEOUT_S)
-
         try:
-            status = call("status", pb.SlamStatusRequest(), pb.SlamStatus)
-            estimate = call("estimate", pb.SlamEstimateRequest(), pb.SlamEstimate)
-            shared = self.separators.get((robot, status.solve_id))
+            status = self._ask("slam", robot, "status", pb.SlamStatusRequest(), pb.SlamStatus)
+            estimate = self._ask("slam", robot, "estimate", pb.SlamEstimateRequest(), pb.SlamEstimate)
+            with self.lock:
+                shared = self.separators.get((robot, status.solve_id))
             if shared is None and status.order:
                 # The first page holds a step to every neighbour once the team has stepped.
-                page = call("sent", pb.SlamSentRequest(offset=0), pb.SlamSentPage)
+                page = self._ask("slam", robot, "sent", pb.SlamSentRequest(offset=0), pb.SlamSentPage)
                 shared = separator_keys(page.steps)
                 if shared or status.state in _SLAM_ENDED:
                     with self.lock:  # one solve a robot kept: the newest

@@ -681,11 +681,7 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
         if gt is not None and offline.trajectory is not None:
             # Where poses are known, the closures on the camera trajectory.
             positions = offline.trajectory.positions[gt.poses.index]
-            pairs = [
-                (run.blocks[c.query_robot_id].start + c.query_frame_index,
-                 run.blocks[c.match_robot_id].start + c.match_frame_index)
-                for c in run.closures
-            ]  # fmt: skip
+            pairs = [_frames_of(c, run.blocks) for c in run.closures]
             starts = [b.start for b in run.blocks]
             title = f"{wire_seq.name}, {settings.robots} robots"
             plot_closures_map(positions, starts, pairs, gt.closures, title, out / "closures_map.png")
@@ -707,6 +703,14 @@ def _write_pairs(path: Path, matrix: ScoreMatrix, seq: ConstellationSequence) ->
         w.writerow(["frame_i", "frame_j", "frame_id_i", "frame_id_j", "score"])
         for i, j, s in zip(matrix.pairs_i[keep], matrix.pairs_j[keep], matrix.scores[keep], strict=True):
             w.writerow([int(i), int(j), seq.frame_ids[i], seq.frame_ids[j], repr(float(s))])
+
+
+def _frames_of(closure: pb.LoopClosure, blocks: list[range]) -> tuple[int, int]:
+    """The sequence's (global) indices of a loop closure's query and matched frames."""
+    return (
+        blocks[closure.query_robot_id].start + closure.query_frame_index,
+        blocks[closure.match_robot_id].start + closure.match_frame_index,
+    )
 
 
 def _write_closures(
@@ -732,8 +736,7 @@ def _write_closures(
             ]
         )
         for c in sorted(closures, key=lambda c: (c.query_robot_id, c.query_frame_index)):
-            g = blocks[c.query_robot_id].start + c.query_frame_index
-            h = blocks[c.match_robot_id].start + c.match_frame_index
+            g, h = _frames_of(c, blocks)
             true = "" if truth is None else int(truth[g, h])
             w.writerow(
                 [
