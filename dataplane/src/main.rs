@@ -23,6 +23,7 @@ mod pb;
 mod pending;
 mod placement;
 mod recordlog;
+mod router;
 mod routes;
 mod routing;
 mod runtime;
@@ -44,8 +45,9 @@ use crate::runtime::{Dispatcher, LocalEndpoints, Log, Service};
 use crate::spec::HostSpec;
 
 /// zenoh's runtime on the process's one thread, every pool handed over to it (ZENOH.md).
-/// Sending too: on a thread of its own, zenoh's TLS link would read and write one TLS
-/// stream from two threads (upstream zenoh issue 2557). The Python side's
+/// Sending too: on a thread of its own, zenoh's TLS link read and wrote one TLS stream from
+/// two threads (upstream zenoh issue 2557; patched since, dataplane/vendor/README.md, for
+/// the router, which keeps zenoh's pools). The Python side's
 /// `SINGLE_THREAD_RUNTIME` (swarmrec/runtime/settings.py) is the same string, and the
 /// zenoh configuration Python hands over deepens the send queues this runtime needs.
 const SINGLE_THREAD_RUNTIME: &str =
@@ -55,7 +57,7 @@ const SINGLE_THREAD_RUNTIME: &str =
 const BLOCKING_QUEUE: usize = 1024;
 
 /// The kinds this binary implements (the detector in its replay mode only).
-const KINDS: &[&str] = &["descriptor", "detector", "index-shard", "verifier"];
+const KINDS: &[&str] = &["descriptor", "detector", "index-shard", "router", "verifier"];
 
 fn usage() -> ! {
     eprintln!(
@@ -78,10 +80,16 @@ fn main() {
             }
         }
         Some("host") if args.len() == 3 && args[1] == "--spec-file" => {
-            if std::env::var_os("ZENOH_RUNTIME").is_none() {
-                std::env::set_var("ZENOH_RUNTIME", SINGLE_THREAD_RUNTIME);
-            }
-            match read_spec(&args[2]).and_then(host) {
+            match read_spec(&args[2]).and_then(|spec| {
+                // A router keeps zenoh's pools: it forwards messages it cannot bound (any
+                // client's) into queues it does not control, and on one thread a full queue
+                // waits on itself (the Python side's `on_single_runtime`, the same rule).
+                let routes = spec.services.iter().any(|s| s.kind == "router");
+                if !routes && std::env::var_os("ZENOH_RUNTIME").is_none() {
+                    std::env::set_var("ZENOH_RUNTIME", SINGLE_THREAD_RUNTIME);
+                }
+                host(spec)
+            }) {
                 Ok(()) => {}
                 Err(e) => {
                     eprintln!(
@@ -113,6 +121,9 @@ fn zenoh_log(log: Log) {
         move |record| {
             let level = if record.level == tracing::Level::ERROR { 40 } else { 30 };
             let msg = record.message.unwrap_or_default();
+            if router::observe_zenoh_record(&record.target, &msg) {
+                return; // a refused handshake: counted and logged by the router
+            }
             log.emit(level, &msg, serde_json::json!({"target": record.target}));
         },
     );
@@ -328,6 +339,7 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
         &spec.log_level,
     );
     let mut hosted: Vec<Hosted> = Vec::new();
+    let mut routers: Vec<Arc<router::Router>> = Vec::new();
     let local = Arc::new(LocalEndpoints::default());
     for s in &spec.services {
         let metrics = Arc::new(ServiceMetrics::new(&s.kind, s.robot, &s.swarm));
@@ -337,6 +349,11 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
             "index-shard" => shard::IndexShard::new(s, metrics.clone(), log.clone())?,
             "descriptor" => descriptor::Descriptor::new(s, metrics.clone(), log.clone(), local.clone())?,
             "detector" => detector::Detector::new(s, metrics.clone(), log.clone(), local.clone())?,
+            "router" => {
+                let r = Arc::new(router::Router::new(metrics.clone(), log.clone()));
+                routers.push(r.clone());
+                r
+            }
             other => bail!("{other} has no compiled implementation"),
         };
         let path = if single {
@@ -366,8 +383,14 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
     let server = if spec.metrics_port >= 0 {
         let mut pages: Vec<(String, metrics::Page)> = Vec::new();
         for h in &hosted {
-            let m = h.metrics.clone();
-            pages.push((h.url.clone(), Arc::new(move || m.registry.render())));
+            let (m, service) = (h.metrics.clone(), h.service.clone());
+            pages.push((
+                h.url.clone(),
+                Arc::new(move || {
+                    service.refresh_metrics();
+                    m.registry.render()
+                }),
+            ));
         }
         if !single {
             let m = host_metrics.clone();
@@ -514,7 +537,12 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
         serde_json::json!({"event": "ready", "services": entries})
     };
     ready["dispatch"] = "compiled".into();
-    host_log.info("ready", serde_json::json!({"services": entries}));
+    // A router says where it listens, as zenoh bound it (the Python runner's readiness line too).
+    let listen: Vec<String> = routers.iter().flat_map(|r| r.locators()).collect();
+    if !listen.is_empty() {
+        ready["listen"] = listen.clone().into();
+    }
+    host_log.info("ready", serde_json::json!({"services": entries, "listen": listen}));
     println!("{ready}");
     while !STOP.load(Ordering::SeqCst) {
         coordinator.keep_up();

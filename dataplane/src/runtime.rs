@@ -212,6 +212,9 @@ pub trait Service: Send + Sync {
     fn drain(&self) {}
     /// Called after the endpoints are gone, before the session closes.
     fn close(&self) {}
+    /// Called when Prometheus scrapes, before the page is written: a service whose
+    /// counters live elsewhere (the router's, in zenoh) copies them into its registry.
+    fn refresh_metrics(&self) {}
 }
 
 /// Decodes `data` as `M` (`schema` its full name): MALFORMED when it does not parse or

@@ -42,6 +42,8 @@ pub struct ServiceSpec {
     pub data_dir: Option<PathBuf>,
     #[serde(default)]
     pub fsync: bool,
+    /// The place-recognition settings (absent for a router, which has none).
+    #[serde(default)]
     pub places: PlaceSpec,
     /// An index shard's settings (absent for other kinds).
     #[serde(default)]
@@ -116,7 +118,7 @@ pub struct IndexSpec {
 }
 
 /// The place-recognition settings a verifier reads (PlaceSettings and its preset).
-#[derive(Clone, Debug, Deserialize)]
+#[derive(Clone, Debug, Default, Deserialize)]
 pub struct PlaceSpec {
     pub n_labels: u32,
     pub d: f64,

@@ -6,11 +6,14 @@ one certificate per robot service, the router, the gateway, a read-only
 ``acl.json``), gives each service process the settings that name its files
 (:func:`security_for`), and connects its own clients as the client or the
 operator (:func:`client_tls`). Nothing of it is committed: the PKI lives under
-the run's folder.
+the run's folder. A local run's PKI issues everything at start, and its CA's private key
+is removed when the run stops (:func:`retire_ca_key`): what a run leaves behind can sign
+nothing. The next run in that folder starts a PKI of its own (:func:`run_pki`).
 """
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Literal
@@ -19,9 +22,18 @@ from swarmrec.errors import ConfigError
 from swarmrec.runtime.settings import SecuritySettings
 from swarmrec.runtime.tls import TlsFiles
 from swarmrec.security.identity import SERVICE_KINDS, Identity
-from swarmrec.security.pki import DEFAULT_ROUTER_NAMES, PkiSettings, init_pki
+from swarmrec.security.pki import DEFAULT_ROUTER_NAMES, PkiSettings, ca_paths, init_pki
 
-__all__ = ["CLIENT", "OPERATOR", "Security", "client_tls", "security_for", "swarm_pki"]
+__all__ = [
+    "CLIENT",
+    "OPERATOR",
+    "Security",
+    "client_tls",
+    "retire_ca_key",
+    "run_pki",
+    "security_for",
+    "swarm_pki",
+]
 
 Security = Literal["mtls", "insecure"]
 Role = Literal["client", "operator"]
@@ -58,6 +70,33 @@ def swarm_pki(
         )
     )
     return folder
+
+
+def run_pki(
+    folder: Path,
+    swarm: str,
+    robots: int,
+    *,
+    hosts: Sequence[tuple[int, int]] = (),
+    kinds: Sequence[str] = SERVICE_KINDS,
+) -> Path:
+    """The PKI of one local run in ``folder`` (:func:`swarm_pki`). A PKI whose
+    CA key an earlier run retired can issue nothing more, and its certificates were that
+    run's: it is replaced whole."""
+    ca = ca_paths(folder)
+    if ca.cert.exists() and not ca.key.exists():
+        shutil.rmtree(folder)
+    return swarm_pki(folder, swarm, robots, hosts=hosts, kinds=kinds)
+
+
+def retire_ca_key(folder: Path) -> bool:
+    """Remove the CA's private key from a run's PKI once the run is over (its processes
+    hold their own certificates; nothing is issued after). Whether there was one."""
+    key = ca_paths(folder).key
+    if not key.exists():
+        return False
+    key.unlink()
+    return True
 
 
 def security_for(mode: Security, pki_dir: Path | None, who: str) -> SecuritySettings:

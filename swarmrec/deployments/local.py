@@ -42,7 +42,7 @@ from tqdm import tqdm
 
 from swarmrec.client import GatewayClient, ZenohClient
 from swarmrec.deployments.base import SwarmSpec, SwarmStartError, config_flags
-from swarmrec.deployments.identities import Security, client_tls, security_for, swarm_pki
+from swarmrec.deployments.identities import Security, client_tls, retire_ca_key, run_pki, security_for
 from swarmrec.deployments.links import LinkEmulator, LinkSpec, Schedule
 from swarmrec.deployments.metrics import Scrape, scrape
 from swarmrec.errors import ConfigError
@@ -266,6 +266,9 @@ class LocalDeployment:
         for log in self._logs:
             log.close()
         self._logs.clear()
+        if self.pki_dir is not None:
+            # The run is over: its CA key leaves with it (its folder keeps the certificates).
+            retire_ca_key(self.pki_dir)
         return codes
 
     # --- finer control (tests and fault injection) -----------------------------------
@@ -305,7 +308,7 @@ class LocalDeployment:
             # Index shards may have ids beyond the robots (IndexSettings.max_shards): certificates too.
             index = spec.component(IndexSettings)
             ids = max(spec.robots, index.max_shards if isinstance(index, IndexSettings) else 0)
-            self.pki_dir = swarm_pki(self.data_dir / "pki", spec.swarm, ids, hosts=sorted(hosts), kinds=kinds)
+            self.pki_dir = run_pki(self.data_dir / "pki", spec.swarm, ids, hosts=sorted(hosts), kinds=kinds)
         fixed = self.router_port
         self.router_port = fixed or 0
         config = spec.config_for("router", 0, listen=(self.endpoint,), metrics_port=0)

@@ -205,8 +205,8 @@ class BusSettings(Component):
         "single",
         "zenoh's runtime in a Python service process: single (one thread, with a deeper send "
         "queue: less CPU a message, docs/dataplane.md) or pools (zenoh's default thread pools); "
-        "a router always runs pools, the compiled host always single; a ZENOH_RUNTIME environment "
-        "variable overrides both",
+        "a router always runs pools, the compiled host single (but for a router); a ZENOH_RUNTIME "
+        "environment variable overrides both",
     )
     request_timeout_s: float = setting(2.0, "how long a service waits for a peer's reply, seconds")
     max_message_bytes: int = setting(1 << 20, "largest request payload accepted, bytes")

@@ -178,8 +178,6 @@ def _detector(h: Hosted) -> dict[str, Any]:
 def _service(h: Hosted) -> dict[str, Any]:
     """One service's resolved settings, as the binary reads them (dataplane/src/spec.rs)."""
     bus = h.config.bus
-    places = h.config.get(PlaceSettings)
-    preset = get_preset(places.preset)
     storage = h.config.get(StorageSettings) if h.config.has(StorageSettings) else None
     return {
         "index": _index(h) if h.kind == "index-shard" else None,
@@ -193,16 +191,23 @@ def _service(h: Hosted) -> dict[str, Any]:
         "max_message_bytes": bus.max_message_bytes,
         "data_dir": str(storage.data_dir) if storage is not None and storage.data_dir is not None else None,
         "fsync": bool(storage is not None and storage.fsync),
-        "places": {
-            "n_labels": places.n_labels,
-            "d": float(preset.d),
-            "min_common": preset.min_common,
-            "same_label_only": preset.same_label_only,
-            "max_objects_per_frame": places.max_objects_per_frame,
-            "max_objects_per_label": places.max_objects_per_label,
-            "verify_max_frames": places.verify_max_frames,
-            "verify_max_object_pairs": places.verify_max_object_pairs,
-        },
+        # A router has no place settings (the binary then reads defaults it never uses).
+        **({"places": _places(h.config.get(PlaceSettings))} if h.config.has(PlaceSettings) else {}),
+    }
+
+
+def _places(places: PlaceSettings) -> dict[str, Any]:
+    """The place-recognition settings a verifier reads (dataplane/src/spec.rs, PlaceSpec)."""
+    preset = get_preset(places.preset)
+    return {
+        "n_labels": places.n_labels,
+        "d": float(preset.d),
+        "min_common": preset.min_common,
+        "same_label_only": preset.same_label_only,
+        "max_objects_per_frame": places.max_objects_per_frame,
+        "max_objects_per_label": places.max_objects_per_label,
+        "verify_max_frames": places.verify_max_frames,
+        "verify_max_object_pairs": places.verify_max_object_pairs,
     }
 
 
@@ -217,7 +222,8 @@ def host_spec(
     bus = session_bus(hosted)
     log = service_logger(hosted[0].kind, bus.robot, bus.log_level)
     conf = zenoh_config(bus, hosted[0].security, identity=session_identity(hosted), log=log)
-    deepen_send_queue(conf)  # the compiled host always runs zenoh on one thread
+    if bus.mode != "router":
+        deepen_send_queue(conf)  # the compiled host runs zenoh on one thread, but for a router
     return {
         "zenoh": json.loads(str(conf)),
         "metrics_host": bus.metrics_host,

@@ -27,6 +27,7 @@ __all__ = [
     "FusionMetrics",
     "GatewayMetrics",
     "PlaceOwnerMetrics",
+    "RouterMetrics",
     "ShardMetrics",
     "SlamMetrics",
     "VerifierMetrics",
@@ -34,6 +35,53 @@ __all__ = [
 
 # The detector's stages take 0.1 ms (object points) to 100 ms (a model on a busy core).
 _STAGE_BUCKETS = (0.0001, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.03, 0.05, 0.1, 0.2, 0.5, 2.0)
+
+
+#: Why the router refused a TLS handshake (the compiled router, dataplane/src/router.rs,
+#: reads it from the TLS library's error).
+HANDSHAKE_REASONS = (
+    "unknown_issuer",
+    "expired",
+    "not_yet_valid",
+    "no_certificate",
+    "no_common_name",
+    "client_aborted",
+    "not_tls",
+    "timeout",
+    "bad_certificate",
+    "out_of_files",
+    "other",
+)
+
+
+@dataclass
+class RouterMetrics(MetricSet):
+    """What the router refused. Counted by the compiled router only (zenoh's TLS
+    listener and access control report to the Rust side; the Python binding is built
+    without zenoh's statistics): the Python router exports the families, at zero."""
+
+    title: ClassVar[str] = "router"
+
+    refused_handshakes: Counter
+    denied_messages: Counter
+
+    @classmethod
+    def create(cls, registry: CollectorRegistry) -> RouterMetrics:
+        return cls(
+            refused_handshakes=Counter(
+                "swarmrec_router_refused_handshakes",
+                "TLS connections the router refused during the handshake, by reason",
+                ["reason"],
+                registry=registry,
+            ),
+            denied_messages=Counter(
+                "swarmrec_router_denied_messages",
+                "Messages the access control dropped, by the certificate's name, direction (received from "
+                "it, or not sent to it) and zenoh message type",
+                ["identity", "direction", "message"],
+                registry=registry,
+            ),
+        )
 
 
 @dataclass

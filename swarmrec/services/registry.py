@@ -39,6 +39,7 @@ from swarmrec.services.metrics import (
     FusionMetrics,
     GatewayMetrics,
     PlaceOwnerMetrics,
+    RouterMetrics,
     ShardMetrics,
     SlamMetrics,
     VerifierMetrics,
@@ -177,6 +178,8 @@ for _entry in (
         scope="swarm",
         zenoh_mode="router",
         identity="router.{swarm}",
+        metrics=RouterMetrics,
+        compiled=True,
     ),
     ServiceSpec(
         "detector",

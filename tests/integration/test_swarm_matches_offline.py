@@ -56,6 +56,8 @@ def test_synthetic_swarm_of_four_scores_every_pair_as_the_offline_evaluation(
     assert len(expected) > 100  # the comparison is about something
     assert got == expected
     assert summary.offline_check is not None and summary.offline_check.identical is True
+    # The run's certificates stay in its folder, its CA's private key does not.
+    assert list((tmp_path / "run").rglob("ca.pem")) and not list((tmp_path / "run").rglob("ca.key"))
     # Two replicas a group (the default): every partial query the offline run counts was
     # answered by one of its group's two owners.
     assert sum(summary.shard_load.partial_queries) == sum(holder_load(offline).partial_queries)

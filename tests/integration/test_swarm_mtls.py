@@ -9,7 +9,8 @@ session opens; robot 3's descriptor identity cannot store into robot 2's
 verifier nor put on robot 2's keys, nor store or query the index shards with
 robot 2's frames, whatever the request's key or attachment claims, and the
 stores are unchanged (each denial measured behind an allowed request that
-would have arrived after it).
+would have arrived after it). The compiled router counts every refused
+handshake by reason and every denied message by certificate name.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from swarmrec.services.settings import PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import schema_name
 from tests.integration.conftest import running_swarm
-from tests.integration.support import protobuf, wait_until
+from tests.integration.support import metric, protobuf, wait_until
 
 ROBOTS = 4
 
@@ -174,6 +175,81 @@ def test_robot_3_cannot_put_on_robot_2s_keys(swarm: LocalDeployment) -> None:
         finally:
             sub.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
     assert seen == [keys.event(s, "loop_closure", 3)]
+
+
+def _refused_at_connection(conf: zenoh.Config) -> None:
+    with pytest.raises(zenoh.ZError):
+        zenoh.open(conf)
+
+
+def test_the_router_counts_each_refused_handshake_and_each_denied_message(
+    swarm: LocalDeployment, tmp_path: Path
+) -> None:
+    assert swarm.router is not None and swarm.pki_dir is not None
+    url = swarm.router.info["metrics_url"]
+    assert isinstance(url, str)
+    s = swarm.spec_swarm
+    robot3 = f"r3.descriptor.{s}"
+
+    def handshakes(reason: str) -> float:
+        return metric(url, "swarmrec_router_refused_handshakes_total", reason=reason)
+
+    def denied(message: str) -> float:
+        return metric(url, "swarmrec_router_denied_messages_total", identity=robot3, message=message)
+
+    reasons = ("no_certificate", "unknown_issuer", "not_tls")
+    before = {r: handshakes(r) for r in reasons} | {m: denied(m) for m in ("put", "query")}
+    # Three handshakes refused: no certificate (it trusts the swarm's CA), a certificate
+    # of another CA under a real robot's name, plaintext on the TLS port.
+    bare = zenoh.Config()
+    bare.insert_json5("mode", '"client"')
+    bare.insert_json5("connect/endpoints", json.dumps([swarm.endpoint]))
+    bare.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(swarm.pki_dir / "ca.pem")))
+    _refused_at_connection(bare)
+    other = tmp_path / "impostor"
+    init_pki(PkiSettings(swarm=s, robots=ROBOTS, out=other))
+    impostor = TlsFiles.in_dir(other, f"r2.verifier.{s}")
+    forged = zenoh.Config()
+    forged.insert_json5("mode", '"client"')
+    configure_client_tls(
+        forged, TlsFiles(swarm.pki_dir / "ca.pem", impostor.cert, impostor.key), [swarm.endpoint]
+    )
+    _refused_at_connection(forged)
+    plain = zenoh.Config()
+    plain.insert_json5("mode", '"client"')
+    plain.insert_json5("connect/endpoints", json.dumps([swarm.endpoint.replace("tls/", "tcp/")]))
+    _refused_at_connection(plain)
+    # Robot 3's descriptor, served as itself, puts three times on robot 2's keys and asks
+    # robot 2's verifier to store once: four messages the access control drops.
+    with _as(swarm, robot3) as client:
+        for _ in range(3):
+            client.session.put(keys.event(s, "loop_closure", 2), b"forged")
+        with pytest.raises(NoReply):
+            Caller(client.session, 3, 1.0).call(
+                keys.endpoint(s, "verifier", 2, "store"), _frame(3, 7), pb.StoreReply, target_robot=2
+            )
+    expected = {"no_certificate": 1, "unknown_issuer": 1, "not_tls": 1, "put": 3, "query": 1}
+    if swarm.router.info.get("dispatch") != "compiled":
+        # The Python router exports the families but counts nothing: the binding's zenoh is
+        # built without its statistics and gives no hook into the TLS listener (docs/security.md).
+        assert {r: handshakes(r) for r in reasons} | {m: denied(m) for m in ("put", "query")} == before
+        return
+
+    def counted() -> dict[str, float]:
+        return {r: handshakes(r) - before[r] for r in reasons} | {
+            m: denied(m) - before[m] for m in ("put", "query")
+        }
+
+    wait_until(lambda: counted() == expected, 10, f"the router's counts {expected}")
+    # Nothing else was counted against robot 3 (its allowed session, its declarations).
+    total = metric(url, "swarmrec_router_denied_messages_total", identity=robot3)
+    assert total - before["put"] - before["query"] == expected["put"] + expected["query"]
+    # Each refusal is one budgeted line of the router's log, with its reason.
+    lines = [
+        json.loads(x) for x in (swarm.log_dir / "router-0.log").read_text().splitlines() if x.startswith("{")
+    ]
+    logged = [x.get("reason") for x in lines if x.get("msg") == "refused a TLS handshake"]
+    assert set(reasons) <= set(logged)
 
 
 @pytest.fixture(scope="module")

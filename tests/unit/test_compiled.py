@@ -8,8 +8,10 @@ import json
 import os
 import stat
 from pathlib import Path
+from typing import Any
 
 import pytest
+import zenoh
 
 from swarmrec.core.placement import ring
 from swarmrec.core.presets import get_preset
@@ -42,7 +44,7 @@ def config(data_plane: str, **place: object) -> Config:
 
 def test_only_kinds_with_a_compiled_implementation_go_and_only_when_the_setting_says_so() -> None:
     compiled_kinds = [k for k, e in registry.REGISTRY.items() if e.compiled]
-    assert compiled_kinds == ["detector", "descriptor", "index-shard", "verifier"]
+    assert compiled_kinds == ["router", "detector", "descriptor", "index-shard", "verifier"]
     verifier = registry.spec("verifier")
     assert compiled.is_compiled(config("compiled"), verifier.compiled_for(config("compiled")))
     assert not compiled.is_compiled(config("python"), verifier.compiled_for(config("python")))
@@ -149,6 +151,25 @@ def test_the_binary_is_told_every_resolved_setting_and_the_zenoh_configuration()
     assert spec["metrics_port"] == 0 and spec["version"]
     # The compiled host runs zenoh on one thread: its send queue holds a ~1 MB message.
     assert spec["zenoh"]["transport"]["link"]["tx"]["queue"]["size"]["data"] == SINGLE_RUNTIME_TX_QUEUE
+
+
+def test_a_router_is_handed_no_place_settings_and_keeps_zenohs_send_queue() -> None:
+    cfg = Config(
+        (
+            BusSettings(swarm="lab", listen=("tcp/127.0.0.1:0",)),
+            SecuritySettings(security="insecure", insecure_reason="unit test"),
+        )
+    )
+    spec = compiled.host_spec([registry.hosted("router", cfg)])
+    (service,) = spec["services"]
+    assert service["kind"] == "router" and "places" not in service
+    assert spec["zenoh"]["mode"] == "router"
+
+    # It runs zenoh's pools (the binary leaves ZENOH_RUNTIME unset for it): zenoh's own queue.
+    def data_queue(conf: dict[str, Any]) -> int:
+        return int(conf["transport"]["link"]["tx"]["queue"]["size"]["data"])
+
+    assert data_queue(spec["zenoh"]) == data_queue(json.loads(str(zenoh.Config()))) != SINGLE_RUNTIME_TX_QUEUE
 
 
 def test_a_host_of_fifty_shards_is_handed_its_spec_in_a_file(monkeypatch: pytest.MonkeyPatch) -> None:
