@@ -4,7 +4,10 @@ The router checks every message a node sends it (``ingress``) and every
 message it is about to send a node (``egress``) against the rules of the
 node's certificate common name (zenoh 1.10 ``access_control``; a rule allows
 a message when one of its key expressions *includes* the message's key).
-What is allowed is derived from the protocol (docs/security.md has the table):
+What is allowed is derived from what each kind's registry entry declares
+(:class:`~swarmrec.services.registry.ServiceSpec`: the endpoints it calls, those clients
+and the operator may call, the liveliness it follows, its mailboxes), so a plugin's kind
+gets rules as a built-in one does (docs/security.md has the table):
 
 * the points of control are the ingress side: what a node may put, query,
   reply, and which queryables, subscribers and liveliness tokens it may
@@ -67,61 +70,8 @@ ACL_MESSAGES = (
 # What a node may be sent from the rest of the swarm (see the module docstring).
 _EGRESS = ("put", "query", "reply", "declare_subscriber", "declare_queryable", "liveliness_token")
 
-# What each kind queries, as (kind, robot, endpoint); "self" is the service's own robot.
-_QUERIES: dict[str, tuple[tuple[str, str, str], ...]] = {
-    "detector": (
-        ("descriptor", "self", "process"),
-        ("place-owner", "self", "process"),
-        ("fusion", "self", "start_round"),
-    ),
-    "descriptor": (
-        ("index-shard", "*", "query"),
-        ("index-shard", "*", "store"),
-        ("index-shard", "*", "placement"),
-        ("verifier", "*", "verify"),
-        ("verifier", "self", "store"),
-    ),
-    # The elastic index: shards read each other's placement, the coordinator sends
-    # placements, a shard copying a group pages through an owner's copy.
-    "index-shard": (
-        ("index-shard", "*", "placement"),
-        ("index-shard", "*", "adopt"),
-        ("index-shard", "*", "transfer"),
-    ),
-    "verifier": (),
-    # Full-image place recognition: the owner of a query's cluster, the verifier of its match.
-    "place-owner": (
-        ("place-owner", "*", "query"),
-        ("verifier", "*", "verify"),
-        ("verifier", "self", "store"),
-    ),
-    "fusion": (),
-    "slam": (),
-}
-
-# Read-only endpoints every client may query (shards' are added per call).
-_CLIENT_QUERIES = (
-    ("*", "info"),
-    ("index-shard", "placement"),
-    ("verifier", "verify"),
-    ("descriptor", "loop_closures"),
-    ("descriptor", "explain"),
-    ("place-owner", "assignment"),
-    ("place-owner", "loop_closures"),
-    ("fusion", "posterior"),
-    ("slam", "status"),
-    ("slam", "estimate"),
-    ("slam", "sent"),
-)
-# What an operator adds: driving the replay (lock-step steps, free replay, classifier views)
-# and the distributed SLAM solves.
-_OPERATOR_QUERIES = (
-    ("detector", "step"),
-    ("detector", "replay"),
-    ("detector", "classify"),
-    ("slam", "load"),
-    ("slam", "solve"),
-)
+# What any client may query of every kind: what the service says of itself.
+_EVERY_KIND_CLIENT_ENDPOINTS = ("info",)
 
 
 @dataclass(frozen=True)
@@ -165,77 +115,14 @@ def grants(
                 out += grants(Identity.service(s, kind, r), robots)[1:]  # [0]: the shared egress
         return out
     if identity.role == "service":
-        kind, r = identity.kind, identity.robot
-        # Its endpoints (caller-bound ones asked and answered at <endpoint>/<caller>).
-        own = keys.endpoint(s, kind, r, "**")
-        out += [
-            Grant("ingress", ("declare_queryable", "reply"), (own,)),
-            Grant("ingress", ("liveliness_token",), (keys.alive(s, kind, r),)),
-            Grant("ingress", ("put",), (keys.event(s, "*", r),)),
-        ]
-        # A kind a plugin added serves its own endpoints and calls nothing (no rule for it).
-        # A caller-bound endpoint only with this robot as the caller (keys.CALLER_BOUND):
-        # so no robot stores, queries or places in another's name.
-        queries = tuple(
-            keys.request_key(keys.endpoint(s, k, _robot(rob, r), ep), r)
-            for k, rob, ep in _QUERIES.get(kind, ())
-        )
-        if queries:
-            out.append(Grant("ingress", ("query",), queries))
-        if kind in ("descriptor", "index-shard"):
-            # Which shards are alive: descriptors route around gone ones, the coordinator follows them.
-            out.append(
-                Grant(
-                    "ingress",
-                    ("declare_liveliness_subscriber", "liveliness_query"),
-                    (keys.alive(s, "index-shard", "*"),),
-                )
-            )
-        if kind == "index-shard":
-            # A stopping shard says so, and every shard sees who stays to take its groups.
-            out += [
-                Grant("ingress", ("liveliness_token",), (keys.draining(s, kind, r),)),
-                Grant(
-                    "ingress",
-                    ("declare_liveliness_subscriber", "liveliness_query"),
-                    (keys.draining(s, kind, "*"),),
-                ),
-            ]
-        if kind == "fusion":
-            # Flooding puts onto the neighbours' inboxes; who is a neighbour
-            # changes with the radio graph, so every other robot of the swarm.
-            # The key's last segment names the sender (as the SLAM inboxes): no robot puts
-            # in another's name.
-            inboxes = tuple(keys.endpoint(s, "fusion", j, f"inbox/{r}") for j in robots if j != r)
-            out.append(Grant("ingress", ("declare_subscriber",), (keys.endpoint(s, "fusion", r, "inbox/*"),)))
-            if inboxes:
-                out.append(Grant("ingress", ("put",), inboxes))
-        if kind == "slam":
-            # A robot puts on every team member's inbox/<self> and control/<self> only, so the
-            # key's last segment names the sender and no robot can speak for another.
-            own_boxes = tuple(keys.endpoint(s, "slam", r, f"{box}/*") for box in ("inbox", "control"))
-            boxes = tuple(
-                keys.endpoint(s, "slam", j, f"{box}/{r}")
-                for j in robots
-                if j != r
-                for box in ("inbox", "control")
-            )
-            out.append(Grant("ingress", ("declare_subscriber",), own_boxes))
-            if boxes:
-                out.append(Grant("ingress", ("put",), boxes))
-            # Team members that vanish mid-solve: their liveliness tokens.
-            out.append(
-                Grant(
-                    "ingress",
-                    ("declare_liveliness_subscriber", "liveliness_query"),
-                    (keys.alive(s, "slam", "*"),),
-                )
-            )
+        out += _service_grants(identity, robots)
     elif identity.role in ("client", "operator"):
-        plugins = [(e.kind, ep) for e in registry.REGISTRY.values() for ep in e.client_endpoints]
-        ends = [*_CLIENT_QUERIES, *plugins, ("index-shard", shard_read_endpoint)]
+        entries = registry.REGISTRY.values()
+        ends = [("*", ep) for ep in _EVERY_KIND_CLIENT_ENDPOINTS]
+        ends += [(e.kind, ep) for e in entries for ep in e.client_endpoints]
+        ends.append(("index-shard", shard_read_endpoint))
         if identity.role == "operator":
-            ends += _OPERATOR_QUERIES
+            ends += [(e.kind, ep) for e in entries for ep in e.operator_endpoints]
         out += [
             Grant("ingress", ("query",), tuple(keys.endpoint(s, k, "*", ep) for k, ep in ends)),
             Grant("ingress", ("declare_subscriber",), (f"{p}/events/**",)),
@@ -250,6 +137,48 @@ def grants(
         # A router dialling this one (several routers) is not a client: no rules
         # yet, so default deny applies until router-to-router links are designed.
         return []
+    return out
+
+
+def _service_grants(identity: Identity, robots: Sequence[int]) -> list[Grant]:
+    """What robot ``identity.robot``'s service of ``identity.kind`` may send, from what its
+    registry entry declares (:class:`~swarmrec.services.registry.ServiceSpec`: calls,
+    watches, mailboxes, drains): a plugin's kind is treated as a built-in one."""
+    s, kind, r = identity.swarm, identity.kind, identity.robot
+    entry = registry.REGISTRY.get(kind)
+    # Its endpoints (caller-bound ones asked and answered at <endpoint>/<caller>), its
+    # liveliness token, its events.
+    out = [
+        Grant("ingress", ("declare_queryable", "reply"), (keys.endpoint(s, kind, r, "**"),)),
+        Grant("ingress", ("liveliness_token",), (keys.alive(s, kind, r),)),
+        Grant("ingress", ("put",), (keys.event(s, "*", r),)),
+    ]
+    if entry is None:
+        return out  # a kind nobody registered here calls nothing
+    # A caller-bound endpoint only with this robot as the caller (keys.CALLER_BOUND): so no
+    # robot stores, queries or places in another's name.
+    queries = tuple(
+        keys.request_key(keys.endpoint(s, c.kind, r if c.own else "*", c.endpoint), r) for c in entry.calls
+    )
+    if queries:
+        out.append(Grant("ingress", ("query",), queries))
+    watching = ("declare_liveliness_subscriber", "liveliness_query")
+    for watched in entry.watches:
+        out.append(Grant("ingress", watching, (keys.alive(s, watched, "*"),)))
+    if entry.drains:
+        # A stopping member says so, and every member sees who stays to take over.
+        out += [
+            Grant("ingress", ("liveliness_token",), (keys.draining(s, kind, r),)),
+            Grant("ingress", watching, (keys.draining(s, kind, "*"),)),
+        ]
+    if entry.mailboxes:
+        own_boxes = tuple(keys.endpoint(s, kind, r, f"{box}/*") for box in entry.mailboxes)
+        boxes = tuple(
+            keys.endpoint(s, kind, j, f"{box}/{r}") for j in robots if j != r for box in entry.mailboxes
+        )
+        out.append(Grant("ingress", ("declare_subscriber",), own_boxes))
+        if boxes:
+            out.append(Grant("ingress", ("put",), boxes))
     return out
 
 

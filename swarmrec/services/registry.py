@@ -63,6 +63,7 @@ __all__ = [
     "PLUGIN_GROUP",
     "REGISTRY",
     "WORKLOADS",
+    "Call",
     "CompiledWhen",
     "ServiceSpec",
     "all_components",
@@ -95,6 +96,16 @@ def _replaying(config: Config) -> bool:
 
 
 @dataclass(frozen=True)
+class Call:
+    """An endpoint a kind queries: ``kind``'s ``endpoint`` on its own robot (``own``) or on
+    any robot. The router's access control grants a kind exactly its calls."""
+
+    kind: str
+    endpoint: str
+    own: bool = False
+
+
+@dataclass(frozen=True)
 class ServiceSpec:
     """One service kind."""
 
@@ -119,9 +130,23 @@ class ServiceSpec:
     #: Common name of its certificate (``swarmrec.security.identity``'s scheme), with
     #: ``{robot}``, ``{kind}`` and ``{swarm}`` filled in; the ``identity`` setting overrides it.
     identity: str = "r{robot}.{kind}.{swarm}"
-    #: Endpoints any client of the swarm may call (the router's access control grants them;
-    #: the built-in kinds' are listed in swarmrec.security.acl). A plugin names its own here.
+    # What it may do on the bus beyond serving its own endpoints, declaring its liveliness
+    # token and putting its events: the router's access control is computed from these
+    # (swarmrec.security.acl), for a plugin's kind as for a built-in one.
+    #: Endpoints of other kinds (or of its own kind) it queries.
+    calls: tuple[Call, ...] = ()
+    #: Endpoints any client of the swarm may call (read-only: a client never stores).
     client_endpoints: tuple[str, ...] = ()
+    #: Endpoints the operator (the replay driver) may call besides the clients'.
+    operator_endpoints: tuple[str, ...] = ()
+    #: Kinds whose members' liveliness it follows (to route around one that goes).
+    watches: tuple[str, ...] = ()
+    #: Mailboxes between robots of this kind: robot r reads its own ``<box>/*`` and puts on
+    #: every other robot's ``<box>/<r>`` only, so the key's last segment names the sender.
+    mailboxes: tuple[str, ...] = ()
+    #: It says it is stopping with a liveliness token of its own (``draining``), and
+    #: follows its peers' (who stays to take over what it holds).
+    drains: bool = False
     #: Also implemented in the compiled host (swarmrec-dataplane, docs/dataplane.md), which
     #: serves it when the ``data_plane`` setting says ``compiled``.
     compiled: bool = False
@@ -196,6 +221,13 @@ for _entry in (
             LandmarkSettings,
         ),
         metrics=DetectorMetrics,
+        # Its robot's stage: the constellation query, the full-image query, a landmark round.
+        calls=(
+            Call("descriptor", "process", own=True),
+            Call("place-owner", "process", own=True),
+            Call("fusion", "start_round", own=True),
+        ),
+        operator_endpoints=("step", "replay", "classify"),
         compiled=True,
         compiled_when=CompiledWhen("replay mode only: rgbd and classifier run in Python", _replaying),
     ),
@@ -207,6 +239,15 @@ for _entry in (
         stateful=True,
         components=(*_INDEXED, ExplainSettings),
         metrics=DescriptorMetrics,
+        calls=(
+            Call("index-shard", "query"),
+            Call("index-shard", "store"),
+            Call("index-shard", "placement"),
+            Call("verifier", "verify"),
+            Call("verifier", "store", own=True),
+        ),
+        client_endpoints=("loop_closures", "explain"),
+        watches=("index-shard",),  # it routes around shards that are gone
         compiled=True,
     ),
     ServiceSpec(
@@ -218,6 +259,17 @@ for _entry in (
         stateful=True,
         components=_INDEXED,
         metrics=ShardMetrics,
+        # The elastic index: shards read each other's placement, the coordinator sends
+        # placements, a shard copying a group pages through an owner's copy.
+        calls=(
+            Call("index-shard", "placement"),
+            Call("index-shard", "adopt"),
+            Call("index-shard", "transfer"),
+        ),
+        # A client reads through `lookup` (swarmrec.security.acl.SHARD_READ_ENDPOINT), added there.
+        client_endpoints=("placement",),
+        watches=("index-shard",),
+        drains=True,
         compiled=True,
     ),
     ServiceSpec(
@@ -228,6 +280,7 @@ for _entry in (
         stateful=True,
         components=_PLACES,
         metrics=VerifierMetrics,
+        client_endpoints=("verify",),
         compiled=True,
     ),
     ServiceSpec(
@@ -239,6 +292,9 @@ for _entry in (
         stateful=True,
         components=(PlaceSettings, VprSettings),
         metrics=PlaceOwnerMetrics,
+        # The owner of a query's cluster, the verifier of its match.
+        calls=(Call("place-owner", "query"), Call("verifier", "verify"), Call("verifier", "store", own=True)),
+        client_endpoints=("assignment", "loop_closures"),
     ),
     ServiceSpec(
         "fusion",
@@ -247,6 +303,9 @@ for _entry in (
         "floods classifier outputs to its radio neighbours and fuses what it hears (weighted naive Bayes)",
         components=(LandmarkSettings, FusionSettings),
         metrics=FusionMetrics,
+        client_endpoints=("posterior",),
+        # Flooding: who is a neighbour changes with the radio graph, so every other robot.
+        mailboxes=("inbox",),
     ),
     ServiceSpec(
         "slam",
@@ -256,6 +315,10 @@ for _entry in (
         "estimates only",
         components=(SlamServiceSettings,),
         metrics=SlamMetrics,
+        client_endpoints=("status", "estimate", "sent"),
+        operator_endpoints=("load", "solve"),
+        mailboxes=("inbox", "control"),
+        watches=("slam",),  # team members that vanish mid-solve
     ),
     ServiceSpec(
         "gateway",

@@ -1,7 +1,9 @@
 """A new service kind is one class plus one registry entry: here a package outside
 swarmrec declares both (an entry point in the group ``swarmrec.services``), a local
-deployment starts two of it as real processes over a real router, the client lists
-them by kind, and their endpoint answers."""
+deployment starts two of it as real processes over a real router (mutual TLS, the
+router's access control computed from the registry), the client lists them by kind,
+their endpoint answers, and one calls the other's, which its entry declares; an
+endpoint it does not declare is denied by the router, as for a built-in kind."""
 
 from __future__ import annotations
 
@@ -21,24 +23,52 @@ from tests.integration.support import request as send
 SERVICE = '''
 """A service another package brings: it answers a step with the robot's id."""
 
-from swarmrec.runtime import Endpoint, RequestContext, ServiceBase, ServiceContext
-from swarmrec.services.registry import ServiceSpec
+from swarmrec.errors import NoReply
+from swarmrec.runtime import Endpoint, RequestContext, ServiceBase, ServiceContext, keys
+from swarmrec.services.registry import Call, ServiceSpec
 from swarmrec.wire import messages as pb
 
 
 class Echo(ServiceBase):
     def __init__(self, ctx: ServiceContext) -> None:
+        self.ctx = ctx
         self.robot = ctx.bus.robot
 
     def echo(self, req: pb.StepRequest, _ctx: RequestContext) -> pb.StepReply:
         return pb.StepReply(robot_id=self.robot, step=req.step, finished=True)
 
-    ENDPOINTS = (Endpoint("echo", pb.StepRequest, pb.StepReply, echo, "the step, back"),)
+    def _ask(self, endpoint: str, req: pb.StepRequest) -> pb.StepReply:
+        # The next robot's endpoint: finished=False when the router let nothing through.
+        other = (self.robot + 1) % self.ctx.bus.n_robots
+        try:
+            key = keys.endpoint(self.ctx.bus.swarm, "echo", other, endpoint)
+            return self.ctx.caller.call(key, req, pb.StepReply, target_robot=other)
+        except NoReply:
+            return pb.StepReply(robot_id=other, step=req.step, finished=False)
+
+    def forward(self, req: pb.StepRequest, _ctx: RequestContext) -> pb.StepReply:
+        return self._ask("echo", req)
+
+    def forward_secret(self, req: pb.StepRequest, _ctx: RequestContext) -> pb.StepReply:
+        return self._ask("secret", req)
+
+    ENDPOINTS = (
+        Endpoint("echo", pb.StepRequest, pb.StepReply, echo, "the step, back"),
+        Endpoint("secret", pb.StepRequest, pb.StepReply, echo, "the step, back: no other robot calls it"),
+        Endpoint("forward", pb.StepRequest, pb.StepReply, forward, "the next robot's echo of the step"),
+        Endpoint("forward_secret", pb.StepRequest, pb.StepReply, forward_secret, "the next robot's secret"),
+    )
 
 
-# Clients may call its endpoint: the router's access control grants what the spec names.
+# The router's access control grants what the spec names: clients may call `echo` and
+# the forwards; an echo service calls the other robots' `echo`, never their `secret`.
 SPEC = ServiceSpec(
-    "echo", 100, "echo_service:Echo", "answers a step with its robot's id", client_endpoints=("echo",)
+    "echo",
+    100,
+    "echo_service:Echo",
+    "answers a step with its robot's id",
+    calls=(Call("echo", "echo"),),
+    client_endpoints=("echo", "forward", "forward_secret"),
 )
 '''
 
@@ -78,5 +108,17 @@ def test_a_service_added_by_another_package_runs_in_a_local_swarm_and_the_client
                 pb.StepReply,
             )
             assert (reply.robot_id, reply.step, reply.finished) == (1, 7, True)
+
+            def ask(endpoint: str) -> pb.StepReply:
+                key = endpoint_key(swarm, "echo", 0, endpoint)
+                return reply_of(send(client.session, key, pb.StepRequest(step=8)), pb.StepReply)
+
+            # Robot 0's echo calls robot 1's: declared, so the router lets it through.
+            forwarded = ask("forward")
+            assert (forwarded.robot_id, forwarded.finished) == (1, True)
+            # Robot 1's `secret` is served (a client may not call it, but robot 0 asks) only
+            # if declared: it is not, so the router drops robot 0's query.
+            refused = ask("forward_secret")
+            assert (refused.robot_id, refused.finished) == (1, False)
         codes = swarm.stop()
     assert all(code == 0 for code in codes.values()), codes
