@@ -22,6 +22,9 @@ from __future__ import annotations
 
 import json
 import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -39,6 +42,7 @@ __all__ = [
     "AttachedSwarm",
     "Deployment",
     "DeploymentError",
+    "SwarmSession",
     "SwarmSpec",
     "SwarmStartError",
     "announce_live_view",
@@ -46,6 +50,7 @@ __all__ = [
     "config_env",
     "config_flags",
     "read_attach_json",
+    "running",
     "shared_env",
 ]
 
@@ -274,6 +279,54 @@ class Deployment(Protocol):
     def stop(self) -> dict[str, int]:
         """Stop what this deployment started; the exit code of each process it ran."""
         ...
+
+
+@dataclass
+class SwarmSession:
+    """A swarm between its start and its stop (:func:`running`): how long each took, and
+    the exit code of every process once it stopped."""
+
+    deployment: Deployment
+    timings: dict[str, float]
+    exit_codes: dict[str, int] = field(default_factory=dict)
+
+
+@contextmanager
+def running(
+    deployment: Deployment,
+    spec: SwarmSpec,
+    *,
+    progress: bool = False,
+    timings: dict[str, float] | None = None,
+    held_data: str = "",
+    request_timeout_s: float = 5.0,
+) -> Iterator[SwarmSession]:
+    """The one life of a run's swarm, wherever it runs: start ``spec`` on ``deployment``,
+    wait until every service serves (``start_s``), say where its live view is, and stop it
+    on the way out, whatever happened (``stop_s``, the exit codes). ``held_data``: refuse
+    a swarm that already holds an earlier run's data (stored items), with this advice;
+    empty: a workload whose services hold nothing across runs. ``timings`` collects the
+    figures (a new dict when None)."""
+    session = SwarmSession(deployment, timings if timings is not None else {})
+    try:
+        t0 = time.perf_counter()
+        deployment.start(spec, progress=progress)
+        deployment.wait_ready()
+        session.timings["start_s"] = time.perf_counter() - t0
+        announce_live_view(deployment, progress)
+        if held_data:
+            with deployment.client(request_timeout_s, role="client") as client:
+                holding = {f"{m.kind}-{m.robot}": m.stored_items for m in client.members() if m.stored_items}
+            if holding:
+                # An earlier replay's frames would be found as loop closures of this one.
+                raise ConfigError(
+                    f"the swarm already holds data from an earlier run ({holding}); {held_data}"
+                )
+        yield session
+    finally:
+        t0 = time.perf_counter()
+        session.exit_codes = deployment.stop()
+        session.timings["stop_s"] = time.perf_counter() - t0
 
 
 def announce_live_view(deployment: Deployment, progress: bool) -> None:

@@ -37,23 +37,6 @@ __all__ = [
 _STAGE_BUCKETS = (0.0001, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.03, 0.05, 0.1, 0.2, 0.5, 2.0)
 
 
-#: Why the router refused a TLS handshake (the compiled router, dataplane/src/router.rs,
-#: reads it from the TLS library's error).
-HANDSHAKE_REASONS = (
-    "unknown_issuer",
-    "expired",
-    "not_yet_valid",
-    "no_certificate",
-    "no_common_name",
-    "client_aborted",
-    "not_tls",
-    "timeout",
-    "bad_certificate",
-    "out_of_files",
-    "other",
-)
-
-
 @dataclass
 class RouterMetrics(MetricSet):
     """What the router refused. Counted by the compiled router only (zenoh's TLS

@@ -44,7 +44,7 @@ import numpy.typing as npt
 from tqdm import tqdm
 
 from swarmrec.client import ZenohClient
-from swarmrec.deployments.base import Deployment, SwarmSpec
+from swarmrec.deployments.base import Deployment, SwarmSpec, running
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.deployments.metrics import Scrape
 from swarmrec.errors import CallError, ConfigError, ErrorCode, RemoteError
@@ -491,19 +491,15 @@ def run_simulation(
     rounds: list[RobotRound] = []
     metrics = Scrape()
     runner: _Runner | None = None
-    try:
-        t1 = time.perf_counter()
-        deployment.start(swarm_spec(s), progress=s.progress)
-        deployment.wait_ready()
-        timings["start_s"] = time.perf_counter() - t1
+    with running(deployment, swarm_spec(s), progress=s.progress, timings=timings):
         if swarm_hook is not None:
             swarm_hook(deployment)
-        runner, rounds = _run_rounds(s, deployment, configs, encoded, timings, on_round)
-        metrics = deployment.metrics()
-    finally:
-        if runner is not None:
-            runner.close()
-        deployment.stop()
+        try:
+            runner, rounds = _run_rounds(s, deployment, configs, encoded, timings, on_round)
+            metrics = deployment.metrics()
+        finally:
+            if runner is not None:
+                runner.close()  # before the swarm stops
     # The check against the core: same vectors (float32 from the wire), same order.
     laws = {law.key: law.law() for law in s.laws}
     # Yaws as the wire carried them (float32), as the services used them.

@@ -42,7 +42,7 @@ from swarmrec.core.split import split_frames
 from swarmrec.core.types import ConstellationSequence, Trajectory
 from swarmrec.datasets.constellations import write_constellations
 from swarmrec.datasets.source import load_dataset
-from swarmrec.deployments.base import Deployment, SwarmSpec, announce_live_view
+from swarmrec.deployments.base import Deployment, SwarmSpec, running
 from swarmrec.deployments.compose import ComposeSettings, SwarmFile, write_compose
 from swarmrec.deployments.identities import Security
 from swarmrec.deployments.kubernetes import KubernetesDeployment, KubernetesSettings
@@ -311,60 +311,53 @@ def main(
     prepared = prepare(settings, dataset_dir=out / "dataset")
     spec = prepared.spec
     timings: dict[str, float] = {"prepare_s": time.perf_counter() - t_start}
-    exit_codes: dict[str, int] = {}
     offline: OfflineEvaluation | None = None
-    try:
-        t0 = time.perf_counter()
-        deployment.start(spec, progress=settings.progress)
-        deployment.wait_ready()
-        timings["start_s"] = time.perf_counter() - t0
-        announce_live_view(deployment, settings.progress)
+    afresh = "start it afresh (swarmrec down, then up; for compose: swarmrec compose down, then up)"
+    with (
+        running(
+            deployment,
+            spec,
+            progress=settings.progress,
+            timings=timings,
+            held_data=afresh,
+            request_timeout_s=settings.request_timeout_s,
+        ) as session,
         # The operator identity: it drives the replay (detector step/replay).
-        with deployment.client(settings.request_timeout_s) as client:
-            holding = {f"{m.kind}-{m.robot}": m.stored_items for m in client.members() if m.stored_items}
-            if holding:
-                # Frames of an earlier replay would be found as loop closures of this one.
-                raise ConfigError(
-                    f"the swarm already holds data from an earlier run ({holding}); "
-                    "start it afresh (swarmrec down, then up; for compose: swarmrec compose down, then up)"
-                )
-            # Every robot's shard confirmed on one settled placement before the first
-            # frame: in a big swarm started at once, a shard that comes up after the
-            # coordinator's first placement waits for it to be confirmed and refuses
-            # stores meanwhile; those slices would be stored after their step (a
-            # 50-robot swarm lost the lock-step identity so). Part of the start time.
-            t0 = time.perf_counter()
-            # (A local swarm has a shard on every robot; elsewhere the operator may have
-            # scaled them, so only the placement's own members are waited for.)
-            local = isinstance(deployment, LocalDeployment) and "index-shard" in spec.kinds
-            client.wait_index_settled(timeout_s=SETTLE_TIMEOUT_S, shards=spec.bus.n_robots if local else None)
-            timings["index_ready_s"] = time.perf_counter() - t0
-            timings["start_s"] += timings["index_ready_s"]
-            if swarm_hook is not None:
-                swarm_hook(deployment)
-            link_events: list[tuple[float, str]] = []
-            before_step = _link_schedule(deployment, client, link_events)
-            result = replay(client, prepared.blocks, settings, on_step, before_step)
-            timings["replay_s"] = result.wall_s
-            if prepared.sequence is not None:  # (from pixels: the detections, read after the stop)
-                offline = _offline(prepared.sequence, prepared, settings).start(
-                    check_offline=settings.check_offline
-                )
-            # Handoffs and retried stores finish before anything is counted, so the report
-            # agrees with what the shards hold.
-            t0 = time.perf_counter()
-            index_state = client.wait_index_settled(timeout_s=SETTLE_TIMEOUT_S)
-            timings["settle_s"] = time.perf_counter() - t0
-            if after_replay is not None:
-                after_replay(deployment)
-            t0 = time.perf_counter()
-            metrics = deployment.metrics()
-            timings["scrape_s"] = time.perf_counter() - t0
-            closures = collect_loop_closures(client, settings.robots, result)
-    finally:
+        deployment.client(settings.request_timeout_s) as client,
+    ):
+        # Every robot's shard confirmed on one settled placement before the first
+        # frame: in a big swarm started at once, a shard that comes up after the
+        # coordinator's first placement waits for it to be confirmed and refuses
+        # stores meanwhile; those slices would be stored after their step (a
+        # 50-robot swarm lost the lock-step identity so). Part of the start time.
         t0 = time.perf_counter()
-        exit_codes = deployment.stop()
-        timings["stop_s"] = time.perf_counter() - t0
+        # (A local swarm has a shard on every robot; elsewhere the operator may have
+        # scaled them, so only the placement's own members are waited for.)
+        local = isinstance(deployment, LocalDeployment) and "index-shard" in spec.kinds
+        client.wait_index_settled(timeout_s=SETTLE_TIMEOUT_S, shards=spec.bus.n_robots if local else None)
+        timings["index_ready_s"] = time.perf_counter() - t0
+        timings["start_s"] += timings["index_ready_s"]
+        if swarm_hook is not None:
+            swarm_hook(deployment)
+        link_events: list[tuple[float, str]] = []
+        before_step = _link_schedule(deployment, client, link_events)
+        result = replay(client, prepared.blocks, settings, on_step, before_step)
+        timings["replay_s"] = result.wall_s
+        if prepared.sequence is not None:  # (from pixels: the detections, read after the stop)
+            checking = _offline(prepared.sequence, prepared, settings)
+            offline = checking.start(check_offline=settings.check_offline)
+        # Handoffs and retried stores finish before anything is counted, so the report
+        # agrees with what the shards hold.
+        t0 = time.perf_counter()
+        index_state = client.wait_index_settled(timeout_s=SETTLE_TIMEOUT_S)
+        timings["settle_s"] = time.perf_counter() - t0
+        if after_replay is not None:
+            after_replay(deployment)
+        t0 = time.perf_counter()
+        metrics = deployment.metrics()
+        timings["scrape_s"] = time.perf_counter() - t0
+        closures = collect_loop_closures(client, settings.robots, result)
+    exit_codes = session.exit_codes
     seq, detector = prepared.sequence, None
     if prepared.pixels is not None:
         px = prepared.pixels

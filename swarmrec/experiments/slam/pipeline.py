@@ -33,7 +33,7 @@ from google.protobuf.message import Message  # type: ignore[import-untyped, unus
 from tqdm import tqdm
 
 from swarmrec.client import ZenohClient
-from swarmrec.deployments.base import Deployment, DeploymentError, SwarmSpec, announce_live_view
+from swarmrec.deployments.base import Deployment, DeploymentError, SwarmSpec, running
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.errors import CallError
 from swarmrec.experiments.slam.report import LiveRecord, LiveSlamSummary, RobotResult, write_report
@@ -200,12 +200,7 @@ def main(
     if deployment is None:
         deployment = LocalDeployment(data_dir=out / "data", log_dir=out / "logs", security=settings.security)
     timings = {"prepare_s": time.perf_counter() - t_start}
-    try:
-        t0 = time.perf_counter()
-        deployment.start(spec, progress=settings.progress)
-        deployment.wait_ready()
-        timings["start_s"] = time.perf_counter() - t0
-        announce_live_view(deployment, settings.progress)
+    with running(deployment, spec, progress=settings.progress, timings=timings) as session:
         if swarm_hook is not None:
             swarm_hook(deployment)
         with deployment.client(settings.request_timeout_s) as client:
@@ -213,10 +208,7 @@ def main(
         t0 = time.perf_counter()
         metrics = deployment.metrics()
         timings["scrape_s"] = time.perf_counter() - t0
-    finally:
-        t0 = time.perf_counter()
-        exit_codes = deployment.stop()
-        timings["stop_s"] = time.perf_counter() - t0
+    exit_codes = session.exit_codes
     record = LiveRecord(
         settings=settings,
         folder=str(prepared.folder),

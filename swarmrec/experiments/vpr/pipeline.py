@@ -35,10 +35,9 @@ import numpy.typing as npt
 from swarmrec.core.association import warm_up
 from swarmrec.core.presets import get_preset
 from swarmrec.core.split import split_frames
-from swarmrec.deployments.base import Deployment, SwarmSpec, announce_live_view
+from swarmrec.deployments.base import Deployment, SwarmSpec, running
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.deployments.metrics import Scrape
-from swarmrec.errors import ConfigError
 from swarmrec.experiments.places import main as places_main
 from swarmrec.experiments.places.pixels import PixelSource, prepare_pixels, rgbd_settings
 from swarmrec.experiments.places.report import DetectorFigures, PlacesSummary
@@ -193,34 +192,32 @@ def run_dvpr(
     deployment = _local(settings, out)
     warm_up()  # the verifiers load the association kernels from numba's cache
     t_start = time.perf_counter()
-    try:
-        t0 = time.perf_counter()
-        deployment.start(spec, progress=run.progress)
-        deployment.wait_ready()
-        timings["start_s"] = time.perf_counter() - t0
-        announce_live_view(deployment, run.progress)
-        with deployment.client(run.request_timeout_s) as client:
-            holding = {f"{m.kind}-{m.robot}": m.stored_items for m in client.members() if m.stored_items}
-            if holding:
-                raise ConfigError(f"the swarm already holds data from an earlier run ({holding})")
-            if swarm_hook is not None:
-                swarm_hook(deployment)
-            step_timeout = 6 * run.request_timeout_s
-            result: PlaceReplay
-            if run.lockstep:
-                result = replay_ordered(client, blocks, step_timeout, progress=run.progress)
-            else:
-                rate = 0.0 if run.pace == "fast" else float(run.pace)
-                result = replay_free(client, blocks, rate, step_timeout, progress=run.progress)
-            timings["replay_s"] = result.wall_s
-            metrics = deployment.metrics()
-            closures = collect_loop_closures(client, run.robots, result)
-            if replayed_hook is not None:
-                replayed_hook(deployment)
-    finally:
-        t0 = time.perf_counter()
-        exit_codes = deployment.stop()
-        timings["stop_s"] = time.perf_counter() - t0
+    with (
+        running(
+            deployment,
+            spec,
+            progress=run.progress,
+            timings=timings,
+            held_data="start it afresh",
+            request_timeout_s=run.request_timeout_s,
+        ) as session,
+        deployment.client(run.request_timeout_s) as client,
+    ):
+        if swarm_hook is not None:
+            swarm_hook(deployment)
+        step_timeout = 6 * run.request_timeout_s
+        result: PlaceReplay
+        if run.lockstep:
+            result = replay_ordered(client, blocks, step_timeout, progress=run.progress)
+        else:
+            rate = 0.0 if run.pace == "fast" else float(run.pace)
+            result = replay_free(client, blocks, rate, step_timeout, progress=run.progress)
+        timings["replay_s"] = result.wall_s
+        metrics = deployment.metrics()
+        closures = collect_loop_closures(client, run.robots, result)
+        if replayed_hook is not None:
+            replayed_hook(deployment)
+    exit_codes = session.exit_codes
     timings["swarm_total_s"] = time.perf_counter() - t_start
     descriptors = read_descriptors(deployment.data_dir, px, blocks)
     assignment = table.assignment
