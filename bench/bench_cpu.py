@@ -70,10 +70,10 @@ from typing import Any, cast
 from swarmrec.core.presets import get_preset
 from swarmrec.datasets.constellations import read_constellations
 from swarmrec.datasets.labels import COCO_NAMES
-from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.evaluation.scoring import score_decentralized
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, main
 from swarmrec.experiments.places.pipeline import as_on_the_wire
 from swarmrec.runtime.settings import DataPlane, ZenohRuntime

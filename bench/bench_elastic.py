@@ -33,9 +33,9 @@ from pathlib import Path
 from typing import Any
 
 from swarmrec.core.split import split_frames
-from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.local import LocalDeployment
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, main
 from swarmrec.services.settings import IndexSettings
 

@@ -33,8 +33,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.kubernetes import DEFAULT_OVERLAY, Kubectl, KubernetesDeployment, KubernetesSettings
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places.pipeline import prepare
 from swarmrec.experiments.places.settings import PlacesSettings
 

@@ -29,8 +29,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.links import LinkSpec
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, main
 
 REPO = Path(__file__).resolve().parents[1]

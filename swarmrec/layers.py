@@ -15,6 +15,14 @@ of a higher one, and no two modules may import each other, even through others
     experiments  pipelines that take a deployment (places, landmarks, slam)
     cli          the ``swarmrec`` command line
 
+The core layer is ordered too, in bands (:data:`CORE_BANDS`, lowest first)::
+
+    errors < core < models, inference < datasets < slam < fusion < synthetic
+           < detection < evaluation < vpr
+
+so that two core packages never import each other (the data an evaluation runs on,
+a named dataset or the synthetic world, is the evaluation's: ``evaluation.source``).
+
 ``python -m swarmrec.layers`` prints the graph's counts between layers and any
 violation; ``--figure PATH`` draws the picture in docs/architecture.md.
 tests/unit/test_architecture.py fails on a cycle or an upward import.
@@ -29,7 +37,7 @@ from collections import Counter
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
-__all__ = ["LAYERS", "cycles", "import_graph", "layer_of", "main", "upward_imports"]
+__all__ = ["CORE_BANDS", "LAYERS", "band_of", "cycles", "import_graph", "layer_of", "main", "upward_imports"]
 
 #: (layer, the module prefixes in it), lowest first.
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
@@ -57,6 +65,21 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("cli", ("swarmrec.cli", "swarmrec.__main__", "swarmrec.layers")),
 )
 
+#: The core layer's packages in bands, lowest first: a core module imports its own band
+#: or lower ones. Every package of the core layer is in one.
+CORE_BANDS: tuple[tuple[str, ...], ...] = (
+    ("swarmrec.errors",),
+    ("swarmrec.core",),
+    ("swarmrec.models", "swarmrec.inference"),
+    ("swarmrec.datasets",),
+    ("swarmrec.slam",),
+    ("swarmrec.fusion",),
+    ("swarmrec.synthetic",),
+    ("swarmrec.detection",),
+    ("swarmrec.evaluation",),
+    ("swarmrec.vpr",),
+)
+
 PACKAGE = Path(__file__).resolve().parent
 
 
@@ -68,6 +91,14 @@ def layer_of(module: str) -> int:
         if any(module == p or module.startswith(p + ".") for p in prefixes):
             return i
     raise KeyError(f"{module} is in no layer of swarmrec.layers.LAYERS")
+
+
+def band_of(module: str) -> int:
+    """The index in :data:`CORE_BANDS` of a core module's band; -1 outside the core layer."""
+    for i, prefixes in enumerate(CORE_BANDS):
+        if any(module == p or module.startswith(p + ".") for p in prefixes):
+            return i
+    return -1
 
 
 def _modules(root: Path) -> dict[str, Path]:
@@ -155,10 +186,15 @@ def cycles(graph: Mapping[str, set[str]]) -> list[list[str]]:
 
 
 def upward_imports(graph: Mapping[str, set[str]]) -> list[tuple[str, str]]:
-    """(importer, imported) pairs where a module imports a higher layer's."""
-    return sorted(
-        (m, d) for m, deps in graph.items() for d in deps if layer_of(d) > layer_of(m) and layer_of(m) >= 0
-    )
+    """(importer, imported) pairs where a module imports a higher layer's, or, in the core
+    layer, a higher band's."""
+
+    def up(m: str, d: str) -> bool:
+        if layer_of(m) < 0:
+            return False
+        return layer_of(d) > layer_of(m) or band_of(d) > band_of(m) >= 0
+
+    return sorted((m, d) for m, deps in graph.items() for d in deps if up(m, d))
 
 
 def layer_counts(graph: Mapping[str, set[str]]) -> Counter[tuple[int, int]]:

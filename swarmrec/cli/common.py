@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeAlias
 
 from swarmrec.core.presets import PRESETS
-from swarmrec.datasets.source import DatasetSource
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.services.settings import IndexSettings
 
 if TYPE_CHECKING:

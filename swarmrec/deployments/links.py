@@ -211,22 +211,27 @@ class LinkEmulator:
         except json.JSONDecodeError:
             return text  # /version answers plain text
 
-    def add_robot(self, robot: int, listen_port: int, router_port: int, link: LinkSpec) -> str:
-        """A proxy for ``robot`` on ``listen_port`` to the router; returns the endpoint its services use."""
+    def add_robot(self, robot: int, router_port: int, link: LinkSpec) -> str:
+        """A proxy for ``robot`` to the router, on a port the OS gives it (Toxiproxy binds port
+        0 and names the port it got); returns the endpoint its services use."""
         name = f"robot-{robot}"
-        self._call(
+        made = self._call(
             "POST",
             "/proxies",
             {
                 "name": name,
-                "listen": f"127.0.0.1:{listen_port}",
+                "listen": "127.0.0.1:0",
                 "upstream": f"127.0.0.1:{router_port}",
                 "enabled": True,
             },
         )
-        self.ports[robot] = listen_port
+        listen = made.get("listen", "") if isinstance(made, dict) else ""
+        port = str(listen).rpartition(":")[2]
+        if not port.isdigit() or int(port) == 0:
+            raise DeploymentError(f"Toxiproxy did not say where robot {robot}'s proxy listens: {made!r}")
+        self.ports[robot] = int(port)
         self.set_link(robot, link)
-        return f"tcp/127.0.0.1:{listen_port}"
+        return f"tcp/127.0.0.1:{port}"
 
     def set_link(self, robot: int, link: LinkSpec) -> None:
         """Replace ``robot``'s toxics by those of ``link`` (both directions)."""

@@ -330,7 +330,7 @@ class LocalDeployment:
         self.links = LinkEmulator(log_dir=self.log_dir)
         self.links.start(free_port())
         for robot in range(spec.robots):
-            self.links.add_robot(robot, free_port(), self.router_port, self.link)
+            self.links.add_robot(robot, self.router_port, self.link)
         self.apply_links(0.0)
 
     def robot_endpoint(self, robot: int) -> str:

@@ -26,7 +26,6 @@ from swarmrec.core.association import build_table
 from swarmrec.core.presets import get_preset
 from swarmrec.core.types import ConstellationSequence
 from swarmrec.datasets.constellations import label_counts
-from swarmrec.datasets.source import DatasetSource, load_dataset
 from swarmrec.errors import ConfigError
 from swarmrec.evaluation.bandwidth import holder_load, paper_byte_model
 from swarmrec.evaluation.groundtruth import Rules, ground_truth
@@ -39,6 +38,7 @@ from swarmrec.evaluation.scoring import (
     score_decentralized,
     split_frames,
 )
+from swarmrec.evaluation.source import DatasetSource, load_dataset
 
 __all__ = ["EvaluationSettings", "EvaluationSummary", "ModeResult", "main"]
 

@@ -15,7 +15,6 @@ from pathlib import Path
 import docker
 import pytest
 
-from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.compose import (
     ComposeDeployment,
     ComposeSettings,
@@ -24,6 +23,7 @@ from swarmrec.deployments.compose import (
     up,
 )
 from swarmrec.deployments.local import free_port
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, PlacesSummary, main
 from swarmrec.experiments.places.pipeline import compose
 from tests.conftest import REPO

@@ -26,8 +26,8 @@ from typing import Any
 import docker
 import pytest
 
-from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.compose import ComposeDeployment, SwarmFile, down
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, main
 from tests.e2e.conftest import project_leftovers, run_attached, start_swarm
 

@@ -45,7 +45,6 @@ from swarmrec.core.placement import Placement, groups_from_bounds
 from swarmrec.core.presets import get_preset
 from swarmrec.core.split import split_frames
 from swarmrec.core.types import ConstellationSequence
-from swarmrec.datasets.source import DatasetSource, load_dataset
 from swarmrec.deployments.attach import attach
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.kubernetes import (
@@ -57,6 +56,7 @@ from swarmrec.deployments.kubernetes import (
     write_overlay,
 )
 from swarmrec.errors import ConfigError
+from swarmrec.evaluation.source import DatasetSource, load_dataset
 from swarmrec.experiments.places import PlacesSettings, PlacesSummary, main
 from swarmrec.experiments.places.pipeline import prepare
 from swarmrec.runtime import keys

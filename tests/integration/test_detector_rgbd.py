@@ -18,10 +18,10 @@ import cv2
 import numpy as np
 import pytest
 
-from swarmrec.datasets.source import DatasetSource
 from swarmrec.datasets.tum_rgbd import read_tum_rgbd
 from swarmrec.deployments.base import SwarmStartError
 from swarmrec.deployments.local import LocalDeployment
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PixelSettings, PlacesSettings, main
 from swarmrec.services.settings import DetectorSettings, PlaceSettings, RgbdSettings
 from swarmrec.synthetic import OfficeConfig, generate_office

@@ -26,9 +26,9 @@ from swarmrec.core.split import split_frames
 from swarmrec.core.verification import verify
 from swarmrec.datasets.constellations import read_constellations
 from swarmrec.datasets.labels import COCO_NAMES
-from swarmrec.datasets.source import DatasetSource
 from swarmrec.datasets.tum_rgbd import frame_id_of, read_tum_rgbd
 from swarmrec.deployments.base import Deployment
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PixelSettings, PlacesSettings
 from swarmrec.experiments.places.pipeline import as_on_the_wire
 from swarmrec.experiments.vpr import DvprSettings, DvprSummary, VprRunSettings, main

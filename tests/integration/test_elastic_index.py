@@ -34,10 +34,10 @@ from swarmrec.core.placement import Placement
 from swarmrec.core.presets import get_preset
 from swarmrec.core.split import split_frames
 from swarmrec.datasets.constellations import read_constellations
-from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.errors import ErrorCode, NoReply, RemoteError
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, main
 from swarmrec.runtime import keys
 from swarmrec.runtime.rpc import Caller

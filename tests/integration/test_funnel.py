@@ -31,11 +31,11 @@ from swarmrec.core.presets import get_preset
 from swarmrec.core.selection import select_candidates
 from swarmrec.core.split import split_frames
 from swarmrec.datasets.constellations import read_constellations
-from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.evaluation.funnel import shard_cuts
 from swarmrec.evaluation.scoring import score_decentralized
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, PlacesSummary, main
 from swarmrec.experiments.places.pipeline import as_on_the_wire
 from swarmrec.wire import messages as pb

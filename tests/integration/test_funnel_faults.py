@@ -28,9 +28,9 @@ from pathlib import Path
 
 import pytest
 
-from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.local import LocalDeployment
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, main
 from tests.integration.support import endpoint_key
 

@@ -9,11 +9,11 @@ from pathlib import Path
 import pytest
 
 from swarmrec.cli.run import print_summary
-from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.links import LinkSpec, read_schedule
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.errors import MalformedLineError
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, main
 
 ROBOTS, FRAMES, OUT, BACK, LOST_ROBOT = 3, 150, 5, 10, 1

@@ -27,8 +27,8 @@ import matplotlib.image as mpimg
 import numpy as np
 import pytest
 
-from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.base import Deployment
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.landmarks.simulation import LandmarkSettings, parse_law, run_simulation
 from swarmrec.experiments.places import PixelSettings, PlacesSettings
 from swarmrec.experiments.slam.pipeline import TERMINAL

@@ -20,11 +20,11 @@ import pytest
 from swarmrec.core.presets import get_preset
 from swarmrec.datasets.constellations import read_constellations
 from swarmrec.datasets.labels import COCO_NAMES
-from swarmrec.datasets.source import DatasetSource
 from swarmrec.datasets.tum import read_trajectory
 from swarmrec.evaluation.groundtruth import ground_truth
 from swarmrec.evaluation.pr import precision_recall
 from swarmrec.evaluation.scoring import score_decentralized
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PixelSettings, PlacesSettings, main
 from swarmrec.experiments.places.pipeline import as_on_the_wire
 

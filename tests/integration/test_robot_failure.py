@@ -23,9 +23,9 @@ from swarmrec.cli.run import print_summary
 from swarmrec.core.descriptor import semantic_descriptor
 from swarmrec.core.split import split_frames
 from swarmrec.datasets.constellations import read_constellations
-from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.local import LocalDeployment
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, main
 from swarmrec.runtime import keys
 from swarmrec.services.settings import IndexSettings

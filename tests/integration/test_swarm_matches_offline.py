@@ -13,9 +13,9 @@ import pytest
 from swarmrec.core.presets import get_preset
 from swarmrec.datasets.constellations import read_constellations
 from swarmrec.datasets.labels import COCO_NAMES
-from swarmrec.datasets.source import DatasetSource
 from swarmrec.evaluation.bandwidth import holder_load
 from swarmrec.evaluation.scoring import score_decentralized
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, main
 from swarmrec.experiments.places.pipeline import as_on_the_wire
 from swarmrec.runtime.settings import DataPlane

@@ -14,7 +14,7 @@ import pytest
 import swarmrec
 from swarmrec import errors
 from swarmrec.errors import SwarmrecError
-from swarmrec.layers import LAYERS, cycles, import_graph, layer_of, upward_imports
+from swarmrec.layers import CORE_BANDS, LAYERS, band_of, cycles, import_graph, layer_of, upward_imports
 from tests.conftest import REPO
 
 GRAPH = import_graph()
@@ -40,6 +40,19 @@ def test_the_checks_catch_what_they_are_for() -> None:
     assert ("swarmrec.wire.codec", "swarmrec.runtime.runner") in upward_imports(bad)
     bad["swarmrec.runtime.runner"] = GRAPH["swarmrec.runtime.runner"] | {"swarmrec.wire.codec"}
     assert any({"swarmrec.wire.codec", "swarmrec.runtime.runner"} <= set(c) for c in cycles(bad))
+
+
+def test_the_core_bands_hold_every_core_package_once_and_the_check_sees_an_import_up_a_band() -> None:
+    core = dict(LAYERS)["core"]
+    banded = [p for band in CORE_BANDS for p in band]
+    assert sorted(banded) == sorted(core)
+    assert all(band_of(m) >= 0 for m in GRAPH if layer_of(m) == 0)
+    # The datasets reading the synthetic world is up a band (it was so before evaluation.source).
+    bad = dict(GRAPH)
+    bad["swarmrec.datasets.constellations"] = GRAPH["swarmrec.datasets.constellations"] | {
+        "swarmrec.synthetic"
+    }
+    assert ("swarmrec.datasets.constellations", "swarmrec.synthetic") in upward_imports(bad)
 
 
 def test_the_layers_named_in_the_architecture_page_are_the_packages() -> None:

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import pytest
 
-from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.base import SwarmSpec
 from swarmrec.deployments.compose import (
     ComposeDeployment,
@@ -20,6 +19,7 @@ from swarmrec.deployments.compose import (
     write_compose,
 )
 from swarmrec.errors import ConfigError
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.landmarks.simulation import LandmarkSettings, swarm_spec
 from swarmrec.experiments.places.pipeline import prepare
 from swarmrec.experiments.places.settings import PlacesSettings

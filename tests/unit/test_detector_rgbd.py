@@ -15,7 +15,6 @@ import pytest
 
 from swarmrec.datasets.constellations import format_constellation
 from swarmrec.datasets.labels import COCO_NAMES
-from swarmrec.datasets.source import DatasetSource
 from swarmrec.datasets.tum_rgbd import RgbdImageError, frame_id_of, load_rgbd, read_tum_rgbd
 from swarmrec.detection import (
     DEFAULT_CONF_THRESHOLD,
@@ -29,6 +28,7 @@ from swarmrec.detection import (
     model_path,
 )
 from swarmrec.errors import ConfigError
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places.pixels import detected_sequence, prepare_pixels
 from swarmrec.experiments.places.settings import PixelSettings, PlacesSettings
 from swarmrec.models import MODELS_ENV

@@ -927,8 +927,8 @@ def test_a_runs_overlay_sets_the_specs_robots_settings_and_dataset(tmp_path: Pat
 
     from swarmrec.datasets.constellations import read_constellations
     from swarmrec.datasets.labels import label_names
-    from swarmrec.datasets.source import DatasetSource
     from swarmrec.deployments.kubernetes import DEFAULT_OVERLAY, shared_env, write_overlay
+    from swarmrec.evaluation.source import DatasetSource
     from swarmrec.experiments.places.pipeline import prepare
     from swarmrec.experiments.places.settings import PlacesSettings
 

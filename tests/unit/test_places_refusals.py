@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from swarmrec.datasets.source import DatasetSource
 from swarmrec.deployments.links import LinkSpec
 from swarmrec.errors import ConfigError, MalformedLineError
+from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, main
 
 

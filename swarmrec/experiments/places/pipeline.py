@@ -41,7 +41,6 @@ from swarmrec.core.ranges import label_bounds
 from swarmrec.core.split import split_frames
 from swarmrec.core.types import ConstellationSequence, Trajectory
 from swarmrec.datasets.constellations import write_constellations
-from swarmrec.datasets.source import load_dataset
 from swarmrec.deployments.base import Deployment, SwarmSpec, running
 from swarmrec.deployments.compose import ComposeSettings, SwarmFile, write_compose
 from swarmrec.deployments.identities import Security
@@ -50,6 +49,7 @@ from swarmrec.deployments.links import read_schedule
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.errors import ConfigError
 from swarmrec.evaluation.scoring import label_frequency_prior
+from swarmrec.evaluation.source import load_dataset
 from swarmrec.experiments.places.pixels import PixelSource, detected_sequence, prepare_pixels, rgbd_settings
 from swarmrec.experiments.places.replay import collect_loop_closures, replay
 from swarmrec.experiments.places.report import (

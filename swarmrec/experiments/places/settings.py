@@ -8,10 +8,10 @@ from pathlib import Path
 from typing import Any, Literal
 
 from swarmrec.core.presets import get_preset
-from swarmrec.datasets.source import SYNTHETIC, DatasetSource
 from swarmrec.datasets.tum import DEFAULT_MAX_DT
 from swarmrec.deployments.links import LinkSpec
 from swarmrec.errors import ConfigError
+from swarmrec.evaluation.source import SYNTHETIC, DatasetSource
 from swarmrec.runtime.settings import BusSettings, DataPlane
 from swarmrec.services.settings import IndexSettings, PlaceSettings, WirePositions
 
