@@ -9,6 +9,7 @@ name) and keeps it until Ctrl-C or ``swarmrec down OUT``. Meanwhile ``swarmrec m
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import signal
 import sys
 import time
@@ -116,6 +117,9 @@ def _refuse_running(out: Path) -> None:
 def up(args: argparse.Namespace) -> int:
     out = args.out.resolve()
     _refuse_running(out)
+    # SIGUSR1 prints where every thread of this process is (stderr): a keeper that does not
+    # stop can be asked what it waits on (`kill -USR1 <pid>`), as the tests do.
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     settings = swarm_places_settings(
         args,
         out,

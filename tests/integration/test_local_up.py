@@ -41,6 +41,14 @@ def swarmrec(*args: str, cwd: Path, timeout: float = 120) -> subprocess.Complete
     )
 
 
+def _ctrl_c_as_at_a_terminal() -> None:
+    # A shell without job control starts a background command with SIGINT ignored, and
+    # every child inherits that (`(make test &)` did, and `swarmrec up` never saw the
+    # test's Ctrl-C: its stacks showed it still keeping the swarm). A user types Ctrl-C at
+    # a terminal, where SIGINT is not ignored: so is the keeper here.
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def start_up(cwd: Path, *args: str) -> subprocess.Popen[str]:
     return subprocess.Popen(
         [sys.executable, "-m", "swarmrec", "up", "--quiet", *args],
@@ -48,6 +56,7 @@ def start_up(cwd: Path, *args: str) -> subprocess.Popen[str]:
         stderr=subprocess.STDOUT,
         text=True,
         cwd=cwd,
+        preexec_fn=_ctrl_c_as_at_a_terminal,
     )
 
 
@@ -163,13 +172,36 @@ def test_down_stops_every_process_and_clients_then_say_so(
     assert again.returncode == 2 and "no swarm is kept in runs/up" in again.stderr
 
 
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (from /proc)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue  # gone meanwhile
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
 def test_sigint_while_kept_stops_it_cleanly(tmp_path: Path) -> None:
     proc = start_up(tmp_path, "--robots", "2", "--frames", "40", "--hosting", "robots:2", "--out", "s")
     wait_up(proc)
 
     proc.send_signal(signal.SIGINT)
 
-    rest, _ = proc.communicate(timeout=60)
+    try:
+        rest, _ = proc.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        # Say where it hangs (its threads' stacks, faulthandler on SIGUSR1), then end it.
+        proc.send_signal(signal.SIGUSR1)
+        time.sleep(2.0)
+        for child in _children(proc.pid):  # its swarm, which it did not stop
+            os.kill(child, signal.SIGKILL)
+        proc.kill()
+        stacks, _ = proc.communicate()
+        raise AssertionError(f"swarmrec up did not stop 60 s after Ctrl-C; it was at:\n{stacks}") from None
     assert proc.returncode == 0
     assert "processes exited cleanly" in rest
     assert not (tmp_path / "s/swarm.json").exists()
