@@ -421,6 +421,9 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
     for h in &hosted {
         h.service.attach(&session)?;
     }
+    for r in &routers {
+        r.follow_denials(std::time::Duration::from_secs(1));
+    }
     // The coordinators start now: their interpreter's start overlaps the declarations, and a
     // shard restarted from its disk answers only once its coordinator has confirmed it.
     let mut coordinator = Sidecar::new(spec.coordinator.clone(), host_log.clone());

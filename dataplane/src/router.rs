@@ -206,13 +206,35 @@ impl Service for Router {
         Ok(())
     }
 
-    /// The counters as they are now: the refused handshakes counted so far, and zenoh's
-    /// access-control drops (sessions that left included).
+    /// The refused handshakes counted so far. zenoh's drop counters are copied by the
+    /// router's own thread ([`Router::follow_denials`]), never while a scrape or a probe
+    /// waits: the metrics endpoint serves one request at a time, and the probes use it too.
     fn refresh_metrics(&self) {
-        let registry = &self.metrics.registry;
         for (reason, n) in lock(&REFUSED).iter() {
-            registry.set(self.refused_handshakes, &[reason], *n as f64);
+            self.metrics.registry.set(self.refused_handshakes, &[reason], *n as f64);
         }
+    }
+}
+
+impl Router {
+    /// Copies zenoh's access-control drops into the registry every `every`, on a thread of
+    /// its own, until the process ends.
+    pub fn follow_denials(self: &Arc<Self>, every: std::time::Duration) {
+        let me = Arc::downgrade(self);
+        let _ = std::thread::Builder::new()
+            .name("router-denials".into())
+            .spawn(move || {
+                while let Some(router) = me.upgrade() {
+                    router.copy_denials();
+                    drop(router);
+                    std::thread::sleep(every);
+                }
+            });
+    }
+
+    /// zenoh's access-control drops as they are now (sessions that left included).
+    fn copy_denials(&self) {
+        let registry = &self.metrics.registry;
         // zenoh's selector parameters are separated by `;`.
         let selector = "router/metrics?compression=false;descriptors=false;per_key=false;per_link=false;\
                         disconnected=true";
