@@ -11,7 +11,7 @@
 //! * **denied messages**: what the access control dropped, per certificate name and
 //!   direction. zenoh counts these itself (its `stats` feature, the drop reason
 //!   `access-control`, labelled by the remote certificate's common name); they are read
-//!   from the router's own admin space when Prometheus scrapes, and kept for sessions
+//!   from the router's own admin space every second (`follow_denials`), kept for sessions
 //!   that have left.
 //!
 //! It has no endpoint of its own beyond `info`.
