@@ -45,7 +45,8 @@ from swarmrec.deployments.compose import (
 )
 from swarmrec.deployments.local import LocalDeployment, free_port
 from swarmrec.experiments.places import PlacesSettings, main
-from swarmrec.experiments.places.pipeline import compose, prepare
+from swarmrec.experiments.places.keep import compose
+from swarmrec.experiments.places.pipeline import prepare
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -166,7 +167,9 @@ def bench_replay_and_memory(tmp: Path, robots: int = 4) -> dict[str, Any]:
             for sp in held[0].procs:
                 rss[sp.kind].append(_rss_mb(sp.proc.pid))
 
-    local = main(local_settings, swarm_hook=hold, on_step=on_step).to_dict()
+    local = main(
+        local_settings, LocalDeployment.for_run(local_settings.out), swarm_hook=hold, on_step=on_step
+    ).to_dict()
     processes = {k: {"mean": sum(v) / len(v), "max": max(v), "n": len(v)} for k, v in sorted(rss.items())}
     return {
         "robots": robots,

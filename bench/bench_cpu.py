@@ -71,7 +71,7 @@ from swarmrec.core.presets import get_preset
 from swarmrec.datasets.constellations import read_constellations
 from swarmrec.datasets.labels import COCO_NAMES
 from swarmrec.deployments.base import Deployment
-from swarmrec.deployments.local import LocalDeployment
+from swarmrec.deployments.local import LocalDeployment, LocalSettings
 from swarmrec.evaluation.scoring import score_decentralized
 from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, main
@@ -313,13 +313,17 @@ def _run_swarm(
         settings = PlacesSettings(
             source=DatasetSource(str(dataset)),
             robots=10,
-            hosting=hosting,
             out=Path(tmp) / "run",
             plots=False,
             progress=False,
             data_plane=data_plane,
         )
-        s = main(settings, swarm_hook=swarm_up, after_replay=replay_over)
+        s = main(
+            settings,
+            LocalDeployment.for_run(settings.out, LocalSettings(hosting=hosting)),
+            swarm_hook=swarm_up,
+            after_replay=replay_over,
+        )
     compiled = compiled_processes(marks["after"])
     if (compiled > 0) != (data_plane == "compiled"):
         raise SystemExit(f"data plane {data_plane} but {compiled} compiled host processes ran: not measured")

@@ -33,11 +33,12 @@ from typing import Any
 
 import numpy as np
 import onnxruntime as ort  # type: ignore[import-untyped]  # onnxruntime ships no type hints
-from swarmrec.services.detector_rgbd import DEFAULT_CONF_THRESHOLD, process_frame
 
 from swarmrec.datasets.tum_rgbd import RgbdFrame, load_rgbd, read_tum_rgbd
 from swarmrec.detection import CameraIntrinsics, DetectorSettings, OnnxDetector, RgbdPipeline, object_points
+from swarmrec.detection.loader import DEFAULT_CONF_THRESHOLD
 from swarmrec.models import DETECTOR_MODEL, shipped_model
+from swarmrec.services.detector.rgbd import process_frame
 from swarmrec.synthetic import OfficeConfig, generate_office
 from swarmrec.synthetic.render import write_rgbd_sequence
 

@@ -77,7 +77,7 @@ def balance(name: str, index: IndexSettings, work: Path) -> dict[str, Any]:
         index=index,
     )
     t0 = time.perf_counter()
-    s = main(settings)
+    s = main(settings, LocalDeployment.for_run(settings.out))
     wall = time.perf_counter() - t0
     steps = max(len(b) for b in split_frames(s.dataset.frames, ROBOTS))
     whole = _loads(out, ROBOTS)
@@ -160,7 +160,7 @@ def scaling(work: Path) -> dict[str, Any]:
         plots=False,
         index=IndexSettings(max_shards=6, rebalance_target=1000.0, member_grace_s=2.0),
     )
-    s = main(settings, swarm_hook=hook, on_step=on_step)
+    s = main(settings, LocalDeployment.for_run(settings.out), swarm_hook=hook, on_step=on_step)
     assert s.index is not None
     return {
         **figures,

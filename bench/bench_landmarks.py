@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from swarmrec.deployments.local import LocalDeployment
 from swarmrec.experiments.landmarks import DEFAULT_LAWS, VIEW_PRESETS, LandmarkSettings, main
 from swarmrec.experiments.landmarks.simulation import render_views
 from swarmrec.fusion import FusionState, generate_configurations, simulate_flooding
@@ -67,7 +68,7 @@ def core_rates(settings: LandmarkSettings) -> tuple[dict[str, list[float]], floa
 def run_preset(views: str, configurations: int, work: Path) -> dict[str, Any]:
     settings = LandmarkSettings(out=work / views, configurations=configurations, views=views, progress=False)
     baseline, core_s = core_rates(settings)
-    summary = main(settings).to_dict()
+    summary = main(settings, LocalDeployment.for_run(settings.out)).to_dict()
     rounds = configurations * len(DEFAULT_LAWS)
     swarm_s = summary["timings_s"]["rounds_s"]
     FIGURES.mkdir(parents=True, exist_ok=True)

@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from swarmrec.deployments.links import LinkSpec
+from swarmrec.deployments.local import LocalDeployment, LocalSettings
 from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, main
 
@@ -43,14 +44,12 @@ def run(name: str, work: Path, link: LinkSpec | None, schedule: Path | None) -> 
         robots=ROBOTS,
         out=work / name.replace(" ", "_").replace("/", "_").replace(",", ""),
         swarm="bench-links",
-        hosting="robot",
-        link=link or LinkSpec(),
-        schedule=schedule,
         request_timeout_s=10.0,
         progress=False,
         plots=False,
     )
-    s = main(settings)
+    local = LocalSettings(hosting="robot", link=link or LinkSpec(), schedule=schedule)
+    s = main(settings, LocalDeployment.for_run(settings.out, local))
     check = s.offline_check
     return {
         "case": name,

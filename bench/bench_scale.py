@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from swarmrec.deployments.base import Deployment
-from swarmrec.deployments.local import LocalDeployment
+from swarmrec.deployments.local import LocalDeployment, LocalSettings
 from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, main
 from swarmrec.services.settings import IndexSettings
@@ -94,14 +94,18 @@ def run(robots: int, hosting: str, work: Path, rebalance_target: float) -> dict[
         robots=robots,
         out=work / name,
         swarm=f"scale-{name}",
-        hosting=hosting,
         request_timeout_s=30.0,
         index=IndexSettings(rebalance_target=rebalance_target),
         progress=False,
         plots=False,
     )
     t0 = time.perf_counter()
-    s = main(settings, swarm_hook=hook, on_step=on_step)
+    s = main(
+        settings,
+        LocalDeployment.for_run(settings.out, LocalSettings(hosting=hosting)),
+        swarm_hook=hook,
+        on_step=on_step,
+    )
     wall = time.perf_counter() - t0
     total = memory.get("services_mb", 0.0) + memory.get("router_mb", 0.0)
     return {

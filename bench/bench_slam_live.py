@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from swarmrec.deployments.local import LocalDeployment
 from swarmrec.experiments.slam import LiveSlamSettings, main
 from swarmrec.slam import DgsSettings, ScenarioSettings, generate_scenario, read_robot_folder, run_dgs
 
@@ -43,7 +44,7 @@ def case(name: str, settings: LiveSlamSettings) -> dict[str, Any]:
     t0 = time.perf_counter()
     reference = run_dgs(graph, DgsSettings())
     in_process = time.perf_counter() - t0
-    summary = main(settings)
+    summary = main(settings, LocalDeployment.for_run(settings.out))
     iterations = sum(n for _, _, n, _ in summary.stages)
     live = summary.timings["solve_s"]
     return {

@@ -50,7 +50,7 @@ import zenoh
 from swarmrec.core.presets import get_preset
 from swarmrec.datasets.constellations import read_constellations
 from swarmrec.datasets.labels import COCO_NAMES
-from swarmrec.deployments.local import free_port
+from swarmrec.deployments.local import LocalDeployment, LocalSettings, free_port
 from swarmrec.evaluation.scoring import score_decentralized
 from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, main
@@ -141,9 +141,9 @@ def median_repeat(repeats: list[dict[str, Any]]) -> dict[str, Any]:
     return chosen
 
 
-def _run(settings: PlacesSettings) -> dict[str, Any]:
+def _run(settings: PlacesSettings, hosting: str) -> dict[str, Any]:
     t0 = time.perf_counter()
-    s = main(settings).to_dict()
+    s = main(settings, LocalDeployment.for_run(settings.out, LocalSettings(hosting=hosting))).to_dict()
     wall = time.perf_counter() - t0
     return {
         "wall_s": wall,
@@ -204,9 +204,8 @@ def main_bench() -> None:
             name = hosting.replace(":", "-")
             print(f"[{hosting}] swarm, lock-step, whole sequence ...", flush=True)
             lock = _run(
-                PlacesSettings(
-                    source=tum, robots=10, hosting=hosting, out=Path(tmp) / f"lockstep-{name}", plots=False
-                )
+                PlacesSettings(source=tum, robots=10, out=Path(tmp) / f"lockstep-{name}", plots=False),
+                hosting,
             )
             repeats = []
             for i in range(max(1, args.paced_repeats)):
@@ -218,11 +217,11 @@ def main_bench() -> None:
                     PlacesSettings(
                         source=DatasetSource(str(TUM_ZIP), frames=args.paced_frames),
                         robots=10,
-                        hosting=hosting,
                         pace=f"{args.rate:g}",
                         out=Path(tmp) / f"paced-{name}-{i}",
                         plots=False,
-                    )
+                    ),
+                    hosting,
                 )
                 run["bare_round_trip_paced_ms"] = bare_here
                 repeats.append(run)

@@ -11,6 +11,7 @@ from swarmrec.evaluation.source import DatasetSource
 from swarmrec.services.settings import IndexSettings
 
 if TYPE_CHECKING:
+    from swarmrec.deployments.local import LocalSettings
     from swarmrec.experiments.places.settings import PlacesSettings
 
 __all__ = [
@@ -19,6 +20,7 @@ __all__ = [
     "add_index_flags",
     "add_local_swarm_flags",
     "dataset_source",
+    "local_settings",
     "swarm_places_settings",
 ]
 
@@ -72,6 +74,21 @@ def add_local_swarm_flags(p: argparse.ArgumentParser | argparse._ArgumentGroup) 
         default="compiled",
         help="which implementation serves the kinds that have a compiled one: compiled (default: the "
         "Rust host, built by `make dataplane`; docs/dataplane.md) or python (the reference)",
+    )
+
+
+def local_settings(args: argparse.Namespace) -> LocalSettings:
+    """The local deployment's settings from ``add_local_swarm_flags`` (and `run`'s link flags)."""
+    # (Imported here: `serve` shares this module and must not load the deployments.)
+    from swarmrec.deployments.links import LinkSpec
+    from swarmrec.deployments.local import LocalSettings
+
+    return LocalSettings(
+        hosting=args.hosting,
+        security="insecure" if args.insecure else "mtls",
+        link=LinkSpec(getattr(args, "link_rate", None), getattr(args, "link_latency", None)),
+        schedule=getattr(args, "link_schedule", None),
+        schedule_unit=getattr(args, "schedule_unit", "step"),
     )
 
 

@@ -9,7 +9,7 @@ from swarmrec.cli.common import Subparsers, add_dataset_flags, swarm_places_sett
 from swarmrec.deployments import compose
 from swarmrec.deployments.base import SwarmSpec
 from swarmrec.experiments.landmarks.simulation import LandmarkSettings, swarm_spec
-from swarmrec.experiments.places.pipeline import compose as compose_places
+from swarmrec.experiments.places.keep import compose as compose_places
 from swarmrec.services.registry import WORKLOADS
 
 __all__ = ["add", "run"]

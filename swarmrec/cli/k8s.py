@@ -163,7 +163,7 @@ def secrets(args: argparse.Namespace) -> int:
 
 def up(args: argparse.Namespace) -> int:
     from swarmrec.deployments.kubernetes import DEFAULT_OVERLAY, KubernetesSettings
-    from swarmrec.experiments.places.pipeline import kubernetes_up
+    from swarmrec.experiments.places.keep import kubernetes_up
 
     run = swarm_places_settings(args, args.out)
     settings = KubernetesSettings(

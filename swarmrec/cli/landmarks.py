@@ -6,7 +6,9 @@ import argparse
 from pathlib import Path
 
 from swarmrec.cli.common import Subparsers
+from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.compose import ComposeDeployment
+from swarmrec.deployments.local import LocalDeployment
 from swarmrec.errors import ConfigError
 from swarmrec.experiments.landmarks import DEFAULT_LAWS, VIEW_PRESETS, LandmarkSettings, main, parse_law
 
@@ -61,11 +63,11 @@ def run(args: argparse.Namespace) -> int:
     laws = tuple(parse_law(text) for text in args.laws.split(",") if text.strip())
     if args.figure_law and args.figure_law not in {law.key for law in laws}:
         raise ConfigError(f"--figure-law {args.figure_law} is not one of --laws ({args.laws})")
-    deployment = ComposeDeployment(args.attach) if args.attach is not None else None
+    attached = ComposeDeployment(args.attach) if args.attach is not None else None
     fixed: dict[str, object] = {}
-    if deployment is not None:
-        record = deployment.info.experiment
-        fixed = {"robots": deployment.info.robots, "swarm": deployment.info.swarm}
+    if attached is not None:
+        record = attached.info.experiment
+        fixed = {"robots": attached.info.robots, "swarm": attached.info.swarm}
         if "request_timeout_s" in record:
             fixed["request_timeout_s"] = max(10.0, float(record["request_timeout_s"]))
     settings = LandmarkSettings(
@@ -81,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
     )
     if fixed:
         settings = settings.with_(**fixed)
+    deployment: Deployment = attached if attached is not None else LocalDeployment.for_run(settings.out)
     summary = main(settings, deployment, figure_law=args.figure_law)
     st, checks = summary.settings, summary.checks
     print(

@@ -13,13 +13,14 @@ from swarmrec.cli.common import (
     add_index_flags,
     add_local_swarm_flags,
     dataset_source,
+    local_settings,
 )
 from swarmrec.cli.k8s import add_cluster_flags, kubectl_of
 from swarmrec.cli.vpr import add_method_flags, run_method
 from swarmrec.deployments.attach import attach
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.kubernetes import DEFAULT_OVERLAY, KubernetesDeployment, KubernetesSettings
-from swarmrec.deployments.links import LinkSpec
+from swarmrec.deployments.local import LocalDeployment
 from swarmrec.errors import ConfigError
 from swarmrec.experiments.places import PixelSettings, PlacesSettings, PlacesSummary, main
 from swarmrec.experiments.places.report import DetectorFigures, FunnelStats
@@ -167,6 +168,8 @@ def run(args: argparse.Namespace) -> int:
         "check_offline": not args.no_offline_check,
     }
     if args.attach is not None:
+        if args.link_rate or args.link_latency or args.link_schedule:
+            raise ConfigError("emulated links are set up by a local deployment the run starts itself")
         attached, info = attach(args.attach)
         out = args.out if args.out != DEFAULT_OUT else args.attach / "report"
         settings = PlacesSettings.from_record(info.experiment, out=out, **common)
@@ -181,12 +184,7 @@ def run(args: argparse.Namespace) -> int:
         request_timeout_s=args.timeout,
         out=args.out,
         wire_positions=args.wire_positions,
-        hosting=args.hosting,
         data_plane=args.data_plane,
-        link=LinkSpec(args.link_rate, args.link_latency),
-        schedule=args.link_schedule,
-        schedule_unit=args.schedule_unit,
-        security="insecure" if args.insecure else "mtls",
         index=IndexSettings(replicas=args.replicas, rebalance_target=args.rebalance_target),
         pixels=PixelSettings(
             from_pixels=args.from_pixels,
@@ -199,9 +197,15 @@ def run(args: argparse.Namespace) -> int:
         ),
         **common,
     )
-    deployment: Deployment | None = None
+    if args.method != "constellations":
+        if args.deployment == "k8s":
+            raise ConfigError("--method dvpr and both run on local processes (not --deployment k8s)")
+        return run_method(args, settings, local_settings(args), print_summary)
+    deployment: Deployment
     k8s: KubernetesDeployment | None = None
     if args.deployment == "k8s":
+        if args.link_rate or args.link_latency or args.link_schedule:
+            raise ConfigError("emulated links are set up by the local deployment (not --deployment k8s)")
         if args.insecure or args.hosting != "service":
             raise ConfigError(
                 "a Kubernetes swarm runs one service per pod under mutual TLS: drop --insecure and --hosting"
@@ -222,10 +226,9 @@ def run(args: argparse.Namespace) -> int:
             )
         )
         deployment = k8s
-    if args.method != "constellations":
-        if deployment is not None:
-            raise ConfigError("--method dvpr and both run on local processes (not --deployment k8s)")
-        return run_method(args, settings, print_summary)
+    else:
+        # (Links, hosting and security are the local deployment's; a bad schedule is refused here.)
+        deployment = LocalDeployment.for_run(settings.out, local_settings(args))
     summary = main(settings, deployment)
     print_summary(summary, settings.out)
     if k8s is not None and args.keep:

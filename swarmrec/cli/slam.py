@@ -4,12 +4,16 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from swarmrec.cli.common import Subparsers
 from swarmrec.slam.centralized import METHODS
 from swarmrec.slam.dgs import DEFAULT_ETA, DEFAULT_LINEARISATIONS, MODES, DgsSettings
 from swarmrec.slam.ordering import ORDERINGS
 from swarmrec.slam.scenarios import WORLDS
+
+if TYPE_CHECKING:
+    from swarmrec.deployments.local import LocalSettings
 
 __all__ = ["add", "run"]
 
@@ -184,7 +188,15 @@ def run_solve(args: argparse.Namespace) -> int:
     return 0 if summary.converged else 1
 
 
+def _local(args: argparse.Namespace) -> LocalSettings:
+    """Where a live team runs: local processes, mutual TLS unless --insecure."""
+    from swarmrec.deployments.local import LocalSettings
+
+    return LocalSettings(security="insecure" if args.insecure else "mtls")
+
+
 def run_live(args: argparse.Namespace) -> int:
+    from swarmrec.deployments.local import LocalDeployment
     from swarmrec.experiments.slam import LiveSlamSettings, format_summary, main
 
     settings = LiveSlamSettings(
@@ -196,13 +208,12 @@ def run_live(args: argparse.Namespace) -> int:
         centralized=args.centralized,
         peer_timeout_s=args.peer_timeout_s,
         solve_timeout_s=args.solve_timeout_s,
-        security="insecure" if args.insecure else "mtls",
         check=not args.no_check,
         progress=not args.quiet,
         overwrite=args.overwrite,
         solver=_solver(args),
     )
-    summary = main(settings)
+    summary = main(settings, LocalDeployment.for_run(settings.out, _local(args)))
     print(format_summary(summary))
     print(f"  report: {args.out / 'summary.json'}")
     identical = summary.check is None or summary.check.identical
@@ -210,6 +221,7 @@ def run_live(args: argparse.Namespace) -> int:
 
 
 def run_merge(args: argparse.Namespace) -> int:
+    from swarmrec.deployments.local import LocalDeployment
     from swarmrec.experiments.slam.merge import MergeSettings, format_merge, merge_run
 
     settings = MergeSettings(
@@ -222,13 +234,13 @@ def run_merge(args: argparse.Namespace) -> int:
         ransac_threshold_m=args.ransac_threshold_m,
         reject=args.reject,
         live=not args.offline,
-        security="insecure" if args.insecure else "mtls",
         centralized=args.centralized,
         progress=not args.quiet,
         overwrite=args.overwrite,
         solver=_solver(args),
     )
-    summary = merge_run(settings)
+    local = _local(args)
+    summary = merge_run(settings, lambda folder: LocalDeployment.for_run(folder, local))
     print(format_merge(summary))
     print(f"  report: {args.out / 'summary.json'}")
     return 0 if summary.solved else 1

@@ -22,6 +22,7 @@ from swarmrec.cli.common import (
     add_dataset_flags,
     add_index_flags,
     add_local_swarm_flags,
+    local_settings,
     swarm_places_settings,
 )
 from swarmrec.deployments.local import LocalDeployment
@@ -33,7 +34,7 @@ from swarmrec.deployments.local_up import (
     write_local_file,
 )
 from swarmrec.errors import ConfigError
-from swarmrec.experiments.places.pipeline import local_up
+from swarmrec.experiments.places.keep import local_up
 from swarmrec.services.settings import IndexSettings
 
 __all__ = ["add", "down", "up"]
@@ -124,9 +125,7 @@ def up(args: argparse.Namespace) -> int:
         args,
         out,
         wire_positions=args.wire_positions,
-        hosting=args.hosting,
         data_plane=args.data_plane,
-        security="insecure" if args.insecure else "mtls",
         index=IndexSettings(replicas=args.replicas, rebalance_target=args.rebalance_target),
         progress=not args.quiet,
     )
@@ -138,7 +137,8 @@ def up(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, on_term)
     t0 = time.perf_counter()
     try:
-        deployment, record = local_up(settings)
+        deployment = LocalDeployment.for_run(out, local_settings(args))
+        record = local_up(settings, deployment)
     except (KeyboardInterrupt, _Stop):
         print("stopped while starting; every process it had started is stopped", file=sys.stderr)
         return 130

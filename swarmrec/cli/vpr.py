@@ -14,6 +14,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from swarmrec.cli.common import Subparsers
+from swarmrec.deployments.local import LocalDeployment, LocalSettings
 from swarmrec.errors import ConfigError
 from swarmrec.experiments.places import PlacesSettings, PlacesSummary
 from swarmrec.experiments.vpr import BothSummary, Comparison, DvprSettings, DvprSummary, VprRunSettings
@@ -216,10 +217,14 @@ def add_method_flags(p: argparse.ArgumentParser) -> None:
 
 
 def run_method(
-    args: argparse.Namespace, run: PlacesSettings, print_places: Callable[[PlacesSummary, Path], None]
+    args: argparse.Namespace,
+    run: PlacesSettings,
+    local: LocalSettings,
+    print_places: Callable[[PlacesSummary, Path], None],
 ) -> int:
-    """``swarmrec run --method dvpr|both`` with the run's shared settings ``run``;
-    ``print_places`` prints the constellation run's summary (``swarmrec run``'s own printer)."""
+    """``swarmrec run --method dvpr|both`` with the run's shared settings ``run``, on local
+    processes (``local``); ``print_places`` prints the constellation run's summary
+    (``swarmrec run``'s own printer)."""
     if args.attach is not None:
         raise ConfigError(
             "--method dvpr and both start their own local swarms; --attach replays constellations"
@@ -236,7 +241,7 @@ def run_method(
         ),
         method=args.method,
     )
-    result = vpr_main(settings, say=print)
+    result = vpr_main(settings, lambda folder: LocalDeployment.for_run(folder, local), say=print)
     if isinstance(result, BothSummary):
         print("constellations:")
         print_places(result.constellations, settings.out / "constellations")

@@ -14,8 +14,11 @@ compose project, a Kubernetes namespace) behind five calls::
     deployment.metrics()          # the services' counters of this run
     deployment.stop()             # exit codes of what it started
 
-Experiments (:mod:`swarmrec.experiments`) take a deployment and never know which
-kind it is.
+and says what it can do beyond that: whether every robot runs the whole spec for the
+whole run (``fixed_size``), where the services' data is readable on this machine
+(``local_data_dir``, local processes only) and whether it emulates links
+(``emulated_links``). Experiments (:mod:`swarmrec.experiments`) take a deployment and
+never ask which kind it is.
 """
 
 from __future__ import annotations
@@ -30,9 +33,11 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from swarmrec.client import GatewayClient, ZenohClient
+from swarmrec.deployments.errors import DeploymentError, SwarmStartError
 from swarmrec.deployments.identities import client_tls
+from swarmrec.deployments.links import LinkSpec, Schedule
 from swarmrec.deployments.metrics import Scrape
-from swarmrec.errors import ConfigError, SwarmrecError
+from swarmrec.errors import ConfigError
 from swarmrec.runtime.settings import BusSettings, Component, Config, StorageSettings, to_env, to_flags
 from swarmrec.runtime.tls import TlsFiles
 from swarmrec.services import registry
@@ -42,6 +47,7 @@ __all__ = [
     "AttachedSwarm",
     "Deployment",
     "DeploymentError",
+    "EmulatedLinks",
     "SwarmSession",
     "SwarmSpec",
     "SwarmStartError",
@@ -53,14 +59,6 @@ __all__ = [
     "running",
     "shared_env",
 ]
-
-
-class DeploymentError(SwarmrecError):
-    """A deployment could not start, reach or stop its swarm."""
-
-
-class SwarmStartError(DeploymentError):
-    """A service process exited or never became ready."""
 
 
 @dataclass(frozen=True)
@@ -209,6 +207,10 @@ class AttachedSwarm:
 
     folder: Path
     info: AttachFile
+    #: Started elsewhere: its services may have been scaled or restarted since.
+    fixed_size = False
+    local_data_dir = None
+    emulated_links = None
 
     @property
     def endpoint(self) -> str:
@@ -239,11 +241,44 @@ class AttachedSwarm:
         return GatewayClient(self.gateway_address, self.info.swarm, timeout_s=timeout_s, tls=tls)
 
 
+class EmulatedLinks(Protocol):
+    """A deployment's emulated links between the robots and the router (docs/links.md)."""
+
+    #: Every robot's link when the schedule says nothing else.
+    link: LinkSpec
+    #: When robots go out of range; None: the links never change.
+    schedule: Schedule | None
+
+    def apply_links(self, t: float) -> list[str]:
+        """Put every link in the schedule's state at ``t`` (its unit); what changed."""
+        ...
+
+    def services_of(self, robots: set[int]) -> set[tuple[str, int]]:
+        """The (kind, robot) services run for ``robots`` (those to wait for when they are back)."""
+        ...
+
+
 class Deployment(Protocol):
     """Where a swarm runs; see the module docstring."""
 
     #: One line for reports: "local processes", "compose project swarmrec", ...
     description: str
+
+    @property
+    def fixed_size(self) -> bool:
+        """Every robot of the spec runs each of its kinds for the whole run (False where an
+        operator may scale a kind, or the swarm was started elsewhere)."""
+        ...
+
+    @property
+    def local_data_dir(self) -> Path | None:
+        """Where the services keep their data, when that is on this machine; else None."""
+        ...
+
+    @property
+    def emulated_links(self) -> EmulatedLinks | None:
+        """The links it emulates; None when the robots reach the router as the network lets them."""
+        ...
 
     def start(self, spec: SwarmSpec, *, progress: bool = False) -> None:
         """Start ``spec`` (or check that the swarm already running is ``spec``)."""

@@ -645,6 +645,11 @@ def _wait_tcp(host: str, port: int, timeout_s: float) -> None:
 class KubernetesDeployment:
     """A swarm in a Kubernetes namespace (see the module docstring)."""
 
+    #: An operator may scale the robots' StatefulSets while a run replays.
+    fixed_size = False
+    local_data_dir = None
+    emulated_links = None
+
     def __init__(self, settings: KubernetesSettings, *, info: KubernetesFile | None = None) -> None:
         self.settings = settings
         self.kubectl = settings.kubectl

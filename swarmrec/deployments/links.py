@@ -36,7 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from swarmrec.deployments.base import DeploymentError
+from swarmrec.deployments.errors import DeploymentError
 from swarmrec.errors import ConfigError, DatasetError, MalformedLineError
 
 __all__ = [

@@ -41,9 +41,10 @@ from typing import IO
 from tqdm import tqdm
 
 from swarmrec.client import GatewayClient, ZenohClient
+from swarmrec.core.association import warm_up
 from swarmrec.deployments.base import SwarmSpec, SwarmStartError, config_flags
 from swarmrec.deployments.identities import Security, client_tls, retire_ca_key, run_pki, security_for
-from swarmrec.deployments.links import LinkEmulator, LinkSpec, Schedule
+from swarmrec.deployments.links import LinkEmulator, LinkSpec, Schedule, TimeUnit, read_schedule
 from swarmrec.deployments.metrics import Scrape, scrape
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.hosting import host_ranges, ready_entries, ready_events, robots_per_process, terminate
@@ -52,7 +53,7 @@ from swarmrec.runtime.tls import tls_endpoint
 from swarmrec.security.identity import SERVICE_KINDS, Identity
 from swarmrec.services.settings import GatewaySettings, IndexSettings
 
-__all__ = ["LocalDeployment", "ServiceProcess", "free_port"]
+__all__ = ["LocalDeployment", "LocalSettings", "ServiceProcess", "free_port"]
 
 
 def free_port() -> int:
@@ -132,8 +133,38 @@ def _for_robots(timeout_s: float, robots: int) -> float:
     return timeout_s + 3.0 * max(0, robots - 40)
 
 
+@dataclass(frozen=True)
+class LocalSettings:
+    """How a run's swarm runs as processes on this machine (``swarmrec run``'s local flags);
+    validated on construction. A run's own settings say what it replays; these say where."""
+
+    #: How services share processes: service, robot or robots:K.
+    hosting: str = "service"
+    #: Every robot's emulated link (bandwidth, latency; docs/links.md); unlimited by default.
+    link: LinkSpec = field(default_factory=LinkSpec)
+    #: When robots go out of range (a CSV, :func:`swarmrec.deployments.links.read_schedule`).
+    schedule: Path | None = None
+    #: The schedule's time unit: lock-step steps or seconds from the replay's start.
+    schedule_unit: TimeUnit = "step"
+    #: mtls (mutual TLS and access control) or insecure (debugging).
+    security: Security = "mtls"
+
+    def __post_init__(self) -> None:
+        if self.security not in ("mtls", "insecure"):
+            raise ConfigError(f"security must be mtls or insecure, got {self.security!r}")
+        if self.schedule_unit not in ("s", "step"):
+            raise ConfigError(f"schedule_unit must be s or step, got {self.schedule_unit!r}")
+        if (self.link.limited or self.schedule is not None) and (robots_per_process(self.hosting) or 1) > 1:
+            raise ConfigError(
+                "emulated links are per robot: use service or robot hosting, not several robots a process"
+            )
+
+
 class LocalDeployment:
     """A swarm as processes on this machine (see the module docstring)."""
+
+    #: Every robot of the spec runs each of its kinds for the whole run (nobody scales them).
+    fixed_size = True
 
     def __init__(
         self,
@@ -167,6 +198,58 @@ class LocalDeployment:
         self.router: ServiceProcess | None = None
         self.procs: list[ServiceProcess] = []
         self._logs: list[IO[str]] = []
+        #: Remove an earlier run's logs, placement and detections from ``data_dir`` at the start.
+        self.fresh = False
+
+    @classmethod
+    def for_run(cls, out: Path, settings: LocalSettings | None = None) -> LocalDeployment:
+        """The swarm of one run whose folder is ``out``: its services' data in ``out/data``,
+        their logs in ``out/logs``; what an earlier run there left of its logs, placement
+        and detections is removed when the swarm starts (its stores are refused then,
+        :func:`~swarmrec.deployments.base.running`). Reads the link schedule now, so a bad
+        one is refused before anything starts."""
+        settings = settings or LocalSettings()
+        schedule = (
+            read_schedule(settings.schedule, unit=settings.schedule_unit) if settings.schedule else None
+        )
+        deployment = cls(
+            data_dir=out / "data",
+            log_dir=out / "logs",
+            hosting=settings.hosting,
+            link=settings.link,
+            schedule=schedule,
+            security=settings.security,
+        )
+        deployment.fresh = True
+        return deployment
+
+    @property
+    def local_data_dir(self) -> Path:
+        """Where the services keep their data, on this machine."""
+        return self.data_dir
+
+    @property
+    def emulated_links(self) -> LocalDeployment | None:
+        """This deployment when it emulates links (a rate, a latency or a schedule), else None."""
+        return self if self.link.limited or self.schedule is not None else None
+
+    def services_of(self, robots: set[int]) -> set[tuple[str, int]]:
+        """The (kind, robot) services this deployment runs for ``robots``."""
+        return {s for sp in self.procs for s in sp.services if s[1] in robots}
+
+    def _clear_earlier_run(self) -> None:
+        """What an earlier run's services left that is not stored data: logs, the index's
+        placement, the place owners' snapshots, the detectors' constellations and descriptors."""
+        patterns = (
+            "robot*/*/*.log",
+            "robot*/*/placement.state",
+            "robot*/*/owner-index.npz",
+            "robot*/detector/constellations/*.txt",
+            "robot*/detector/descriptors/*.npy",
+        )
+        for pattern in patterns:
+            for old in self.data_dir.glob(pattern):
+                old.unlink()
 
     # --- the Deployment interface ------------------------------------------------------
 
@@ -219,6 +302,12 @@ class LocalDeployment:
         ``timeout_s`` defaults to 120 s, longer for big swarms (:func:`_for_robots`)."""
         if timeout_s is None:
             timeout_s = _for_robots(120.0, spec.robots)
+        if self.fresh:
+            self._clear_earlier_run()
+        if "verifier" in spec.kinds:
+            # Compiled once here, the verifier processes load the kernels from numba's cache
+            # instead of each compiling them at once.
+            warm_up()
         self.start_router(spec)
         started: list[ServiceProcess] = self.start_swarm_kinds()
         if self.robots_per_process is None:

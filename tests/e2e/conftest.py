@@ -25,7 +25,7 @@ from swarmrec.deployments.compose import (
 from swarmrec.deployments.local import free_port
 from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, PlacesSummary, main
-from swarmrec.experiments.places.pipeline import compose
+from swarmrec.experiments.places.keep import compose
 from tests.conftest import REPO
 
 

@@ -27,6 +27,7 @@ import docker
 import pytest
 
 from swarmrec.deployments.compose import ComposeDeployment, SwarmFile, down
+from swarmrec.deployments.local import LocalDeployment
 from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, main
 from tests.e2e.conftest import project_leftovers, run_attached, start_swarm
@@ -75,7 +76,8 @@ def test_compose_swarm_finds_the_loop_closures_of_the_local_process_swarm(
             swarm="e2e_local",
             progress=False,
             plots=False,
-        )
+        ),
+        LocalDeployment.for_run(tmp_path / "local"),
     )
     assert local.offline_check is not None and local.offline_check.identical is True
     in_containers = _closures(swarm["tmp"] / "attached")

@@ -129,7 +129,7 @@ def test_the_main_job_runs_from_an_rgbd_folder_and_reports_the_detector(
         progress=False,
         plots=False,
     )
-    summary = main(settings)
+    summary = main(settings, LocalDeployment.for_run(settings.out))
 
     d = summary.detector
     assert d is not None and d.frames == N_FRAMES
@@ -163,7 +163,7 @@ def test_the_main_job_checks_the_swarm_against_the_offline_evaluation_on_detecte
         progress=False,
         plots=False,
     )
-    summary = main(settings)
+    summary = main(settings, LocalDeployment.for_run(settings.out))
     assert summary.dataset.frames == 30 and summary.detector is not None and summary.detector.skipped == {}
     assert summary.queries.missing_slots == 0
     assert summary.offline_check is not None and summary.offline_check.identical is True

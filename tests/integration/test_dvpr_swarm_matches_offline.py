@@ -28,6 +28,7 @@ from swarmrec.datasets.constellations import read_constellations
 from swarmrec.datasets.labels import COCO_NAMES
 from swarmrec.datasets.tum_rgbd import frame_id_of, read_tum_rgbd
 from swarmrec.deployments.base import Deployment
+from swarmrec.deployments.local import LocalDeployment
 from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PixelSettings, PlacesSettings
 from swarmrec.experiments.places.pipeline import as_on_the_wire
@@ -77,7 +78,7 @@ def test_a_lockstep_dvpr_swarm_answers_every_frame_as_the_offline_simulation_of_
         dvpr=DvprSettings(clusters_per_robot=C),
     )
     try:
-        summary = main(settings, swarm_hook=listen)
+        summary = main(settings, LocalDeployment.for_run, swarm_hook=listen)
     finally:
         if "sub" in held:
             held["sub"].undeclare()

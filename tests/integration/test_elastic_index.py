@@ -169,7 +169,9 @@ def test_a_shard_killed_and_a_new_one_added_mid_run_lose_nothing_and_scores_stay
         assert isinstance(d, LocalDeployment)
         seen["final"] = check_holdings(d, settings.out / "dataset")
 
-    summary = main(settings, swarm_hook=hook, on_step=on_step, after_replay=after)
+    summary = main(
+        settings, LocalDeployment.for_run(settings.out), swarm_hook=hook, on_step=on_step, after_replay=after
+    )
 
     assert events == ["killed", "added"]
     assert summary.offline_check is not None and summary.offline_check.identical, summary.offline_check
@@ -210,7 +212,9 @@ def test_a_frozen_shard_costs_no_store_the_descriptors_queue_and_retry(tmp_path:
         check_holdings(d, settings.out / "dataset")
         retries.append(d.metrics().total("swarmrec_descriptor_store_retries_total"))
 
-    summary = main(settings, swarm_hook=hook, on_step=on_step, after_replay=after)
+    summary = main(
+        settings, LocalDeployment.for_run(settings.out), swarm_hook=hook, on_step=on_step, after_replay=after
+    )
 
     assert summary.queries.failed_shard_requests == 0  # the other owner answered meanwhile
     assert summary.index is not None and summary.index.settled and summary.index.pending_stores == 0
@@ -371,7 +375,9 @@ def test_shards_scaled_from_3_to_6_to_2_mid_run_lose_nothing_and_scores_stay_ide
                 for shard in owners:
                     assert group_rows(caller, d.spec_swarm, shard, g) == expected[g], (g, shard)
 
-    summary = main(settings, swarm_hook=hook, on_step=on_step, after_replay=after)
+    summary = main(
+        settings, LocalDeployment.for_run(settings.out), swarm_hook=hook, on_step=on_step, after_replay=after
+    )
 
     assert stopped == {2: 0, 3: 0, 4: 0, 5: 0}  # each drained and exited cleanly
     six = seen["six"]

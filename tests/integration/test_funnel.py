@@ -123,7 +123,7 @@ def finished(tmp_path_factory: pytest.TempPathFactory) -> Finished:
         live.cli_pair = json.loads(text)
         live.cli_unseen = cli("explain", "0", str(STEPS + 50), *connection(swarm))
 
-    summary = main(settings, swarm_hook=hook, on_step=on_step)
+    summary = main(settings, LocalDeployment.for_run(settings.out), swarm_hook=hook, on_step=on_step)
     return Finished(out, summary, live)
 
 

@@ -89,7 +89,7 @@ def test_candidates_of_a_frozen_verifier_time_out_and_of_a_dead_one_are_unreacha
             proc.wait(timeout=10)
 
     try:
-        summary = main(settings, swarm_hook=hook, on_step=on_step)
+        summary = main(settings, LocalDeployment.for_run(settings.out), swarm_hook=hook, on_step=on_step)
     finally:
         for pid in frozen:  # a failure between the two steps must not leave it stopped
             with contextlib.suppress(ProcessLookupError):

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from swarmrec.deployments.base import Deployment
-from swarmrec.deployments.local import LocalDeployment
+from swarmrec.deployments.local import LocalDeployment, LocalSettings
 from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, PlacesSummary, main
 
@@ -33,15 +33,15 @@ def run(tmp: Path, hosting: str, dispatch: str = "") -> tuple[PlacesSummary, str
         robots=ROBOTS,
         out=tmp / name,
         swarm=f"hosting-{name}",
-        hosting=hosting,
-        # Mutual TLS throughout: a shared process presents its robots' host certificate.
         progress=False,
         plots=False,
         # The Python runner's hosting and dispatch (a compiled kind's process would say
         # "compiled"; a host mixing both is in test_dataplane_verifier.py).
         data_plane="python",
     )
-    summary = main(settings, swarm_hook=hook)
+    # Mutual TLS throughout: a shared process presents its robots' host certificate.
+    deployment = LocalDeployment.for_run(settings.out, LocalSettings(hosting=hosting))
+    summary = main(settings, deployment, swarm_hook=hook)
     dispatches = {p.info.get("dispatch") for p in held[0].procs}
     return summary, (tmp / name / "pairs.csv").read_text(), dispatches
 

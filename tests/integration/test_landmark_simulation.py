@@ -57,7 +57,7 @@ def test_a_small_street_simulation_fuses_over_zenoh_exactly_as_the_core_does(
         swarm=swarm_name(request),
         progress=False,
     )
-    result = run_simulation(settings)
+    result = run_simulation(settings, LocalDeployment.for_run(settings.out))
     assert result.errors == [] and result.failures == {}
     rounds = result.rounds
     assert len(rounds) == CONFIGURATIONS * len(LAWS) * ROBOTS

@@ -11,7 +11,7 @@ import pytest
 from swarmrec.cli.run import print_summary
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.links import LinkSpec, read_schedule
-from swarmrec.deployments.local import LocalDeployment
+from swarmrec.deployments.local import LocalDeployment, LocalSettings
 from swarmrec.errors import MalformedLineError
 from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PlacesSettings, main
@@ -42,13 +42,12 @@ def test_a_robot_out_of_range_misses_its_steps_keeps_its_data_and_comes_back(
         robots=ROBOTS,
         out=tmp_path / "run",
         swarm="links",
-        hosting="robot",
-        link=LinkSpec(rate_kbps=50, latency_ms=5),
-        schedule=schedule,
         progress=False,
         plots=False,
     )
-    summary = main(settings, swarm_hook=hook, on_step=on_step)
+    # The links are the local deployment's: one proxy a robot, so one process a robot.
+    local = LocalSettings(hosting="robot", link=LinkSpec(rate_kbps=50, latency_ms=5), schedule=schedule)
+    summary = main(settings, LocalDeployment.for_run(settings.out, local), swarm_hook=hook, on_step=on_step)
 
     assert summary.links is not None
     assert summary.links.events == [

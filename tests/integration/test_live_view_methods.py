@@ -28,6 +28,7 @@ import numpy as np
 import pytest
 
 from swarmrec.deployments.base import Deployment
+from swarmrec.deployments.local import LocalDeployment
 from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.landmarks.simulation import LandmarkSettings, parse_law, run_simulation
 from swarmrec.experiments.places import PixelSettings, PlacesSettings
@@ -123,7 +124,7 @@ def test_the_page_shows_a_dvpr_swarms_owners_funnel_and_closures(tmp_path: Path,
         ),
         dvpr=DvprSettings(clusters_per_robot=5),
     )
-    summary = vpr_main(settings, swarm_hook=opened, replayed_hook=replayed)
+    summary = vpr_main(settings, LocalDeployment.for_run, swarm_hook=opened, replayed_hook=replayed)
     assert isinstance(summary, DvprSummary)
     assert summary.queries.frames == frames and summary.queries.missing_slots == 0
 
@@ -173,7 +174,9 @@ def test_the_page_counts_a_landmark_swarms_fusion_updates(tmp_path: Path, browse
         laws=(parse_law("paper:0"),),
         progress=False,
     )
-    result = run_simulation(settings, on_round=progressed, swarm_hook=up)
+    result = run_simulation(
+        settings, LocalDeployment.for_run(settings.out), on_round=progressed, swarm_hook=up
+    )
     assert result.errors == [] and result.failures == {}
     assert seen.get("url"), "a landmark swarm serves the live view"
     # One update per view a robot folded in, every one heard by the gateway.
@@ -241,7 +244,7 @@ def test_the_page_draws_a_slam_teams_trajectories_and_separators(tmp_path: Path,
         seen["png"] = browser.screenshot()
 
     settings = LiveSlamSettings(out=out, world="house", robots=3, seed=1, progress=False, plots=False)
-    summary = slam_main(settings, on_status=ended, swarm_hook=up)
+    summary = slam_main(settings, LocalDeployment.for_run(out), on_status=ended, swarm_hook=up)
     assert summary.outcome == "converged"
     assert seen.get("url"), "a slam team serves the live view"
 

@@ -21,6 +21,7 @@ from swarmrec.core.presets import get_preset
 from swarmrec.datasets.constellations import read_constellations
 from swarmrec.datasets.labels import COCO_NAMES
 from swarmrec.datasets.tum import read_trajectory
+from swarmrec.deployments.local import LocalDeployment
 from swarmrec.evaluation.groundtruth import ground_truth
 from swarmrec.evaluation.pr import precision_recall
 from swarmrec.evaluation.scoring import score_decentralized
@@ -46,13 +47,15 @@ def test_the_swarm_from_pixels_recognises_places_nearly_as_well_as_from_exact_co
             out=tmp_path / "pixels",
             swarm="auc-pixels",
             **common,  # type: ignore[arg-type]
-        )
+        ),
+        LocalDeployment.for_run(tmp_path / "pixels"),
     )
     rendered = tmp_path / "pixels" / "rgbd"
     exact = main(
         PlacesSettings(
             source=DatasetSource(str(rendered)), out=tmp_path / "exact", swarm="auc-exact", **common
-        )  # type: ignore[arg-type]
+        ),  # type: ignore[arg-type]
+        LocalDeployment.for_run(tmp_path / "exact"),
     )
 
     preset = get_preset("paper")

@@ -87,7 +87,7 @@ def test_a_robot_killed_mid_run_is_reported_missing_and_the_others_keep_querying
                     sp.proc.wait(timeout=10)
                     killed.append(sp.proc.pid)
 
-        summary = main(settings, swarm_hook=hook, on_step=on_step)
+        summary = main(settings, LocalDeployment.for_run(settings.out), swarm_hook=hook, on_step=on_step)
 
     assert len(killed) == 4  # detector, descriptor, index-shard and verifier of robot 2
     q = summary.queries

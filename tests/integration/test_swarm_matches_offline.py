@@ -13,6 +13,7 @@ import pytest
 from swarmrec.core.presets import get_preset
 from swarmrec.datasets.constellations import read_constellations
 from swarmrec.datasets.labels import COCO_NAMES
+from swarmrec.deployments.local import LocalDeployment
 from swarmrec.evaluation.bandwidth import holder_load
 from swarmrec.evaluation.scoring import score_decentralized
 from swarmrec.evaluation.source import DatasetSource
@@ -46,7 +47,7 @@ def test_synthetic_swarm_of_four_scores_every_pair_as_the_offline_evaluation(
         plots=True,
         data_plane=data_plane,
     )
-    summary = main(settings)
+    summary = main(settings, LocalDeployment.for_run(settings.out))
 
     # Positions travel in millimetres: the offline evaluation of the frames as they travel.
     seq = as_on_the_wire(read_constellations(tmp_path / "run" / "dataset", COCO_NAMES))
@@ -104,7 +105,7 @@ def test_tum_swarm_of_ten_scores_every_pair_as_the_offline_evaluation(
         # figure measures (rebalancing would add replicas of the hot groups and lower it).
         index=IndexSettings(replicas=1, rebalance_target=1000.0),
     )
-    summary = main(settings)
+    summary = main(settings, LocalDeployment.for_run(settings.out))
 
     seq = read_constellations(tum_zip, COCO_NAMES)
     offline = score_decentralized(seq, 10, get_preset("paper"))

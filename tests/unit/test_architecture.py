@@ -33,6 +33,19 @@ def test_every_module_is_in_a_layer() -> None:
         layer_of(module)  # raises for a module no layer names
 
 
+PIPELINES = [f"swarmrec.experiments.{m}.pipeline" for m in ("places", "vpr", "slam", "landmarks")]
+DEPLOYMENT_KINDS = {f"swarmrec.deployments.{m}" for m in ("local", "local_up", "compose", "kubernetes")}
+
+
+@pytest.mark.parametrize("pipeline", PIPELINES)
+def test_a_pipeline_knows_no_kind_of_deployment_and_never_asks_which_it_has(pipeline: str) -> None:
+    # It is handed its deployment (the command line builds it) and asks the protocol the rest.
+    assert GRAPH[pipeline] & DEPLOYMENT_KINDS == set()
+    source = (REPO / (pipeline.replace(".", "/") + ".py")).read_text()
+    assert re.search(r"isinstance\(deployment", source) is None
+    assert re.search(r"deployment: Deployment \| None", source) is None
+
+
 def test_the_checks_catch_what_they_are_for() -> None:
     # A wire module importing the runner is upward; two modules importing each other are a cycle.
     bad = dict(GRAPH)

@@ -17,8 +17,8 @@ __all__ = ["main"]
 
 
 def main(
-    settings: LandmarkSettings, deployment: Deployment | None = None, *, figure_law: str | None = None
+    settings: LandmarkSettings, deployment: Deployment, *, figure_law: str | None = None
 ) -> LandmarksSummary:
-    """Simulate and write the report; returns the summary."""
+    """Simulate on ``deployment`` and write the report; returns the summary."""
     settings.out.mkdir(parents=True, exist_ok=True)
     return write_landmark_report(run_simulation(settings, deployment), figure_law)

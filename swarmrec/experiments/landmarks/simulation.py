@@ -45,7 +45,6 @@ from tqdm import tqdm
 
 from swarmrec.client import ZenohClient
 from swarmrec.deployments.base import Deployment, SwarmSpec, running
-from swarmrec.deployments.local import LocalDeployment
 from swarmrec.deployments.metrics import Scrape
 from swarmrec.errors import CallError, ConfigError, ErrorCode, RemoteError
 from swarmrec.fusion.facades import RenderSettings, View, render_view
@@ -468,13 +467,13 @@ def swarm_spec(s: LandmarkSettings) -> SwarmSpec:
 
 def run_simulation(
     settings: LandmarkSettings,
-    deployment: Deployment | None = None,
+    deployment: Deployment,
     *,
     on_round: Callable[[int, int], None] | None = None,
     swarm_hook: Callable[[Deployment], None] | None = None,
 ) -> SimulationResult:
-    """Generate, render, run every (configuration, law) round on ``deployment`` (local
-    processes by default, stopped at the end), check against the core.
+    """Generate, render, run every (configuration, law) round on ``deployment`` (stopped at
+    the end), check against the core.
 
     ``on_round(done, total)`` reports progress; ``swarm_hook`` runs once the swarm is up
     (tests use it to disturb the swarm)."""
@@ -486,8 +485,6 @@ def run_simulation(
     images = render_views(configs, s.seed, VIEW_PRESETS[s.views])
     encoded = [[_encode_png(img) for img in views] for views in images]
     timings = {"prepare_s": time.perf_counter() - t0}
-    if deployment is None:
-        deployment = LocalDeployment(data_dir=s.out / "data", log_dir=s.out / "logs")
     rounds: list[RobotRound] = []
     metrics = Scrape()
     runner: _Runner | None = None

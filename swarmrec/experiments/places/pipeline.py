@@ -29,24 +29,18 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from swarmrec.client import ZenohClient
-from swarmrec.core.association import build_table, warm_up
+from swarmrec.core.association import build_table
 from swarmrec.core.presets import Preset, get_preset
 from swarmrec.core.ranges import label_bounds
 from swarmrec.core.split import split_frames
 from swarmrec.core.types import ConstellationSequence, Trajectory
 from swarmrec.datasets.constellations import write_constellations
 from swarmrec.deployments.base import Deployment, SwarmSpec, running
-from swarmrec.deployments.compose import ComposeSettings, SwarmFile, write_compose
-from swarmrec.deployments.identities import Security
-from swarmrec.deployments.kubernetes import KubernetesDeployment, KubernetesSettings
-from swarmrec.deployments.links import read_schedule
-from swarmrec.deployments.local import LocalDeployment
 from swarmrec.errors import ConfigError
 from swarmrec.evaluation.scoring import label_frequency_prior
 from swarmrec.evaluation.source import load_dataset
@@ -70,11 +64,9 @@ from swarmrec.wire.codec import constellation_from_proto, constellation_to_proto
 SETTLE_TIMEOUT_S = 60.0
 
 __all__ = [
+    "SETTLE_TIMEOUT_S",
     "Prepared",
     "as_on_the_wire",
-    "compose",
-    "kubernetes_up",
-    "local_up",
     "main",
     "prepare",
     "swarm_bounds",
@@ -162,71 +154,6 @@ def _offline(seq: ConstellationSequence, prepared: Prepared, settings: PlacesSet
     )
 
 
-def compose(settings: PlacesSettings, compose_settings: ComposeSettings) -> SwarmFile:
-    """Write the compose files of this run's swarm (its dataset copied beside them); a later
-    ``swarmrec run --attach`` reads the run back from ``swarm.json``."""
-    out = compose_settings.out.resolve()
-    spec = prepare(settings, dataset_dir=out / "dataset").spec
-    return write_compose(spec, compose_settings, experiment=settings.record())
-
-
-def kubernetes_up(settings: PlacesSettings, k8s: KubernetesSettings) -> KubernetesDeployment:
-    """This run's swarm on Kubernetes, left running (``swarmrec k8s up``): deployed, ready, and
-    ``<out>/swarm.json`` written, so ``swarmrec run --attach <out>`` replays through it."""
-    deployment = KubernetesDeployment(k8s.with_(keep=True))
-    spec = prepare(settings, dataset_dir=k8s.out.resolve() / "dataset").spec
-    try:
-        deployment.start(spec, progress=settings.progress)
-        deployment.wait_ready()
-    except BaseException:
-        if deployment.created:  # never a namespace that was there before
-            deployment.remove()
-        raise
-    deployment.write_attach_file(settings.record())
-    return deployment
-
-
-def local_up(settings: PlacesSettings) -> tuple[LocalDeployment, dict[str, Any]]:
-    """This run's swarm as local processes, left running (``swarmrec up``): started, ready,
-    its index settled. Returns the deployment and the experiment record a later ``swarmrec
-    run --attach`` replays: the dataset as the detectors read it (so the attached run's
-    spec names the same folder), the rest as given."""
-    if settings.pixels.enabled:
-        raise ConfigError(
-            "a swarm kept up replays constellations; a run from pixels starts its own (swarmrec run)"
-        )
-    if settings.link.limited or settings.schedule:
-        raise ConfigError("emulated links belong to one run: use swarmrec run --link-...")
-    prepared = prepare(settings, dataset_dir=settings.out / "dataset")
-    spec = prepared.spec
-    deployment = _local(settings)
-    warm_up()  # the Python verifiers load the kernels from numba's cache
-    try:
-        deployment.start(spec, progress=settings.progress)
-        deployment.wait_ready()
-        with deployment.client(settings.request_timeout_s) as client:
-            shards = spec.bus.n_robots if "index-shard" in spec.kinds else None
-            client.wait_index_settled(timeout_s=SETTLE_TIMEOUT_S, shards=shards)
-    except BaseException:
-        deployment.stop()
-        raise
-    detector = spec.component(DetectorSettings)
-    assert isinstance(detector, DetectorSettings)
-    source = settings.source
-    groundtruth = source.groundtruth
-    original = Path(source.dataset)
-    if groundtruth is None and not source.synthetic and (original / "groundtruth.txt").is_file():
-        groundtruth = original / "groundtruth.txt"
-    record = settings.record() | {
-        "dataset": str(Path(detector.dataset).resolve()),
-        "seed": 0,
-        "frames": None,
-        "labels": str(detector.labels_file) if detector.labels_file else None,
-        "groundtruth": str(groundtruth.resolve()) if groundtruth else None,
-    }
-    return deployment, record
-
-
 def _link_schedule(
     deployment: Deployment, client: ZenohClient, events: list[tuple[float, str]]
 ) -> Callable[[int], None] | None:
@@ -234,17 +161,18 @@ def _link_schedule(
     schedule in seconds, a timer thread); every change is recorded in ``events``. In
     lock-step, a robot back in range is waited for (its services reconnect in a second
     or two) before the step goes on, so it misses exactly the steps it was out."""
-    if not isinstance(deployment, LocalDeployment) or deployment.schedule is None:
+    links = deployment.emulated_links
+    if links is None or links.schedule is None:
         return None
-    schedule = deployment.schedule
+    schedule = links.schedule
     if schedule.unit == "step":
 
         def before(t: int) -> None:
-            changed = deployment.apply_links(float(t))
+            changed = links.apply_links(float(t))
             events.extend((float(t), e) for e in changed)
             back = {int(e.split()[1]) for e in changed if e.endswith("back in range")}
             if back:
-                client.wait_for({s for sp in deployment.procs for s in sp.services if s[1] in back}, 60.0)
+                client.wait_for(links.services_of(back), 60.0)
 
         return before
     start = time.monotonic()
@@ -254,43 +182,31 @@ def _link_schedule(
             delay = start + t - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
-            events.extend((t, e) for e in deployment.apply_links(t))
+            events.extend((t, e) for e in links.apply_links(t))
 
     threading.Thread(target=follow, name="link-schedule", daemon=True).start()
     return None
 
 
-def _local(settings: PlacesSettings) -> LocalDeployment:
-    """A fresh local swarm in the run's folder (stores and detections of an earlier run removed,
-    once the settings are known to be ones it can run)."""
-    out = settings.out
-    schedule = read_schedule(settings.schedule, unit=settings.schedule_unit) if settings.schedule else None
-    security: Security = "insecure" if settings.security == "insecure" else "mtls"
-    deployment = LocalDeployment(
-        data_dir=out / "data",
-        log_dir=out / "logs",
-        hosting=settings.hosting,
-        link=settings.link,
-        schedule=schedule,
-        security=security,
-    )
-    for pattern in ("robot*/*/*.log", "robot*/*/placement.state"):
-        for old in (out / "data").glob(pattern):
-            old.unlink()
-    for old in (out / "data").glob("robot*/detector/constellations/*.txt"):
-        old.unlink()
-    return deployment
+def _refuse(settings: PlacesSettings, deployment: Deployment) -> None:
+    """Settings this deployment cannot honour, refused before anything is written or started."""
+    if settings.pixels.enabled and deployment.local_data_dir is None:
+        raise ConfigError("a run from pixels reads the detectors' constellations from a local deployment")
+    links = deployment.emulated_links
+    stepped = links is not None and links.schedule is not None and links.schedule.unit == "step"
+    if stepped and not settings.lockstep:
+        raise ConfigError("a schedule in steps needs a lock-step replay; give its times in seconds")
 
 
 def main(
     settings: PlacesSettings,
-    deployment: Deployment | None = None,
+    deployment: Deployment,
     *,
     on_step: Callable[[int], None] | None = None,
     swarm_hook: Callable[[Deployment], None] | None = None,
     after_replay: Callable[[Deployment], None] | None = None,
 ) -> PlacesSummary:
-    """Run the swarm (``deployment``, or local processes), write the report, return the summary.
+    """Run the swarm on ``deployment``, write the report, return the summary.
 
     ``on_step`` is called after each lock-step step, ``swarm_hook`` once the swarm is
     up and ``after_replay`` once the replay is over and the index has settled, while
@@ -298,15 +214,7 @@ def main(
     """
     t_start = time.perf_counter()
     out = settings.out
-    # Settings the run cannot honour are refused before anything is written to ``out``.
-    if settings.pixels.enabled and not isinstance(deployment, LocalDeployment | None):
-        raise ConfigError("a run from pixels reads the detectors' constellations from a local deployment")
-    if (settings.link.limited or settings.schedule) and deployment is not None:
-        raise ConfigError("emulated links are set up by the local deployment the run starts itself")
-    if deployment is None:
-        deployment = _local(settings)  # (refuses links with several robots a process, a bad schedule)
-        # Compiled once here, the verifier processes load the kernels from numba's cache.
-        warm_up()
+    _refuse(settings, deployment)
     out.mkdir(parents=True, exist_ok=True)
     prepared = prepare(settings, dataset_dir=out / "dataset")
     spec = prepared.spec
@@ -331,10 +239,10 @@ def main(
         # stores meanwhile; those slices would be stored after their step (a
         # 50-robot swarm lost the lock-step identity so). Part of the start time.
         t0 = time.perf_counter()
-        # (A local swarm has a shard on every robot; elsewhere the operator may have
-        # scaled them, so only the placement's own members are waited for.)
-        local = isinstance(deployment, LocalDeployment) and "index-shard" in spec.kinds
-        client.wait_index_settled(timeout_s=SETTLE_TIMEOUT_S, shards=spec.bus.n_robots if local else None)
+        # (A swarm of fixed size has a shard on every robot; elsewhere the operator may
+        # have scaled them, so only the placement's own members are waited for.)
+        every = deployment.fixed_size and "index-shard" in spec.kinds
+        client.wait_index_settled(timeout_s=SETTLE_TIMEOUT_S, shards=spec.bus.n_robots if every else None)
         timings["index_ready_s"] = time.perf_counter() - t0
         timings["start_s"] += timings["index_ready_s"]
         if swarm_hook is not None:
@@ -361,8 +269,9 @@ def main(
     seq, detector = prepared.sequence, None
     if prepared.pixels is not None:
         px = prepared.pixels
-        assert isinstance(deployment, LocalDeployment)  # checked before the run
-        seq, not_made = detected_sequence(px, deployment.data_dir, prepared.blocks)
+        data_dir = deployment.local_data_dir
+        assert data_dir is not None  # refused before the run
+        seq, not_made = detected_sequence(px, data_dir, prepared.blocks)
         shutil.rmtree(out / "detections", ignore_errors=True)
         write_constellations(seq, out / "detections")
         detector = DetectorFigures(
@@ -402,10 +311,14 @@ def main(
         # From pixels the constellations are the detections written back above.
         dataset_folder=out / "detections" if prepared.pixels is not None else Path(replayed.dataset),
         labels_file=replayed.labels_file,
-        links=LinkReport(
-            settings.link.rate_kbps, settings.link.latency_ms, settings.schedule_unit, sorted(link_events)
-        )
-        if settings.link.limited or settings.schedule
-        else None,
+        links=_link_report(deployment, link_events),
     )
     return write_report(settings, record)
+
+
+def _link_report(deployment: Deployment, events: list[tuple[float, str]]) -> LinkReport | None:
+    links = deployment.emulated_links
+    if links is None:
+        return None
+    unit = links.schedule.unit if links.schedule is not None else "step"
+    return LinkReport(links.link.rate_kbps, links.link.latency_ms, unit, sorted(events))

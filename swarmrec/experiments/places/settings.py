@@ -5,11 +5,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 from swarmrec.core.presets import get_preset
 from swarmrec.datasets.tum import DEFAULT_MAX_DT
-from swarmrec.deployments.links import LinkSpec
 from swarmrec.errors import ConfigError
 from swarmrec.evaluation.source import SYNTHETIC, DatasetSource
 from swarmrec.runtime.settings import BusSettings, DataPlane
@@ -74,19 +73,9 @@ class PlacesSettings:
     pixels: PixelSettings = field(default_factory=PixelSettings)
     #: How the swarm carries object positions: "mm" (compact) or "exact" (the published scores).
     wire_positions: WirePositions = "mm"
-    #: How a local swarm puts services in processes: service, robot or robots:K.
-    hosting: str = "service"
     #: Which implementation serves the kinds that have a compiled one (python or compiled;
     #: docs/dataplane.md).
     data_plane: DataPlane = "compiled"
-    #: Every robot's emulated link (bandwidth, latency; docs/links.md); unlimited by default.
-    link: LinkSpec = field(default_factory=LinkSpec)
-    #: When robots go out of range (a CSV, swarmrec.deployments.links.read_schedule).
-    schedule: Path | None = None
-    #: The schedule's time unit: lock-step steps or seconds from the replay's start.
-    schedule_unit: Literal["s", "step"] = "step"
-    #: A local swarm's links: mtls (mutual TLS and access control) or insecure (debugging).
-    security: str = "mtls"
     #: The elastic index: replicas per label group, rebalancing (docs/elastic-index.md).
     index: IndexSettings = field(default_factory=IndexSettings)
 
@@ -101,8 +90,6 @@ class PlacesSettings:
             if not (math.isfinite(rate) and rate > 0):
                 raise ConfigError(f"pace must be lockstep, fast or a rate > 0 (frames/s), got {self.pace!r}")
         get_preset(self.preset)
-        if self.security not in ("mtls", "insecure"):
-            raise ConfigError(f"security must be mtls or insecure, got {self.security!r}")
         if self.pixels.from_pixels and not self.source.synthetic:
             raise ConfigError(
                 "--from-pixels renders the synthetic world (--dataset synthetic); "
@@ -110,10 +97,6 @@ class PlacesSettings:
             )
         if self.pixels.rgbd is not None and not self.source.synthetic:
             raise ConfigError("--rgbd DIR replaces --dataset: give one of them")
-        if self.schedule_unit not in ("s", "step"):
-            raise ConfigError(f"schedule_unit must be s or step, got {self.schedule_unit!r}")
-        if self.schedule_unit == "step" and self.schedule is not None and not self.lockstep:
-            raise ConfigError("a schedule in steps needs a lock-step replay; give its times in seconds")
         # The bus checks the swarm name and timeout; the services' settings the preset and positions.
         self.bus()
         self.places(80, ())

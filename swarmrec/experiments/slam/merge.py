@@ -35,7 +35,7 @@ import csv
 import json
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -49,6 +49,7 @@ from swarmrec.core.verification import verify
 from swarmrec.datasets.constellations import read_constellations
 from swarmrec.datasets.labels import label_names
 from swarmrec.datasets.tum import read_trajectory
+from swarmrec.deployments.base import Deployment
 from swarmrec.errors import ConfigError, DatasetError
 from swarmrec.experiments.slam.pipeline import main as live_main
 from swarmrec.experiments.slam.report import LiveSlamSummary, plot_maps
@@ -67,7 +68,6 @@ from swarmrec.wire.codec import constellation_from_proto, constellation_to_proto
 
 __all__ = ["ClosureRecord", "MergeSettings", "MergeSummary", "build_team_graph", "format_merge", "merge_run"]
 
-Security = Literal["mtls", "insecure"]
 Reject = Literal["none", "pcm", "pcm+gnc"]
 REJECTIONS: tuple[Reject, ...] = ("none", "pcm", "pcm+gnc")
 #: A closure's relative pose is right when it is within these of the truth (for the report only).
@@ -105,7 +105,6 @@ class MergeSettings:
     reject: Reject = "pcm+gnc"
     pair_support: int = 1
     live: bool = True
-    security: Security = "mtls"
     solver: DgsSettings = field(default_factory=DgsSettings)
     centralized: Method = "gauss-newton"
     progress: bool = True
@@ -388,8 +387,12 @@ def _are(estimate: Mapping[int, Pose], truth: Mapping[int, Pose], keys: Sequence
     return math.degrees(math.sqrt(float(np.mean(angles)))) if angles else math.nan
 
 
-def merge_run(settings: MergeSettings) -> MergeSummary:
-    """Build the robots' graphs from the run, solve, compare with the world; writes under ``settings.out``."""
+def merge_run(settings: MergeSettings, swarm_at: Callable[[Path], Deployment] | None = None) -> MergeSummary:
+    """Build the robots' graphs from the run, solve, compare with the world; writes under
+    ``settings.out``. A live solve runs its team on ``swarm_at(folder)``, the deployment of
+    the swarm whose report goes to ``folder``."""
+    if settings.live and swarm_at is None:
+        raise ConfigError("a live merge solves with a team of slam services: give it a deployment (swarm_at)")
     t_start = time.perf_counter()
     out = settings.out
     out.mkdir(parents=True, exist_ok=True)
@@ -440,16 +443,17 @@ def merge_run(settings: MergeSettings) -> MergeSummary:
     live: LiveSlamSummary | None = None
     t0 = time.perf_counter()
     if settings.live:
+        assert swarm_at is not None  # checked above
         live = live_main(
             LiveSlamSettings(
                 out=out / "live",
                 folder=folder,
                 centralized=settings.centralized,
-                security=settings.security,
                 progress=settings.progress,
                 overwrite=True,
                 solver=settings.solver,
-            )
+            ),
+            swarm_at(out / "live"),
         )
         outcome = live.outcome
         estimate = _read_estimate(out / "live", graph)

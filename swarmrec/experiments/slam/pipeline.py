@@ -3,8 +3,8 @@
 ``main(settings, deployment)`` wires the stages and knows nothing of where the swarm runs::
 
     prepare   the robot folder (or a simulated world written as one: out/input/<r>.g2o)
-    deploy    one slam service per robot (LocalDeployment by default), each reading only
-              its own <r>.g2o
+    deploy    one slam service per robot on the deployment given (the CLI's: local
+              processes), each reading only its own <r>.g2o
     solve     as the operator: load every robot, start every robot, then only watch
               (status): the robots take their turns and talk to each other on their own
     collect   each robot's status, estimate and the estimates it sent; the services'
@@ -34,7 +34,6 @@ from tqdm import tqdm
 
 from swarmrec.client import ZenohClient
 from swarmrec.deployments.base import Deployment, DeploymentError, SwarmSpec, running
-from swarmrec.deployments.local import LocalDeployment
 from swarmrec.errors import CallError
 from swarmrec.experiments.slam.report import LiveRecord, LiveSlamSummary, RobotResult, write_report
 from swarmrec.experiments.slam.settings import LiveSlamSettings
@@ -182,7 +181,7 @@ def solve_live(
 
 def main(
     settings: LiveSlamSettings,
-    deployment: Deployment | None = None,
+    deployment: Deployment,
     *,
     on_status: Callable[[dict[int, pb.SlamStatus | None]], None] | None = None,
     swarm_hook: Callable[[Deployment], None] | None = None,
@@ -197,8 +196,6 @@ def main(
     prepared = prepare(settings)
     robots = len(prepared.graph.robots)
     spec = swarm_spec(settings, prepared.folder, robots)
-    if deployment is None:
-        deployment = LocalDeployment(data_dir=out / "data", log_dir=out / "logs", security=settings.security)
     timings = {"prepare_s": time.perf_counter() - t_start}
     with running(deployment, spec, progress=settings.progress, timings=timings) as session:
         if swarm_hook is not None:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Literal
 
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.keys import validate_swarm_name
@@ -16,7 +15,6 @@ from swarmrec.slam.scenarios import WORLDS, ScenarioSettings, World
 __all__ = ["SUMMARY_NAME", "LiveSlamSettings"]
 
 SUMMARY_NAME = "summary.json"
-Security = Literal["mtls", "insecure"]
 
 
 @dataclass(frozen=True)
@@ -44,7 +42,6 @@ class LiveSlamSettings:
     solve_timeout_s: float = 600.0
     request_timeout_s: float = 10.0
     swarm: str = "slam"
-    security: Security = "mtls"
     check: bool = True
     plots: bool = True
     progress: bool = True
@@ -72,8 +69,6 @@ class LiveSlamSettings:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"{name} must be > 0, got {value}")
-        if self.security not in ("mtls", "insecure"):
-            raise ConfigError(f"security must be mtls or insecure, got {self.security!r}")
         validate_swarm_name(self.swarm)
 
     def scenario(self) -> ScenarioSettings:

@@ -1,6 +1,6 @@
 """Full-image place recognition through a swarm: the pipeline behind ``swarmrec run --method``.
 
-``main(settings)`` wires the stages (docs/vpr.md, "The live swarm")::
+``main(settings, swarm_at)`` wires the stages (docs/vpr.md, "The live swarm")::
 
     prepare   the descriptor model (checked before anything is rendered), the RGB-D frames
               (rendered with --from-pixels, or a TUM folder with --rgbd; the places
@@ -32,12 +32,11 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from swarmrec.core.association import warm_up
 from swarmrec.core.presets import get_preset
 from swarmrec.core.split import split_frames
 from swarmrec.deployments.base import Deployment, SwarmSpec, running
-from swarmrec.deployments.local import LocalDeployment
 from swarmrec.deployments.metrics import Scrape
+from swarmrec.errors import ConfigError
 from swarmrec.experiments.places import main as places_main
 from swarmrec.experiments.places.pixels import PixelSource, prepare_pixels, rgbd_settings
 from swarmrec.experiments.places.report import DetectorFigures, PlacesSummary
@@ -113,22 +112,6 @@ def spec_for(settings: VprRunSettings, px: PixelSource, centres: Path) -> SwarmS
     return SwarmSpec(run.bus(), WORKLOADS["dvpr"], parts, workload="dvpr")
 
 
-def _local(settings: VprRunSettings, out: Path) -> LocalDeployment:
-    """A fresh local swarm in ``out`` (stores, snapshots, detections of an earlier run removed)."""
-    data = out / "data"
-    for pattern in ("robot*/*/*.log", "robot*/*/owner-index.npz", "robot*/detector/constellations/*.txt",
-                    "robot*/detector/descriptors/*.npy"):  # fmt: skip
-        for old in data.glob(pattern):
-            old.unlink()
-    run = settings.run
-    return LocalDeployment(
-        data_dir=data,
-        log_dir=out / "logs",
-        hosting=run.hosting,
-        security="insecure" if run.security == "insecure" else "mtls",
-    )
-
-
 def read_descriptors(data_dir: Path, px: PixelSource, blocks: list[range]) -> Float32Array | None:
     """The descriptors the detectors wrote (``robot<r>/detector/descriptors/<frame id>.npy``)
     in frame order; None when one is missing (a skipped frame)."""
@@ -171,12 +154,26 @@ def _detector_figures(px: PixelSource, metrics: Scrape) -> DetectorFigures:
     )
 
 
+def _refuse(deployment: Deployment) -> Path:
+    """Where the deployment's detectors write descriptors; ConfigError for a deployment the
+    full-image run cannot read them from, or whose links it cannot drive."""
+    if deployment.local_data_dir is None:
+        raise ConfigError(
+            "a full-image run reads the detectors' descriptors from a local deployment, "
+            f"not {deployment.description}"
+        )
+    if deployment.emulated_links is not None:
+        raise ConfigError("emulated links (--link-*) are not wired into --method dvpr yet")
+    return deployment.local_data_dir
+
+
 def run_dvpr(
     settings: VprRunSettings,
     px: PixelSource,
     centres: Path,
     table: SwarmTable,
     out: Path,
+    deployment: Deployment,
     *,
     swarm_hook: Callable[[Deployment], None] | None = None,
     replayed_hook: Callable[[Deployment], None] | None = None,
@@ -189,8 +186,7 @@ def run_dvpr(
     timings = dict(timings or {})
     spec = spec_for(settings, px, centres)
     blocks = split_frames(len(px), run.robots)
-    deployment = _local(settings, out)
-    warm_up()  # the verifiers load the association kernels from numba's cache
+    data_dir = _refuse(deployment)
     t_start = time.perf_counter()
     with (
         running(
@@ -219,7 +215,7 @@ def run_dvpr(
             replayed_hook(deployment)
     exit_codes = session.exit_codes
     timings["swarm_total_s"] = time.perf_counter() - t_start
-    descriptors = read_descriptors(deployment.data_dir, px, blocks)
+    descriptors = read_descriptors(data_dir, px, blocks)
     assignment = table.assignment
     swarm = {
         "robots": run.robots,
@@ -275,15 +271,22 @@ def _places_closures(path: Path, blocks: list[range]) -> list[tuple[int, int]]:
 
 def main(
     settings: VprRunSettings,
+    swarm_at: Callable[[Path], Deployment],
     *,
     say: Callable[[str], None] = lambda _text: None,
     swarm_hook: Callable[[Deployment], None] | None = None,
     replayed_hook: Callable[[Deployment], None] | None = None,
 ) -> DvprSummary | BothSummary:
     """Run ``settings.method`` (dvpr, or both one after the other on the same frames); the
-    summary is also written under ``settings.out``."""
+    summary is also written under ``settings.out``. ``swarm_at(folder)`` is the deployment
+    of the swarm whose report goes to ``folder`` (each method runs in a swarm of its own:
+    the two share message types, so only separate swarms measure each one's bytes)."""
     t_start = time.perf_counter()
     out = settings.out
+    both = settings.method == "both"
+    dvpr_out = out / "dvpr" if both else out
+    deployment = swarm_at(dvpr_out)
+    _refuse(deployment)  # before minutes of rendering
     out.mkdir(parents=True, exist_ok=True)
     run = settings.run
     # A file that is not a descriptor model stops the run here, before minutes of rendering.
@@ -297,14 +300,13 @@ def main(
     timings = {"prepare_s": time.perf_counter() - t_start}
     if px.render is not None:
         timings["render_s"] = float(px.render["total_s"])
-    both = settings.method == "both"
-    dvpr_out = out / "dvpr" if both else out
     dvpr = run_dvpr(
         settings,
         px,
         centres,
         table,
         dvpr_out,
+        deployment,
         swarm_hook=swarm_hook,
         replayed_hook=replayed_hook,
         timings=timings,
@@ -313,7 +315,8 @@ def main(
         return dvpr
     # The same frames: the folder rendered (or given) above, read by the constellation detectors.
     pixels = replace(run.pixels, from_pixels=False, rgbd=px.folder)
-    places = places_main(run.with_(out=out / "constellations", pixels=pixels))
+    places_out = out / "constellations"
+    places = places_main(run.with_(out=places_out, pixels=pixels), swarm_at(places_out))
     blocks = split_frames(len(px), run.robots)
     truth = None
     if px.trajectory is not None:

@@ -70,8 +70,6 @@ class VprRunSettings:
                 "--method dvpr describes camera images, and a constellation dataset has none: add "
                 "--from-pixels (the synthetic world rendered as RGB-D frames) or --rgbd DIR (a recording)"
             )
-        if self.run.link.limited or self.run.schedule is not None:
-            raise ConfigError("emulated links (--link-*) are not wired into --method dvpr yet")
         if self.run.robots < 2:
             raise ConfigError("full-image place recognition matches other robots' frames: --robots 2 or more")
 
