@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import socket
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +21,15 @@ TUM_GROUNDTRUTH = SHARED_DATA / "tum_fr3_long_office_household_groundtruth.txt"
 
 def label(name: str) -> int:
     return COCO_NAMES.index(name)
+
+
+@pytest.fixture
+def refused_port() -> Iterator[int]:
+    """A loopback port where a connection is refused for the whole test: bound by the test
+    and never listened on, so no other program can take it meanwhile."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        yield int(s.getsockname()[1])
 
 
 def make(*objects: tuple[str, float, float, float]) -> Constellation:

@@ -162,6 +162,36 @@ def toxiproxy_binary(cache: Path | None = None) -> Path:
     return binary
 
 
+def listening_ports(pid: int) -> set[int]:
+    """The TCP ports process ``pid`` listens on (IPv4 and IPv6), from /proc: its sockets'
+    inodes matched against the kernel's socket tables. Empty where /proc does not say
+    (not Linux, or the process gone)."""
+    try:
+        fds = os.listdir(f"/proc/{pid}/fd")
+    except OSError:
+        return set()
+    inodes = set()
+    for fd in fds:
+        try:
+            link = os.readlink(f"/proc/{pid}/fd/{fd}")
+        except OSError:
+            continue  # closed meanwhile (the listing's own descriptor, for one)
+        if link.startswith("socket:["):
+            inodes.add(link[len("socket:[") : -1])
+    ports: set[int] = set()
+    for table in ("tcp", "tcp6"):
+        try:
+            lines = Path(f"/proc/{pid}/net/{table}").read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            fields = line.split()
+            # local address (hex ip:port), state 0A = LISTEN, inode
+            if len(fields) > 9 and fields[3] == "0A" and fields[9] in inodes:
+                ports.add(int(fields[1].rsplit(":", 1)[1], 16))
+    return ports
+
+
 class LinkEmulator:
     """A Toxiproxy server and one proxy per robot in front of the router."""
 
@@ -174,7 +204,10 @@ class LinkEmulator:
         self.links: dict[int, LinkSpec] = {}
         self.cut: set[int] = set()
 
-    def start(self, api_port: int, timeout_s: float = 20.0) -> None:
+    def start(self, api_port: int = 0, timeout_s: float = 20.0) -> None:
+        """The server, its API on ``api_port``; 0 (the default): a port the OS gives it, read
+        back from the kernel's table of the process's listening sockets (Toxiproxy logs the
+        port it was given, not the one it got), so no port is chosen here and lost."""
         self.log_dir.mkdir(parents=True, exist_ok=True)
         log = (self.log_dir / "toxiproxy.log").open("ab")
         self.proc = subprocess.Popen(
@@ -184,18 +217,19 @@ class LinkEmulator:
             start_new_session=True,
         )
         log.close()
-        self.api = f"http://127.0.0.1:{api_port}"
         deadline = time.monotonic() + timeout_s
         while True:
-            try:
-                self._call("GET", "/version")
-                return
-            except DeploymentError:
-                if self.proc.poll() is not None or time.monotonic() > deadline:
-                    raise DeploymentError(
-                        f"Toxiproxy did not start; see {self.log_dir / 'toxiproxy.log'}"
-                    ) from None
-                time.sleep(0.05)
+            port = api_port or next(iter(sorted(listening_ports(self.proc.pid))), 0)
+            if port:
+                self.api = f"http://127.0.0.1:{port}"
+                try:
+                    self._call("GET", "/version")
+                    return
+                except DeploymentError:
+                    pass
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                raise DeploymentError(f"Toxiproxy did not start; see {self.log_dir / 'toxiproxy.log'}")
+            time.sleep(0.05)
 
     def _call(self, method: str, path: str, body: Mapping[str, Any] | None = None) -> Any:
         data = json.dumps(body).encode() if body is not None else None

@@ -417,7 +417,7 @@ class LocalDeployment:
         schedule's state at time 0."""
         assert self.router_port is not None
         self.links = LinkEmulator(log_dir=self.log_dir)
-        self.links.start(free_port())
+        self.links.start()  # its API on a port the OS gives it
         for robot in range(spec.robots):
             self.links.add_robot(robot, self.router_port, self.link)
         self.apply_links(0.0)

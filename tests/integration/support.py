@@ -137,6 +137,18 @@ def metrics_url(sp: ServiceProcess) -> str:
     return url
 
 
+def bound_locators(session: zenoh.Session, timeout_s: float = 2.0) -> list[str]:
+    """Where a session that listens (port 0 replaced by the port the OS gave) is reached,
+    from its own admin space (the session's config enables ``adminspace``)."""
+    zid = session.info.zid()
+    for reply in session.get(f"@/{zid}/*", timeout=timeout_s):
+        if reply.ok is not None and str(reply.ok.key_expr).rsplit("/", 1)[-1] in ("peer", "router"):
+            found = json.loads(reply.ok.payload.to_string()).get("locators", [])
+            if found:
+                return [str(x) for x in found]
+    raise AssertionError(f"session {zid} names no locator in its admin space")
+
+
 def wait_until(condition: Callable[[], T | None], timeout_s: float, what: str, every_s: float = 0.05) -> T:
     """Poll ``condition`` until it returns something truthy; fail after ``timeout_s``."""
     deadline = time.monotonic() + timeout_s

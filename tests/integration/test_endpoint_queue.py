@@ -16,12 +16,11 @@ from dataclasses import dataclass
 import pytest
 import zenoh
 
-from swarmrec.deployments.local import free_port
 from swarmrec.runtime import Endpoint, RequestContext, ServiceBase, ServiceContext, keys
 from swarmrec.runtime.runner import ENDPOINT_CAPACITY, Hosted, run_services
 from swarmrec.runtime.settings import BusSettings, Config, SecuritySettings
 from swarmrec.wire import messages as pb
-from tests.integration.support import protobuf, wait_until
+from tests.integration.support import bound_locators, protobuf, wait_until
 
 KEY = keys.endpoint("gated", "gate", 0, "step")
 
@@ -51,30 +50,31 @@ class Hosting:
 
 @pytest.fixture
 def gated() -> Iterator[Hosting]:
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    bus = BusSettings(
-        swarm="gated",
-        mode="peer",
-        connect=(),
-        listen=(endpoint,),
-        metrics_port=-1,
-        workers=1,
-        dispatch="queue",
-    )
-    config = Config.of(bus, SecuritySettings(security="insecure"))
-    stop = threading.Event()
-    host = threading.Thread(
-        target=run_services, args=([Hosted(config, "gate", 99, Gate)],), kwargs={"stop": stop}
-    )
-    Gate.opened.clear()
-    host.start()
+    # The test's session listens on a port the OS gives it; the host dials it.
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps("peer"))
-    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    conf.insert_json5("connect/timeout_ms", "-1")
+    conf.insert_json5("listen/endpoints", json.dumps(["tcp/127.0.0.1:0"]))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("adminspace/enabled", "true")
+    stop = threading.Event()
+    host: threading.Thread | None = None
     try:
         with zenoh.open(conf) as session:
+            bus = BusSettings(
+                swarm="gated",
+                mode="peer",
+                connect=tuple(bound_locators(session)),
+                listen=(),
+                metrics_port=-1,
+                workers=1,
+                dispatch="queue",
+            )
+            config = Config.of(bus, SecuritySettings(security="insecure"))
+            host = threading.Thread(
+                target=run_services, args=([Hosted(config, "gate", 99, Gate)],), kwargs={"stop": stop}
+            )
+            Gate.opened.clear()
+            host.start()
             liveliness = session.liveliness()
             wait_until(
                 lambda: bool(list(liveliness.get(keys.alive("gated", "gate", 0), timeout=1.0))),
@@ -85,7 +85,8 @@ def gated() -> Iterator[Hosting]:
     finally:
         Gate.opened.set()
         stop.set()
-        host.join(timeout=30)
+        if host is not None:
+            host.join(timeout=30)
 
 
 def _send(session: zenoh.Session, step: int) -> zenoh.Handler[zenoh.Reply]:

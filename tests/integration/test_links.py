@@ -86,3 +86,19 @@ def test_a_schedule_says_who_is_out_of_range_when() -> None:
     assert s.state_at(4) == {1: None, 2: LinkSpec(rate_kbps=1.0)}
     assert s.state_at(5) == {2: LinkSpec(rate_kbps=1.0)}
     assert s.changes() == [2, 4, 5, 6]
+
+
+def test_the_ports_a_process_listens_on_are_read_from_the_kernel() -> None:
+    import os
+    import socket
+
+    from swarmrec.deployments.links import listening_ports
+
+    with socket.socket() as listening, socket.socket() as bound_only:
+        listening.bind(("127.0.0.1", 0))
+        listening.listen()
+        bound_only.bind(("127.0.0.1", 0))
+        ports = listening_ports(os.getpid())
+        assert listening.getsockname()[1] in ports
+        assert bound_only.getsockname()[1] not in ports  # bound, not listening
+    assert listening_ports(2**22 + 1) == set()  # no such process

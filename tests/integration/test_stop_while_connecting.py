@@ -19,14 +19,12 @@ import time
 
 import pytest
 
-from swarmrec.deployments.local import free_port
-
 
 @pytest.mark.parametrize("data_plane", ["python", "compiled"])
-def test_a_service_waiting_for_its_router_stops_on_sigterm(data_plane: str) -> None:
+def test_a_service_waiting_for_its_router_stops_on_sigterm(data_plane: str, refused_port: int) -> None:
     cmd = [
         sys.executable, "-m", "swarmrec", "serve", "verifier", "--security", "insecure",
-        "--connect", f"tcp/127.0.0.1:{free_port()}", "--robot", "0", "--n-robots", "2",
+        "--connect", f"tcp/127.0.0.1:{refused_port}", "--robot", "0", "--n-robots", "2",
         "--data-plane", data_plane, "--metrics-port", "-1",
     ]  # fmt: skip
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -34,9 +34,9 @@ from typing import Any
 import pytest
 import zenoh
 
-from swarmrec.deployments.local import free_port
 from swarmrec.errors import ConfigError, SecurityError
 from swarmrec.runtime import keys
+from swarmrec.runtime.runner import router_locators
 from swarmrec.runtime.tls import (
     TlsFiles,
     configure_client_tls,
@@ -89,9 +89,20 @@ def router_config(pki: Path, endpoint: str, acl: dict[str, Any] | None = None) -
     conf.insert_json5("mode", '"router"')
     conf.insert_json5("scouting/multicast/enabled", "false")
     configure_router_tls(conf, files(pki, f"router.{SWARM}"), [endpoint])
+    # Its admin space says which port the OS gave a port 0 (router_locators); the router's
+    # own session reads it, the ACL grants it to no one else.
+    conf.insert_json5("adminspace/enabled", "true")
+    conf.insert_json5("adminspace/permissions", json.dumps({"read": True, "write": False}))
     if acl is not None:
         configure_access_control(conf, acl)
     return conf
+
+
+def bound_endpoint(router: zenoh.Session) -> str:
+    """The TLS endpoint a router session listening on port 0 was given."""
+    locators = router_locators(router)
+    assert locators, "the router's admin space names no locator"
+    return tls_endpoint("127.0.0.1", int(locators[0].rsplit(":", 1)[1].split("#", 1)[0]))
 
 
 def client_config(endpoint: str, tls: TlsFiles | None = None) -> zenoh.Config:
@@ -111,9 +122,8 @@ def swarm_acl() -> dict[str, Any]:
 
 @contextmanager
 def in_process_router(pki: Path, acl: dict[str, Any] | None = None) -> Iterator[tuple[zenoh.Session, str]]:
-    endpoint = tls_endpoint("127.0.0.1", free_port())
-    with zenoh.open(router_config(pki, endpoint, acl)) as router:
-        yield router, endpoint
+    with zenoh.open(router_config(pki, tls_endpoint("127.0.0.1", 0), acl)) as router:
+        yield router, bound_endpoint(router)
 
 
 class Sessions:
@@ -220,6 +230,7 @@ import json, signal, sys, threading
 from pathlib import Path
 import zenoh
 from swarmrec.security.acl import access_control, configure_access_control
+from swarmrec.runtime.runner import router_locators
 from swarmrec.runtime.tls import TlsFiles, configure_router_tls
 
 args = json.loads(sys.argv[1])
@@ -232,16 +243,23 @@ configure_router_tls(conf, TlsFiles.in_dir(Path(args["pki"]), "router." + args["
 if args["acl"]:
     acl = access_control(args["swarm"], args["robots"], clients=["cli"], operators=["job"])
     configure_access_control(conf, acl)
-with zenoh.open(conf):
-    print(json.dumps({"event": "ready"}), flush=True)
+conf.insert_json5("adminspace/enabled", "true")
+conf.insert_json5("adminspace/permissions", json.dumps({"read": True, "write": False}))
+with zenoh.open(conf) as router:
+    print(json.dumps({"event": "ready", "listen": router_locators(router)}), flush=True)
     stop.wait()
 """
 
 
 @contextmanager
 def router_process(pki: Path, *, acl: bool) -> Iterator[str]:
-    endpoint = tls_endpoint("127.0.0.1", free_port())
-    args = {"pki": str(pki), "swarm": SWARM, "listen": endpoint, "acl": acl, "robots": ROBOTS}
+    args = {
+        "pki": str(pki),
+        "swarm": SWARM,
+        "listen": tls_endpoint("127.0.0.1", 0),
+        "acl": acl,
+        "robots": ROBOTS,
+    }
     proc = subprocess.Popen(
         [sys.executable, "-c", _ROUTER_SCRIPT, json.dumps(args)],
         stdout=subprocess.PIPE,
@@ -256,7 +274,8 @@ def router_process(pki: Path, *, acl: bool) -> Iterator[str]:
             raise AssertionError(
                 f"router exited {proc.returncode}: {proc.stderr.read() if proc.stderr else ''}"
             )
-        yield endpoint
+        listen = json.loads(line)["listen"]  # the port the OS gave its port 0
+        yield tls_endpoint("127.0.0.1", int(listen[0].rsplit(":", 1)[1].split("#", 1)[0]))
     finally:
         proc.send_signal(signal.SIGTERM)
         try:
@@ -389,7 +408,8 @@ def test_plaintext_tcp_to_the_tls_router_is_refused(pki: Path) -> None:
 
 
 def test_a_tls_router_cannot_also_listen_in_plaintext(pki: Path) -> None:
-    tls, tcp = tls_endpoint("127.0.0.1", free_port()), f"tcp/127.0.0.1:{free_port()}"
+    # (Refused before anything binds: port 0 would be the OS's choice.)
+    tls, tcp = tls_endpoint("127.0.0.1", 0), "tcp/127.0.0.1:0"
     conf = zenoh.Config()
     conf.insert_json5("mode", '"router"')
     with pytest.raises(SecurityError, match=r"\['tcp/127\.0\.0\.1:\d+'\] are not tls/"):

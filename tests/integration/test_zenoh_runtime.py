@@ -26,7 +26,7 @@ from pathlib import Path
 
 import pytest
 
-from swarmrec.deployments.local import LocalDeployment, free_port
+from swarmrec.deployments.local import LocalDeployment
 from swarmrec.runtime.runner import on_single_runtime
 from swarmrec.runtime.settings import SINGLE_RUNTIME_TX_QUEUE, SINGLE_THREAD_RUNTIME, BusSettings
 from swarmrec.services.settings import PlaceSettings
@@ -34,9 +34,10 @@ from swarmrec.wire import messages as pb
 from tests.integration.conftest import running_swarm
 from tests.integration.support import endpoint_key, request
 
-#: One zenoh process of the demonstration: ``router PORT QUEUE``, ``queryable PORT`` or
-#: ``ask PORT`` (prints how many replies each of three 400 kB requests got, and how long
-#: each took). QUEUE: the router's send queue for data, in batches (0: zenoh's default).
+#: One zenoh process of the demonstration: ``router 0 QUEUE`` (listens on a port the OS
+#: gives it, and says which), ``queryable PORT`` or ``ask PORT`` (prints how many replies
+#: each of three 400 kB requests got, and how long each took). QUEUE: the router's send
+#: queue for data, in batches (0: zenoh's default).
 ZENOH_PROCESS = r"""
 import sys, time, zenoh
 role, port = sys.argv[1], sys.argv[2]
@@ -47,6 +48,7 @@ conf.insert_json5("scouting/multicast/enabled", "false")
 if role == "router":
     conf.insert_json5("mode", '"router"')
     conf.insert_json5("listen/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    conf.insert_json5("adminspace/enabled", "true")
 else:
     conf.insert_json5("mode", '"client"')
     conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
@@ -62,7 +64,13 @@ if role == "ask":
         replies = list(session.get("demo/big", payload=b"x" * 400_000, timeout=10))
         print(len(replies), round(time.perf_counter() - t0, 2), flush=True)
     sys.exit(0)
-print("up", flush=True)
+if role == "router":
+    import json
+    [reply] = list(session.get(f"@/{session.info.zid()}/router", timeout=5))
+    locator = json.loads(reply.ok.payload.to_string())["locators"][0]
+    print("up", locator.rsplit(":", 1)[1], flush=True)
+else:
+    print("up", flush=True)
 time.sleep(600)
 """
 
@@ -70,7 +78,7 @@ time.sleep(600)
 def ask_through_router(queue: int) -> list[tuple[int, float]]:
     """Three 400 kB requests through a router on the single runtime with a send queue of
     ``queue`` batches (0: zenoh's default): (replies, seconds) each."""
-    port = str(free_port())
+    port = "0"  # the router's: the OS gives it one, which it prints
     env = {**os.environ, "ZENOH_RUNTIME": SINGLE_THREAD_RUNTIME}
     procs = []
     try:
@@ -83,7 +91,11 @@ def ask_through_router(queue: int) -> list[tuple[int, float]]:
                 text=True,
             )
             procs.append(p)
-            assert p.stdout is not None and p.stdout.readline().strip() == "up"
+            assert p.stdout is not None
+            said = p.stdout.readline().split()
+            assert said[:1] == ["up"], said
+            if role == "router":
+                port = said[1]
         asked = subprocess.run(
             [sys.executable, "-c", ZENOH_PROCESS, "ask", port], capture_output=True, text=True, timeout=60
         )

@@ -59,7 +59,5 @@ def test_healthcheck_passes_on_a_ready_service_and_fails_otherwise(
     assert main(["--port", port]) == 1
 
 
-def test_healthcheck_fails_when_nothing_listens() -> None:
-    from swarmrec.deployments.local import free_port
-
-    assert main(["--port", str(free_port()), "--timeout", "0.5"]) == 1
+def test_healthcheck_fails_when_nothing_listens(refused_port: int) -> None:
+    assert main(["--port", str(refused_port), "--timeout", "0.5"]) == 1
