@@ -127,7 +127,7 @@ def prepare(settings: PlacesSettings, *, dataset_dir: Path) -> Prepared:
         n_frames, n_labels = len(px), len(px.label_names)
         bounds = swarm_bounds(preset, settings.robots, n_labels, px.exact)
         detector = DetectorSettings(detector_mode="rgbd", dataset=str(px.folder), labels_file=px.labels_file)
-        parts = [detector, rgbd_settings(px, settings)]
+        parts = [detector, rgbd_settings(px, settings.pixels)]
         seq, trajectory = None, px.trajectory
     else:
         px = None
@@ -144,13 +144,13 @@ def prepare(settings: PlacesSettings, *, dataset_dir: Path) -> Prepared:
     return Prepared(spec, preset, bounds, split_frames(n_frames, settings.robots), seq, trajectory, px)
 
 
-def _offline(seq: ConstellationSequence, prepared: Prepared, settings: PlacesSettings) -> OfflineEvaluation:
+def _offline(seq: ConstellationSequence, prepared: Prepared) -> OfflineEvaluation:
     """The offline evaluation of ``seq`` as the run's swarm saw it."""
     places = prepared.spec.component(PlaceSettings)
     assert isinstance(places, PlaceSettings)
     wire_seq = as_on_the_wire(seq, exact=places.exact_positions)
     return OfflineEvaluation(
-        seq, wire_seq, prepared.trajectory, prepared.preset, prepared.bounds, settings.robots
+        seq, wire_seq, prepared.trajectory, prepared.preset, prepared.bounds, prepared.spec.robots
     )
 
 
@@ -249,10 +249,10 @@ def main(
             swarm_hook(deployment)
         link_events: list[tuple[float, str]] = []
         before_step = _link_schedule(deployment, client, link_events)
-        result = replay(client, prepared.blocks, settings, on_step, before_step)
+        result = replay(client, prepared.blocks, settings.replay(), on_step, before_step)
         timings["replay_s"] = result.wall_s
         if prepared.sequence is not None:  # (from pixels: the detections, read after the stop)
-            checking = _offline(prepared.sequence, prepared, settings)
+            checking = _offline(prepared.sequence, prepared)
             offline = checking.start(check_offline=settings.check_offline)
         # Handoffs and retried stores finish before anything is counted, so the report
         # agrees with what the shards hold.
@@ -291,7 +291,7 @@ def main(
     assert isinstance(places, PlaceSettings)
     replayed = spec.component(DetectorSettings)
     assert isinstance(replayed, DetectorSettings)
-    offline = offline or _offline(seq, prepared, settings)
+    offline = offline or _offline(seq, prepared)
     record = RunRecord(
         seq=seq,
         offline=offline,
@@ -313,7 +313,7 @@ def main(
         labels_file=replayed.labels_file,
         links=_link_report(deployment, link_events),
     )
-    return write_report(settings, record)
+    return write_report(settings.report(), record)
 
 
 def _link_report(deployment: Deployment, events: list[tuple[float, str]]) -> LinkReport | None:

@@ -28,7 +28,7 @@ from swarmrec.datasets.tum import read_trajectory
 from swarmrec.datasets.tum_rgbd import RgbdFrame, frame_id_of, read_tum_rgbd
 from swarmrec.detection import CameraIntrinsics, conf_threshold_for, load_detector
 from swarmrec.errors import ConfigError, DatasetError
-from swarmrec.experiments.places.settings import PlacesSettings
+from swarmrec.experiments.places.settings import PixelSettings, PlacesSettings
 from swarmrec.services.settings import RgbdSettings
 from swarmrec.synthetic import OfficeConfig, generate_office
 from swarmrec.synthetic.render import write_rgbd_sequence
@@ -104,12 +104,12 @@ def _render(settings: PlacesSettings, folder: Path) -> dict[str, Any]:
     }
 
 
-def _camera_of(settings: PlacesSettings, folder: Path) -> CameraIntrinsics:
+def _camera_of(pixels: PixelSettings, folder: Path) -> CameraIntrinsics:
     """``--camera``, else the intrinsics a synthetic render wrote in ``boxes.json``, else TUM fr3."""
     default = CameraIntrinsics()
-    scale = settings.pixels.depth_scale
-    if settings.pixels.camera is not None:
-        fx, fy, cx, cy = settings.pixels.camera
+    scale = pixels.depth_scale
+    if pixels.camera is not None:
+        fx, fy, cx, cy = pixels.camera
         return CameraIntrinsics(fx, fy, cx, cy, scale if scale is not None else default.depth_scale)
     meta_path = folder / "boxes.json"
     if meta_path.is_file():
@@ -185,7 +185,7 @@ def prepare_pixels(settings: PlacesSettings) -> PixelSource:
         label_names=names,
         labels_file=src.labels,
         trajectory=read_trajectory(gt_path) if gt_path else None,
-        camera=_camera_of(settings, source),
+        camera=_camera_of(px, source),
         model=model,
         conf_threshold=conf_threshold_for(px.model, px.conf_threshold),
         exact=exact,
@@ -193,19 +193,19 @@ def prepare_pixels(settings: PlacesSettings) -> PixelSource:
     )
 
 
-def rgbd_settings(src: PixelSource, settings: PlacesSettings) -> RgbdSettings:
+def rgbd_settings(src: PixelSource, pixels: PixelSettings) -> RgbdSettings:
     """The settings that make every detector read ``src`` in rgbd mode."""
     cam = src.camera
     return RgbdSettings(
         detector_model=str(src.model),
         conf_threshold=src.conf_threshold,
-        detector_threads=settings.pixels.detector_threads,
+        detector_threads=pixels.detector_threads,
         camera_fx=cam.fx,
         camera_fy=cam.fy,
         camera_cx=cam.cx,
         camera_cy=cam.cy,
         depth_scale=cam.depth_scale,
-        rgbd_max_dt=settings.pixels.rgbd_max_dt,
+        rgbd_max_dt=pixels.rgbd_max_dt,
     )
 
 

@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from swarmrec.client import ZenohClient
 from swarmrec.errors import TRANSIENT_CODES, RemoteError, SwarmrecError
-from swarmrec.experiments.places.settings import PlacesSettings
+from swarmrec.experiments.places.settings import ReplaySettings
 from swarmrec.runtime import keys
 from swarmrec.wire import messages as pb
 
@@ -57,7 +57,7 @@ class Replay:
 def replay_lockstep(
     client: ZenohClient,
     blocks: list[range],
-    settings: PlacesSettings,
+    settings: ReplaySettings,
     on_step: Callable[[int], None] | None,
     before_step: Callable[[int], None] | None = None,
 ) -> Replay:
@@ -173,7 +173,7 @@ def _flush_outboxes(
         time.sleep(FLUSH_POLL_S)
 
 
-def replay_free(client: ZenohClient, blocks: list[range], settings: PlacesSettings) -> Replay:
+def replay_free(client: ZenohClient, blocks: list[range], settings: ReplaySettings) -> Replay:
     rate = 0.0 if settings.pace == "fast" else float(settings.pace)
     expected = sum(len(b) for b in blocks)
     reports: list[pb.QueryReport] = []
@@ -210,7 +210,7 @@ def replay_free(client: ZenohClient, blocks: list[range], settings: PlacesSettin
 def replay(
     client: ZenohClient,
     blocks: list[range],
-    settings: PlacesSettings,
+    settings: ReplaySettings,
     on_step: Callable[[int], None] | None,
     before_step: Callable[[int], None] | None = None,
 ) -> Replay:

@@ -46,7 +46,7 @@ from swarmrec.evaluation.plots import (
 from swarmrec.evaluation.pr import PRCurve, precision_recall
 from swarmrec.evaluation.scoring import ScoreMatrix, decentralized_marks, same_objects, score_decentralized
 from swarmrec.experiments.places.replay import Replay
-from swarmrec.experiments.places.settings import PlacesSettings
+from swarmrec.experiments.places.settings import ReportSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import outcomes_from_proto
 
@@ -434,7 +434,7 @@ class OfflineEvaluation:
         return self._done[id(seq)][1]
 
 
-def _why_not_compared(settings: PlacesSettings, missing: int, late: int) -> str:
+def _why_not_compared(settings: ReportSettings, missing: int, late: int) -> str:
     """Why a run's pair scores are not compared with the offline evaluation, in a few words."""
     if not settings.check_offline:
         return "--no-offline-check"
@@ -586,7 +586,7 @@ def _index_summary(state: IndexState, metrics: Scrape, replicas: int) -> IndexSu
     )
 
 
-def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
+def write_report(settings: ReportSettings, run: RunRecord) -> PlacesSummary:
     """Write the report files under ``settings.out`` and return the summary."""
     out = settings.out
     replay, metrics, seq, wire_seq = run.replay, run.metrics, run.seq, run.wire_seq
@@ -603,7 +603,7 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
     summary = PlacesSummary(
         dataset=DatasetInfo(
             name=seq.name,
-            source=settings.source.dataset,
+            source=settings.dataset,
             frames=len(seq),
             labels=seq.n_labels,
             groundtruth=run.trajectory is not None,
@@ -654,7 +654,7 @@ def write_report(settings: PlacesSettings, run: RunRecord) -> PlacesSummary:
     if run.detector is not None:
         summary.detector = _detector_figures(run.detector, metrics)
     if run.index is not None:
-        summary.index = _index_summary(run.index, metrics, settings.index.replicas)
+        summary.index = _index_summary(run.index, metrics, settings.replicas)
     summary.funnel = funnel_stats(replay.reports, run.closures, metrics)
     offline = run.offline
     # Frames delivered late were stored after their step: the lock-step identity is off then.
@@ -754,7 +754,7 @@ def _write_closures(
 
 
 def _plots(
-    settings: PlacesSettings,
+    settings: ReportSettings,
     summary: PlacesSummary,
     dense: npt.NDArray[np.float64],
     curves: dict[str, PRCurve],

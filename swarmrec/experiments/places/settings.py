@@ -1,4 +1,5 @@
-"""What one place-recognition run is: the dataset, the swarm's size and preset, the pace."""
+"""What one place-recognition run is (the dataset, the swarm's size and preset, the pace),
+and what each of its stages receives of it (:class:`ReplaySettings`, :class:`ReportSettings`)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from swarmrec.evaluation.source import SYNTHETIC, DatasetSource
 from swarmrec.runtime.settings import BusSettings, DataPlane
 from swarmrec.services.settings import IndexSettings, PlaceSettings, WirePositions
 
-__all__ = ["PixelSettings", "PlacesSettings"]
+__all__ = ["PixelSettings", "PlacesSettings", "ReplaySettings", "ReportSettings"]
 
 
 @dataclass(frozen=True)
@@ -52,6 +53,46 @@ class PixelSettings:
     def enabled(self) -> bool:
         """Whether the detectors start from RGB-D frames."""
         return self.from_pixels or self.rgbd is not None
+
+
+@dataclass(frozen=True)
+class ReplaySettings:
+    """What the replay stage needs of a run (``PlacesSettings.replay()``)."""
+
+    robots: int
+    #: The swarm's name (its key expressions' swarm segment).
+    swarm: str
+    #: "lockstep", "fast" or a rate in frames per second.
+    pace: str
+    #: Seconds a request waits; a step or an idle spell waits six times that.
+    request_timeout_s: float
+    progress: bool = True
+
+    @property
+    def lockstep(self) -> bool:
+        return self.pace == "lockstep"
+
+
+@dataclass(frozen=True)
+class ReportSettings:
+    """What the report stage needs of a run (``PlacesSettings.report()``): where it goes, what
+    it draws and checks, and the run's own settings it records."""
+
+    out: Path
+    robots: int
+    #: "lockstep", "fast" or a rate in frames per second.
+    pace: str
+    #: The dataset as the run named it (``synthetic``, a folder or a zip).
+    dataset: str
+    #: Index shards that hold each label group.
+    replicas: int
+    plots: bool = True
+    #: Compare the pair scores with the offline decentralized evaluation (lock-step only).
+    check_offline: bool = True
+
+    @property
+    def lockstep(self) -> bool:
+        return self.pace == "lockstep"
 
 
 @dataclass(frozen=True)
@@ -122,6 +163,28 @@ class PlacesSettings:
             label_bounds=bounds,
             lockstep=self.lockstep,
             wire_positions=self.wire_positions,
+        )
+
+    def replay(self) -> ReplaySettings:
+        """The replay stage's settings."""
+        return ReplaySettings(
+            robots=self.robots,
+            swarm=self.swarm,
+            pace=self.pace,
+            request_timeout_s=self.request_timeout_s,
+            progress=self.progress,
+        )
+
+    def report(self) -> ReportSettings:
+        """The report stage's settings."""
+        return ReportSettings(
+            out=self.out,
+            robots=self.robots,
+            pace=self.pace,
+            dataset=self.source.dataset,
+            replicas=self.index.replicas,
+            plots=self.plots,
+            check_offline=self.check_offline,
         )
 
     def with_(self, **changes: Any) -> PlacesSettings:

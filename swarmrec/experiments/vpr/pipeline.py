@@ -108,7 +108,7 @@ def spec_for(settings: VprRunSettings, px: PixelSource, centres: Path) -> SwarmS
     run = settings.run
     places = PlaceSettings(preset=run.preset, n_labels=len(px.label_names), wire_positions=run.wire_positions)
     detector = DetectorSettings(detector_mode="rgbd", dataset=str(px.folder), labels_file=px.labels_file)
-    parts = (places, detector, rgbd_settings(px, run), settings.dvpr.component(centres))
+    parts = (places, detector, rgbd_settings(px, run.pixels), settings.dvpr.component(centres))
     return SwarmSpec(run.bus(), WORKLOADS["dvpr"], parts, workload="dvpr")
 
 
