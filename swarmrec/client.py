@@ -403,13 +403,25 @@ class ZenohClient(SwarmClient):
         return IndexState(newest, versions, pending)
 
     def wait_index_settled(
-        self, timeout_s: float = 30.0, poll_s: float = 0.2, *, shards: int | None = None
+        self,
+        timeout_s: float = 30.0,
+        poll_s: float = 0.2,
+        *,
+        shards: int | None = None,
+        stall_s: float | None = None,
     ) -> IndexState:
         """Poll :meth:`index_state` until it is settled (handoffs done, every store
         acknowledged) or ``timeout_s`` passed; the last state either way. With ``shards``,
-        settled also means that many shards answer and the placement lists them all."""
+        settled also means that many shards answer and the placement lists them all.
+
+        With ``stall_s``, it gives up sooner when the only thing missing is stores the
+        descriptors owe and their count has not gone down for ``stall_s``, on a settled
+        placement every live shard follows: stores owed to a shard that died as the only
+        owner of its group wait for it to come back, which no wait here can hasten."""
         deadline = time.monotonic() + timeout_s
         known: Placement | None = None
+        owed: tuple[int, int] | None = None  # (placement version, fewest stores owed so far)
+        since = time.monotonic()
         while True:
             state = self.index_state(known=known)
             known = state.placement
@@ -418,7 +430,21 @@ class ZenohClient(SwarmClient):
                 and state.placement is not None
                 and len(state.placement.members) >= shards
             )
-            if (state.settled and everyone) or time.monotonic() >= deadline:
+            now = time.monotonic()
+            if (state.settled and everyone) or now >= deadline:
+                return state
+            p = state.placement
+            only_owed = (
+                p is not None
+                and p.settled
+                and set(state.versions.values()) == {p.version}
+                and state.pending > 0
+            )
+            if not only_owed or p is None:
+                owed = None
+            elif owed is None or owed[0] != p.version or state.pending < owed[1]:
+                owed, since = (p.version, state.pending), now  # progress: the stall counts from here
+            elif stall_s is not None and now - since >= stall_s:
                 return state
             time.sleep(poll_s)
 

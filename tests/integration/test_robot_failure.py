@@ -113,6 +113,9 @@ def test_a_robot_killed_mid_run_is_reported_missing_and_the_others_keep_querying
     assert all(
         codes[f"{k}-{DEAD}"] == -signal.SIGKILL for k in ("detector", "descriptor", "index-shard", "verifier")
     )
+    if replicas == 1:
+        # Its group had no other owner: the stores owed to it wait for it, and the report says so.
+        assert summary.index is not None and not summary.index.settled and summary.index.pending_stores > 0
     # Failed requests to the dead robot are counted in the report.
     assert (q.failed_shard_requests > 0) == (replicas == 1)
     assert q.failed_verifier_requests > 0

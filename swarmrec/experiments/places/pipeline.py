@@ -62,6 +62,9 @@ from swarmrec.wire.codec import constellation_from_proto, constellation_to_proto
 
 #: How long a run waits after its replay for handoffs and retried stores to finish.
 SETTLE_TIMEOUT_S = 60.0
+#: ... giving up sooner when only stores are owed and none was acknowledged for this long
+#: (their shard died as its group's only owner: the report says how many are pending).
+SETTLE_STALL_S = 10.0
 
 __all__ = [
     "SETTLE_TIMEOUT_S",
@@ -257,7 +260,7 @@ def main(
         # Handoffs and retried stores finish before anything is counted, so the report
         # agrees with what the shards hold.
         t0 = time.perf_counter()
-        index_state = client.wait_index_settled(timeout_s=SETTLE_TIMEOUT_S)
+        index_state = client.wait_index_settled(timeout_s=SETTLE_TIMEOUT_S, stall_s=SETTLE_STALL_S)
         timings["settle_s"] = time.perf_counter() - t0
         if after_replay is not None:
             after_replay(deployment)
