@@ -19,12 +19,18 @@ log() { echo "wheelhouse: $*" >&2; }
 mkdir -p "$OUT"
 rm -f "$OUT"/swarmrec-*.whl
 log "building swarmrec's wheel"
+# From a copy of what the wheel holds: setuptools stages a build in the source tree (build/,
+# swarmrec.egg-info), where a build cut short, or processes of a test run writing beside it,
+# failed the next one ("File exists: build/bdist..."). The copy has no such state.
+src=$(mktemp -d)
+trap 'rm -rf "$src"' EXIT
+tar --exclude=__pycache__ -cf - pyproject.toml README.md swarmrec | tar -xf - -C "$src"
 # A fixed zip timestamp makes the wheel byte-identical when the code is, so docker reuses its cached layers.
-SOURCE_DATE_EPOCH=315532800 "$PY" -m pip wheel --quiet --no-deps --wheel-dir "$OUT" . >/dev/null
+SOURCE_DATE_EPOCH=315532800 "$PY" -m pip wheel --quiet --no-deps --wheel-dir "$OUT" "$src" >/dev/null
 
 # Only the run-time dependencies of pyproject.toml, at the versions of the lock.
 reqs=$(mktemp)
-trap 'rm -f "$reqs"' EXIT
+trap 'rm -rf "$src" "$reqs"' EXIT
 "$PY" - "$reqs" <<'PY'
 import sys, tomllib
 deps = tomllib.load(open("pyproject.toml", "rb"))["project"]["dependencies"]

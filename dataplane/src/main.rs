@@ -410,6 +410,12 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
     };
     let config =
         zenoh::Config::from_json5(&spec.zenoh.to_string()).map_err(|e| anyhow::anyhow!("zenoh config: {e}"))?;
+    // Said before the wait for the router, which may be long: where it waits (and, to a
+    // supervisor, that SIGTERM is handled from here on).
+    host_log.info(
+        "connecting to the swarm",
+        serde_json::json!({"connect": spec.zenoh["connect"]["endpoints"]}),
+    );
     let session = match open_session(config)? {
         Some(session) => session,
         None => {

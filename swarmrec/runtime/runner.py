@@ -873,6 +873,9 @@ def run_services(
     # Calls between services of one robot in this process skip zenoh (rpc.LocalEndpoints).
     local = LocalEndpoints()
     conf = zenoh_config(bus, hosted[0].security, identity=session_identity(hosted), log=host_log)
+    # Said before the wait for the router, which may be long: where it waits (and, to a
+    # supervisor, that SIGTERM is handled from here on).
+    host_log.info("connecting to the swarm", extra={"fields": {"connect": list(bus.connect)}})
     opened = open_session(conf, stop)
     if opened is None:
         # Stopped while the router was out of reach: nothing was declared yet.

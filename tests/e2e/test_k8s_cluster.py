@@ -117,12 +117,15 @@ E2E_NAMESPACE = re.compile(r"^swarmrec-e2e-(?:[a-z]+-)?(\d+)$")
 
 
 def _test_process_alive(pid: int) -> bool:
-    """Whether ``pid`` is a running pytest (a number reused by another program is not)."""
+    """Whether ``pid`` is a running pytest, or a worker of a parallel one (pytest-xdist: its
+    command line is execnet's; pytest put PYTEST_VERSION in the environment it started it
+    with); a number reused by another program is not."""
     try:
         cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+        environ = Path(f"/proc/{pid}/environ").read_bytes()
     except OSError:
         return False
-    return b"pytest" in cmdline
+    return b"pytest" in cmdline or b"\0PYTEST_VERSION=" in b"\0" + environ
 
 
 def stale_namespaces(names: Sequence[str], alive: Callable[[int], bool]) -> list[str]:

@@ -115,13 +115,19 @@ class Browser:
         return result["result"].get("value")
 
     def wait_for(self, expression: str, ok: Callable[[Any], bool], timeout_s: float, what: str) -> Any:
-        """Evaluate ``expression`` until ``ok`` holds for its value; that value."""
+        """Evaluate ``expression`` until ``ok`` holds for its value; that value. An expression
+        that throws (the element is not on the page yet: a busy machine renders it late) is
+        evaluated again until the time is up."""
         deadline = time.monotonic() + timeout_s
-        value = None
+        value: Any = None
         while time.monotonic() < deadline:
-            value = self.evaluate(expression)
-            if ok(value):
-                return value
+            try:
+                value = self.evaluate(expression)
+            except AssertionError as e:
+                value = f"(it throws: {e})"
+            else:
+                if ok(value):
+                    return value
             time.sleep(0.2)
         raise AssertionError(f"{what}: the page still shows {value!r} after {timeout_s} s")
 

@@ -6,6 +6,7 @@ waiting logic alone; tests/integration/test_robot_failure.py runs it against a r
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Iterator
 
@@ -25,10 +26,8 @@ def client_seeing(states: Iterator[IndexState]) -> ZenohClient:
     last: list[IndexState] = []
 
     def index_state(**_: object) -> IndexState:
-        try:
+        with contextlib.suppress(StopIteration):  # past the end: the last state, from then on
             last[:] = [next(states)]
-        except StopIteration:
-            pass  # the last state, from then on
         return last[0]
 
     client.index_state = index_state  # type: ignore[method-assign]
