@@ -98,11 +98,15 @@ def router_config(pki: Path, endpoint: str, acl: dict[str, Any] | None = None) -
     return conf
 
 
+def endpoint_of(locators: list[str]) -> str:
+    """The TLS endpoint on loopback at the port of a router's first locator (as zenoh bound it)."""
+    assert locators, "the router names no locator"
+    return tls_endpoint("127.0.0.1", int(locators[0].rsplit(":", 1)[1].split("#", 1)[0]))
+
+
 def bound_endpoint(router: zenoh.Session) -> str:
     """The TLS endpoint a router session listening on port 0 was given."""
-    locators = router_locators(router)
-    assert locators, "the router's admin space names no locator"
-    return tls_endpoint("127.0.0.1", int(locators[0].rsplit(":", 1)[1].split("#", 1)[0]))
+    return endpoint_of(router_locators(router))
 
 
 def client_config(endpoint: str, tls: TlsFiles | None = None) -> zenoh.Config:
@@ -275,7 +279,7 @@ def router_process(pki: Path, *, acl: bool) -> Iterator[str]:
                 f"router exited {proc.returncode}: {proc.stderr.read() if proc.stderr else ''}"
             )
         listen = json.loads(line)["listen"]  # the port the OS gave its port 0
-        yield tls_endpoint("127.0.0.1", int(listen[0].rsplit(":", 1)[1].split("#", 1)[0]))
+        yield endpoint_of(listen)
     finally:
         proc.send_signal(signal.SIGTERM)
         try:
