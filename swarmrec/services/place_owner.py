@@ -21,7 +21,10 @@ Every robot runs one. It plays the method's two roles for its robot:
   verified, so it never becomes a loop closure (``verified`` false in its report).
 
 ``assignment`` serves the table this robot routes and owns by (its version, the JSON
-table, its own clusters, a digest of the centres).
+table, its own clusters, a digest of the centres). ``lookup`` is the owner's search without
+the store, for clients (the gateway's ``PlaceQuery``): a :class:`PlaceQuery` for one of its
+clusters, routed with its table's version, answered with the nearest stored frame (of a robot
+other than ``robot_id`` when the query names one, of any robot otherwise); nothing changes.
 
 **Bad input.** A query is checked before anything is stored: robot and frame present and
 in range, the cluster known to the table and owned here, the table's version the
@@ -180,17 +183,7 @@ class PlaceOwner(ServiceBase):
             raise InvalidArgument(f"robot {robot} is not in this swarm of {self.bus.n_robots} robots")
         if frame >= MAX_FRAME_INDEX:
             raise InvalidArgument(f"frame index must be below {MAX_FRAME_INDEX}, got {frame}")
-        k = self.assignment.n_clusters
-        if cluster >= k:
-            raise InvalidArgument(f"cluster {cluster} is not one of the swarm's {k} clusters")
-        if req.assignment_version != self.assignment.version:
-            raise FailedPrecondition(
-                f"routed with assignment version {req.assignment_version}; this owner follows "
-                f"version {self.assignment.version}"
-            )
-        if cluster not in self.owned:
-            owner = self.assignment.owners[cluster]
-            raise FailedPrecondition(f"cluster {cluster} is robot {owner}'s, not robot {self.bus.robot}'s")
+        self._check_route(cluster, req.assignment_version)
         x = descriptor_from_wire(req.descriptor, req.encoding, self.dimension)
         with self.lock:
             stored = self.index.get(robot, frame)
@@ -217,6 +210,36 @@ class PlaceOwner(ServiceBase):
         return pb.PlaceMatch(
             found=True, distance=match.distance, robot_id=match.robot, frame_index=match.frame
         )
+
+    def lookup(self, req: pb.PlaceQuery, _ctx: RequestContext) -> pb.PlaceMatch:
+        # Read-only, so not caller-bound: any client may search; robot and frame are optional.
+        check_fields(req, "cluster")
+        if req.HasField("robot_id") and req.robot_id >= self.bus.n_robots:
+            raise InvalidArgument(f"robot {req.robot_id} is not in this swarm of {self.bus.n_robots} robots")
+        self._check_route(req.cluster, req.assignment_version)
+        x = descriptor_from_wire(req.descriptor, req.encoding, self.dimension)
+        # No robot named: exclude a robot id no frame has (the swarm's are 0 .. n_robots - 1).
+        excluded = req.robot_id if req.HasField("robot_id") else self.bus.n_robots
+        match = self.index.search(x, excluded)
+        if match is None:
+            return pb.PlaceMatch(found=False)
+        return pb.PlaceMatch(
+            found=True, distance=match.distance, robot_id=match.robot, frame_index=match.frame
+        )
+
+    def _check_route(self, cluster: int, version: int) -> None:
+        """Refuse a query for a cluster unknown, routed with another table, or not owned here."""
+        k = self.assignment.n_clusters
+        if cluster >= k:
+            raise InvalidArgument(f"cluster {cluster} is not one of the swarm's {k} clusters")
+        if version != self.assignment.version:
+            raise FailedPrecondition(
+                f"routed with assignment version {version}; this owner follows "
+                f"version {self.assignment.version}"
+            )
+        if cluster not in self.owned:
+            owner = self.assignment.owners[cluster]
+            raise FailedPrecondition(f"cluster {cluster} is robot {owner}'s, not robot {self.bus.robot}'s")
 
     def assignment_table(self, _req: pb.AssignmentRequest, _ctx: RequestContext) -> pb.AssignmentReply:
         return pb.AssignmentReply(
@@ -361,6 +384,13 @@ class PlaceOwner(ServiceBase):
             pb.PlaceReport,
             process,
             "querier: store, route, ask the owner and verify one of this robot's frames",
+        ),
+        Endpoint(
+            "lookup",
+            pb.PlaceQuery,
+            pb.PlaceMatch,
+            lookup,
+            "owner: the nearest stored frame (of another robot than robot_id, when given); stores nothing",
         ),
         Endpoint(
             "assignment",

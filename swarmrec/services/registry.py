@@ -294,7 +294,8 @@ for _entry in (
         metrics=PlaceOwnerMetrics,
         # The owner of a query's cluster, the verifier of its match.
         calls=(Call("place-owner", "query"), Call("verifier", "verify"), Call("verifier", "store", own=True)),
-        client_endpoints=("assignment", "loop_closures"),
+        # `lookup`: the owner's search without the store (the gateway's PlaceQuery).
+        client_endpoints=("assignment", "loop_closures", "lookup"),
     ),
     ServiceSpec(
         "fusion",
@@ -324,9 +325,11 @@ for _entry in (
         "gateway",
         pb.ServiceKind.SERVICE_KIND_GATEWAY,
         "swarmrec.services.gateway:Gateway",
-        "the swarm for gRPC clients in any language: members, queries, loop closures, live events",
+        "the swarm for gRPC clients in any language: every method's queries, loop closures, tables, "
+        "SLAM estimates and landmark rounds; live events",
         scope="swarm",
-        components=(GatewaySettings,),
+        # VprSettings: the centres it routes full-image queries by, the model it describes images with.
+        components=(GatewaySettings, VprSettings),
         metrics=GatewayMetrics,
         identity="client.gateway.{swarm}",
     ),
