@@ -10,6 +10,11 @@
         result = swarm.query(constellation)          # ranked matches, nothing stored
         closures = swarm.loop_closures(robot=3)
         report = swarm.explain(robot=3, frame=120).report   # its loop-closure funnel
+        place = swarm.place_query(descriptor)        # full-image: routed to its cluster's owner
+        table = swarm.cluster_table()                # the owners' cluster table, its version
+        team, merged = swarm.slam_team(), swarm.slam_map()  # SLAM: each robot's solve, the map
+        for estimate in swarm.watch_slam_estimate(robot=1): ...   # until its solve ends
+        posteriors = swarm.landmark_round(4).posteriors     # every robot's fused posterior
 
 :class:`SwarmClient` is the interface; :class:`ZenohClient` speaks zenoh to
 the router (and also drives replays: ``step``, ``replay``, raw ``call``s), and
@@ -31,8 +36,9 @@ import abc
 import json
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from types import TracebackType
 from typing import Any, TypeVar
 
@@ -59,6 +65,7 @@ from swarmrec.errors import (
 from swarmrec.runtime import keys
 from swarmrec.runtime.rpc import Caller
 from swarmrec.runtime.tls import TlsFiles, configure_client_tls, configure_insecure, no_shared_memory
+from swarmrec.services import methods
 from swarmrec.services.protocol import QueryPlan, two_step_query
 from swarmrec.services.registry import kind_of_wire
 from swarmrec.services.routing import Routing, newest_placement, version_of
@@ -204,6 +211,53 @@ class SwarmClient(abc.ABC):
     def explain(self, robot: int, frame: int) -> pb.ExplainReply:
         """What robot ``robot``'s query of its frame ``frame`` did, from its descriptor's
         memory (the last ``explain_reports`` reports): the report and its funnel."""
+
+    # --- full-image place recognition (docs/vpr.md) -----------------------------------
+
+    @abc.abstractmethod
+    def place_query(
+        self,
+        descriptor: Sequence[float] | np.ndarray | None = None,
+        *,
+        image: bytes | None = None,
+        exclude_robot: int | None = None,
+    ) -> gateway_pb2.PlaceQueryReply:
+        """Where a full-image descriptor (or the descriptor of an encoded ``image``) was seen:
+        its cluster, that cluster's owner and the owner's nearest stored frame (of robots but
+        ``exclude_robot``); nothing is stored."""
+
+    @abc.abstractmethod
+    def cluster_table(self) -> gateway_pb2.ClusterTableReply:
+        """The cluster table the place owners hold, its version, and whether they agree."""
+
+    @abc.abstractmethod
+    def place_loop_closures(self, robot: int, min_score: float = 0.0) -> list[pb.LoopClosure]:
+        """The loop closures robot ``robot``'s place owner has found, oldest first."""
+
+    # --- object-based SLAM (docs/slam.md) ----------------------------------------------
+
+    @abc.abstractmethod
+    def slam_team(self) -> list[pb.SlamStatus]:
+        """Every slam service's solve, by robot."""
+
+    @abc.abstractmethod
+    def slam_estimate(self, robot: int) -> pb.SlamEstimate:
+        """Robot ``robot``'s estimate of its own vertices."""
+
+    @abc.abstractmethod
+    def watch_slam_estimate(self, robot: int, interval_s: float = 0.2) -> Iterator[pb.SlamEstimate]:
+        """Robot ``robot``'s estimate each time it moves on (asked every ``interval_s``),
+        ending after the estimate of a solve that has ended."""
+
+    @abc.abstractmethod
+    def slam_map(self) -> gateway_pb2.SlamMapReply:
+        """The merged map: every robot's estimate of the newest solve, in one key order."""
+
+    # --- landmark rounds (docs/landmarks.md) -----------------------------------------------
+
+    @abc.abstractmethod
+    def landmark_round(self, round_id: int | None = None) -> gateway_pb2.LandmarkRoundReply:
+        """Every robot's fused posterior of round ``round_id`` (None: each one's latest)."""
 
     def alive(self) -> set[tuple[str, int]]:
         """(kind, robot) of every live service."""
@@ -540,6 +594,65 @@ class ZenohClient(SwarmClient):
         request = pb.ExplainRequest(frame_index=frame)
         return self._caller().call(key, request, pb.ExplainReply, target_robot=robot, timeout_s=timeout_s)
 
+    # --- the other methods (swarmrec.services.methods, as the gateway runs them) ---------
+
+    def place_query(
+        self,
+        descriptor: Sequence[float] | np.ndarray | None = None,
+        *,
+        image: bytes | None = None,
+        exclude_robot: int | None = None,
+        centres: str | Path | None = None,
+    ) -> gateway_pb2.PlaceQueryReply:
+        """As :meth:`SwarmClient.place_query`; an ``image`` is described here, with the
+        project's descriptor model. ``centres``: the swarm's centres file when it is not the
+        shipped one (the owners' digest must match)."""
+        if (descriptor is None) == (image is None):
+            raise ConfigError("a place query takes exactly one of a descriptor or an image")
+        computed = None
+        if image is not None:
+            from swarmrec.services.gateway_methods import ImageDescriber  # onnxruntime on first use
+            from swarmrec.services.settings import VprSettings
+
+            computed = ImageDescriber(VprSettings()).describe(image)
+        x = computed if computed is not None else descriptor
+        assert x is not None
+        reply = methods.place_query(
+            self._caller(), self.swarm, x, exclude_robot=exclude_robot, centres=centres
+        )
+        if computed is not None:
+            reply.descriptor.extend(computed.tolist())
+        return reply
+
+    def cluster_table(self) -> gateway_pb2.ClusterTableReply:
+        return methods.cluster_table(self._caller(), self.swarm)
+
+    def place_loop_closures(self, robot: int, min_score: float = 0.0) -> list[pb.LoopClosure]:
+        return list(methods.place_loop_closures(self._caller(), self.swarm, robot, min_score).loop_closures)
+
+    def slam_team(self) -> list[pb.SlamStatus]:
+        return list(methods.slam_team(self._caller(), self.swarm).robots)
+
+    def slam_estimate(self, robot: int) -> pb.SlamEstimate:
+        return methods.slam_estimate(self._caller(), self.swarm, robot)
+
+    def watch_slam_estimate(self, robot: int, interval_s: float = 0.2) -> Iterator[pb.SlamEstimate]:
+        last: tuple[int, int, int, int] | None = None
+        while True:
+            estimate = self.slam_estimate(robot)
+            if methods.estimate_position(estimate) != last:
+                last = methods.estimate_position(estimate)
+                yield estimate
+            if methods.terminal(estimate.state):
+                return
+            time.sleep(interval_s)  # polling the robot: it publishes no events
+
+    def slam_map(self) -> gateway_pb2.SlamMapReply:
+        return methods.slam_map(self._caller(), self.swarm)
+
+    def landmark_round(self, round_id: int | None = None) -> gateway_pb2.LandmarkRoundReply:
+        return methods.landmark_round(self._caller(), self.swarm, round_id)
+
     def step(
         self, step: int, timeout_s: float, *, robot: int | None = None
     ) -> list[pb.StepReply | Exception]:
@@ -679,5 +792,61 @@ class GatewayClient(SwarmClient):
     def explain(self, robot: int, frame: int) -> pb.ExplainReply:
         reply: pb.ExplainReply = self._call(
             "Explain", gateway_pb2.RobotExplainRequest(robot_id=robot, frame_index=frame)
+        )
+        return reply
+
+    # --- the other methods ---------------------------------------------------------------
+
+    def place_query(
+        self,
+        descriptor: Sequence[float] | np.ndarray | None = None,
+        *,
+        image: bytes | None = None,
+        exclude_robot: int | None = None,
+    ) -> gateway_pb2.PlaceQueryReply:
+        """As :meth:`SwarmClient.place_query`; an ``image`` is described by the gateway."""
+        if (descriptor is None) == (image is None):
+            raise ConfigError("a place query takes exactly one of a descriptor or an image")
+        request = gateway_pb2.PlaceQueryRequest(exclude_robot_id=exclude_robot)
+        if image is not None:
+            request.image = image
+        else:
+            request.descriptor.extend(float(v) for v in np.ravel(np.asarray(descriptor, np.float32)))
+        reply: gateway_pb2.PlaceQueryReply = self._call("PlaceQuery", request)
+        return reply
+
+    def cluster_table(self) -> gateway_pb2.ClusterTableReply:
+        reply: gateway_pb2.ClusterTableReply = self._call("ClusterTable", gateway_pb2.ClusterTableRequest())
+        return reply
+
+    def place_loop_closures(self, robot: int, min_score: float = 0.0) -> list[pb.LoopClosure]:
+        request = gateway_pb2.RobotLoopClosuresRequest(robot_id=robot, min_score=min_score)
+        return list(self._call("PlaceLoopClosures", request).loop_closures)
+
+    def slam_team(self) -> list[pb.SlamStatus]:
+        return list(self._call("SlamTeam", gateway_pb2.SlamTeamRequest()).robots)
+
+    def slam_estimate(self, robot: int) -> pb.SlamEstimate:
+        reply: pb.SlamEstimate = self._call("SlamRobotEstimate", gateway_pb2.SlamRobotRequest(robot_id=robot))
+        return reply
+
+    def watch_slam_estimate(self, robot: int, interval_s: float = 0.2) -> Iterator[pb.SlamEstimate]:
+        request = gateway_pb2.WatchSlamEstimateRequest(robot_id=robot, interval_ms=round(interval_s * 1000))
+        # No deadline: the stream lasts as long as the solve (it ends itself when the solve does).
+        call = self.stub.WatchSlamEstimate(request)
+        try:
+            yield from call
+        except grpc.RpcError as e:
+            raise grpc_error(e, f"{self.address} WatchSlamEstimate") from None
+        finally:
+            call.cancel()
+
+    def slam_map(self) -> gateway_pb2.SlamMapReply:
+        reply: gateway_pb2.SlamMapReply = self._call("SlamMap", gateway_pb2.SlamMapRequest())
+        return reply
+
+    def landmark_round(self, round_id: int | None = None) -> gateway_pb2.LandmarkRoundReply:
+        reply: gateway_pb2.LandmarkRoundReply = self._call(
+            "LandmarkRound", gateway_pb2.LandmarkRoundRequest(round_id=round_id)
         )
         return reply

@@ -10,6 +10,11 @@ and subscribe, never store), and serves ``swarmrec.v1.SwarmGateway``
   ``Explain`` (a robot's descriptor's ``explain``), ``Status``;
 * server streams of live events: loop closures, query reports, fusion
   decisions, membership changes (liveliness, starting with who is alive);
+* the other methods (:mod:`swarmrec.services.gateway_methods`): full-image place
+  recognition (``PlaceQuery`` by descriptor or by image, ``ClusterTable``,
+  ``PlaceLoopClosures``, the place reports' stream), SLAM (``SlamTeam``,
+  ``SlamRobotEstimate``, ``WatchSlamEstimate`` while a robot solves, ``SlamMap``: the
+  merged map) and landmark rounds (``LandmarkRound``);
 * the standard health service (``NOT_SERVING`` until the zenoh session is up
   and the gateway's liveliness token declared, ``NOT_SERVING`` again as soon as
   it stops) and server reflection.
@@ -59,10 +64,11 @@ from swarmrec.runtime import ServiceBase, ServiceContext, keys
 from swarmrec.runtime.rpc import Caller, Pending
 from swarmrec.runtime.settings import SecuritySettings
 from swarmrec.runtime.tls import TlsFiles
+from swarmrec.services.gateway_methods import SUBSCRIBED_METADATA, GatewayMethods
 from swarmrec.services.live_view import LiveView, event_is_publishers
 from swarmrec.services.metrics import GatewayMetrics
 from swarmrec.services.registry import kind_of_wire
-from swarmrec.services.settings import GatewaySettings
+from swarmrec.services.settings import GatewaySettings, VprSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import constellation_from_proto
 from swarmrec.wire.gen.swarmrec.v1 import gateway_pb2, gateway_pb2_grpc
@@ -81,9 +87,6 @@ M = TypeVar("M", bound=Message)
 
 #: The gateway's gRPC service name (reflection lists it; health reports it).
 SERVICE_NAME: str = gateway_pb2.DESCRIPTOR.services_by_name["SwarmGateway"].full_name
-#: Initial metadata of a stream, sent once its zenoh subscriber is declared: events
-#: published after the client reads it are delivered.
-SUBSCRIBED_METADATA = "swarmrec-subscribed"
 
 #: The swarm's error codes as gRPC status codes: the one table.
 GRPC_STATUS: Mapping[ErrorCode, grpc.StatusCode] = {
@@ -294,6 +297,8 @@ class Gateway(ServiceBase):
             ctx.session, self.bus.swarm, self.caller, timeout_s=self.bus.request_timeout_s
         )
         self.stopping = threading.Event()
+        #: The RPCs of the full-image, SLAM and landmark methods.
+        self.methods = GatewayMethods(self, ctx.settings(VprSettings))
         self.lock = threading.Lock()
         self.open_streams = 0
         #: Event streams open, by caller (`_stream_caller`).
@@ -449,6 +454,13 @@ class Gateway(ServiceBase):
             self.metrics.calls.labels(method, code.name).inc()
             self.metrics.call_seconds.labels(method).observe(time.perf_counter() - t0)
 
+    def abort_for(self, context: grpc.ServicerContext, e: Exception) -> NoReturn:
+        """End a streaming call with the status of ``e`` (the table of unary calls)."""
+        code, swarm_code = grpc_status_of(e)
+        if code == grpc.StatusCode.INTERNAL:
+            self.ctx.log.error("gateway stream failed", exc_info=e)
+        self._abort(context, code, swarm_code, e.message if isinstance(e, RequestError) else str(e))
+
     @staticmethod
     def _abort(context: grpc.ServicerContext, code: grpc.StatusCode, swarm: ErrorCode, text: str) -> NoReturn:
         context.set_trailing_metadata(((ERROR_CODE_METADATA, swarm.wire_name),))
@@ -524,15 +536,12 @@ class Gateway(ServiceBase):
 
     # --- streams -------------------------------------------------------------------------
 
-    def stream(
-        self,
-        name: str,
-        context: grpc.ServicerContext,
-        subscribe: Callable[[Callable[[zenoh.Sample], None]], Sequence[Any]],
-        convert: Callable[[_Event], Message | None],
-    ) -> Iterator[Message]:
-        """Events from the subscribers ``subscribe`` declares, converted, until the client
-        leaves or the gateway stops (then UNAVAILABLE)."""
+    def take_stream_slot(
+        self, context: grpc.ServicerContext, on_release: Callable[[], None]
+    ) -> Callable[[], None]:
+        """A stream slot for this call (or the call aborted: the gateway not serving,
+        UNAVAILABLE; every slot or the caller's share taken, RESOURCE_EXHAUSTED). Returns the
+        release, which runs ``on_release`` then frees the slot, once however often it is called."""
         if not self.ready:
             self._abort(
                 context, grpc.StatusCode.UNAVAILABLE, ErrorCode.UNAVAILABLE, "the gateway is not serving"
@@ -551,6 +560,40 @@ class Gateway(ServiceBase):
                 self.metrics.streams_open.set(self.open_streams)
         if full:
             self._abort(context, grpc.StatusCode.RESOURCE_EXHAUSTED, ErrorCode.UNAVAILABLE, full)
+        released = threading.Lock()
+
+        def release() -> None:
+            # Once, when the call ends: from the stream's own loop, or from gRPC's termination
+            # callback when the client leaves while the stream waits at a `yield` (gRPC then
+            # never resumes it, and the slot would stay taken until the generator is collected).
+            if not released.acquire(blocking=False):
+                return
+            on_release()
+            with self.lock:
+                self.open_streams -= 1
+                left = self.streams_by_caller.pop(caller) - 1
+                if left:
+                    self.streams_by_caller[caller] = left
+                self.metrics.streams_open.set(self.open_streams)
+
+        return release
+
+    def stream(
+        self,
+        name: str,
+        context: grpc.ServicerContext,
+        subscribe: Callable[[Callable[[zenoh.Sample], None]], Sequence[Any]],
+        convert: Callable[[_Event], Message | None],
+    ) -> Iterator[Message]:
+        """Events from the subscribers ``subscribe`` declares, converted, until the client
+        leaves or the gateway stops (then UNAVAILABLE)."""
+        subscribers: list[Any] = []
+
+        def undeclare() -> None:
+            for sub in subscribers:
+                sub.undeclare()
+
+        release = self.take_stream_slot(context, undeclare)
         inbox: queue.Queue[_Event] = queue.Queue(maxsize=self.settings.grpc_stream_buffer)
         overflow = threading.Event()
 
@@ -563,24 +606,6 @@ class Gateway(ServiceBase):
                 inbox.put_nowait(event)
             except queue.Full:
                 overflow.set()
-
-        subscribers: list[Any] = []
-        released = threading.Lock()
-
-        def release() -> None:
-            # Once, when the call ends: from the loop below, or from gRPC's termination
-            # callback when the client leaves while the stream waits at a `yield` (gRPC then
-            # never resumes it, and the slot would stay taken until the generator is collected).
-            if not released.acquire(blocking=False):
-                return
-            for sub in subscribers:
-                sub.undeclare()
-            with self.lock:
-                self.open_streams -= 1
-                left = self.streams_by_caller.pop(caller) - 1
-                if left:
-                    self.streams_by_caller[caller] = left
-                self.metrics.streams_open.set(self.open_streams)
 
         subscribers += subscribe(on_sample)
         if not context.add_callback(release):
@@ -685,3 +710,38 @@ class _Servicer(gateway_pb2_grpc.SwarmGatewayServicer):  # type: ignore[misc, un
 
     def WatchMembership(self, request: Any, context: grpc.ServicerContext) -> Any:
         return self.g.membership_stream(request.robot_ids, context)
+
+    # The other methods (swarmrec.services.gateway_methods).
+
+    def PlaceQuery(self, request: Any, context: grpc.ServicerContext) -> Any:
+        return self.g.unary("PlaceQuery", context, lambda caller: self.g.methods.place_query(request, caller))
+
+    def ClusterTable(self, request: Any, context: grpc.ServicerContext) -> Any:
+        return self.g.unary("ClusterTable", context, self.g.methods.cluster_table)
+
+    def PlaceLoopClosures(self, request: Any, context: grpc.ServicerContext) -> Any:
+        return self.g.unary(
+            "PlaceLoopClosures", context, lambda caller: self.g.methods.place_loop_closures(request, caller)
+        )
+
+    def WatchPlaceReports(self, request: Any, context: grpc.ServicerContext) -> Any:
+        return self.g.event_stream("place_reports", "place_query", pb.PlaceReport, request.robot_ids, context)
+
+    def SlamTeam(self, request: Any, context: grpc.ServicerContext) -> Any:
+        return self.g.unary("SlamTeam", context, self.g.methods.slam_team)
+
+    def SlamRobotEstimate(self, request: Any, context: grpc.ServicerContext) -> Any:
+        return self.g.unary(
+            "SlamRobotEstimate", context, lambda caller: self.g.methods.slam_estimate(request, caller)
+        )
+
+    def WatchSlamEstimate(self, request: Any, context: grpc.ServicerContext) -> Any:
+        return self.g.methods.watch_estimate(request, context)
+
+    def SlamMap(self, request: Any, context: grpc.ServicerContext) -> Any:
+        return self.g.unary("SlamMap", context, self.g.methods.slam_map)
+
+    def LandmarkRound(self, request: Any, context: grpc.ServicerContext) -> Any:
+        return self.g.unary(
+            "LandmarkRound", context, lambda caller: self.g.methods.landmark_round(request, caller)
+        )

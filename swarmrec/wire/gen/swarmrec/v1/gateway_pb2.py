@@ -27,9 +27,11 @@ from . import events_pb2 as swarmrec_dot_v1_dot_events__pb2
 from . import fusion_pb2 as swarmrec_dot_v1_dot_fusion__pb2
 from . import health_pb2 as swarmrec_dot_v1_dot_health__pb2
 from . import replay_pb2 as swarmrec_dot_v1_dot_replay__pb2
+from . import slam_pb2 as swarmrec_dot_v1_dot_slam__pb2
+from . import vpr_pb2 as swarmrec_dot_v1_dot_vpr__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x19swarmrec/v1/gateway.proto\x12\x0bswarmrec.v1\x1a\x1fswarmrec/v1/constellation.proto\x1a\x18swarmrec/v1/events.proto\x1a\x18swarmrec/v1/fusion.proto\x1a\x18swarmrec/v1/health.proto\x1a\x18swarmrec/v1/replay.proto\"\x10\n\x0eMembersRequest\"8\n\x0cMembersReply\x12(\n\x07members\x18\x01 \x03(\x0b\x32\x17.swarmrec.v1.MemberInfo\"Q\n\x0cQueryRequest\x12\x31\n\rconstellation\x18\x01 \x01(\x0b\x32\x1a.swarmrec.v1.Constellation\x12\x0e\n\x06preset\x18\x02 \x01(\t\"\xc2\x01\n\nQueryReply\x12*\n\x07matches\x18\x01 \x03(\x0b\x32\x19.swarmrec.v1.VerifiedPair\x12\x14\n\x0cn_candidates\x18\x02 \x01(\r\x12\x1a\n\x12verified_robot_ids\x18\x03 \x03(\r\x12\x1e\n\x16\x66\x61iled_shard_robot_ids\x18\x04 \x03(\r\x12!\n\x19\x66\x61iled_verifier_robot_ids\x18\x05 \x03(\r\x12\x13\n\x0b\x64uration_us\x18\x06 \x01(\r\"?\n\x18RobotLoopClosuresRequest\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x11\n\tmin_score\x18\x02 \x01(\x02\"Q\n\x13RobotExplainRequest\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x18\n\x0b\x66rame_index\x18\x02 \x01(\rH\x00\x88\x01\x01\x42\x0e\n\x0c_frame_index\"\x0f\n\rStatusRequest\"\xfd\x01\n\x0bStatusReply\x12\r\n\x05swarm\x18\x01 \x01(\t\x12\x0f\n\x07version\x18\x02 \x01(\t\x12\x0f\n\x07serving\x18\x03 \x01(\x08\x12\x10\n\x08n_robots\x18\x04 \x01(\r\x12\x46\n\x10services_by_kind\x18\x05 \x03(\x0b\x32,.swarmrec.v1.StatusReply.ServicesByKindEntry\x12\x16\n\x0ezenoh_security\x18\x06 \x01(\t\x12\x14\n\x0copen_streams\x18\x07 \x01(\r\x1a\x35\n\x13ServicesByKindEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\r:\x02\x38\x01\"!\n\x0cWatchRequest\x12\x11\n\trobot_ids\x18\x01 \x03(\r\"A\n\x10MembershipChange\x12\x0c\n\x04kind\x18\x01 \x01(\t\x12\x10\n\x08robot_id\x18\x02 \x01(\r\x12\r\n\x05\x61live\x18\x03 \x01(\x08\x32\x99\x05\n\x0cSwarmGateway\x12\x41\n\x07Members\x12\x1b.swarmrec.v1.MembersRequest\x1a\x19.swarmrec.v1.MembersReply\x12;\n\x05Query\x12\x19.swarmrec.v1.QueryRequest\x1a\x17.swarmrec.v1.QueryReply\x12S\n\x0cLoopClosures\x12%.swarmrec.v1.RobotLoopClosuresRequest\x1a\x1c.swarmrec.v1.LoopClosureList\x12\x46\n\x07\x45xplain\x12 .swarmrec.v1.RobotExplainRequest\x1a\x19.swarmrec.v1.ExplainReply\x12>\n\x06Status\x12\x1a.swarmrec.v1.StatusRequest\x1a\x18.swarmrec.v1.StatusReply\x12J\n\x11WatchLoopClosures\x12\x19.swarmrec.v1.WatchRequest\x1a\x18.swarmrec.v1.LoopClosure0\x01\x12J\n\x11WatchQueryReports\x12\x19.swarmrec.v1.WatchRequest\x1a\x18.swarmrec.v1.QueryReport0\x01\x12\x45\n\x0bWatchFusion\x12\x19.swarmrec.v1.WatchRequest\x1a\x19.swarmrec.v1.FusionUpdate0\x01\x12M\n\x0fWatchMembership\x12\x19.swarmrec.v1.WatchRequest\x1a\x1d.swarmrec.v1.MembershipChange0\x01\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x19swarmrec/v1/gateway.proto\x12\x0bswarmrec.v1\x1a\x1fswarmrec/v1/constellation.proto\x1a\x18swarmrec/v1/events.proto\x1a\x18swarmrec/v1/fusion.proto\x1a\x18swarmrec/v1/health.proto\x1a\x18swarmrec/v1/replay.proto\x1a\x16swarmrec/v1/slam.proto\x1a\x15swarmrec/v1/vpr.proto\"\x10\n\x0eMembersRequest\"8\n\x0cMembersReply\x12(\n\x07members\x18\x01 \x03(\x0b\x32\x17.swarmrec.v1.MemberInfo\"Q\n\x0cQueryRequest\x12\x31\n\rconstellation\x18\x01 \x01(\x0b\x32\x1a.swarmrec.v1.Constellation\x12\x0e\n\x06preset\x18\x02 \x01(\t\"\xc2\x01\n\nQueryReply\x12*\n\x07matches\x18\x01 \x03(\x0b\x32\x19.swarmrec.v1.VerifiedPair\x12\x14\n\x0cn_candidates\x18\x02 \x01(\r\x12\x1a\n\x12verified_robot_ids\x18\x03 \x03(\r\x12\x1e\n\x16\x66\x61iled_shard_robot_ids\x18\x04 \x03(\r\x12!\n\x19\x66\x61iled_verifier_robot_ids\x18\x05 \x03(\r\x12\x13\n\x0b\x64uration_us\x18\x06 \x01(\r\"?\n\x18RobotLoopClosuresRequest\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x11\n\tmin_score\x18\x02 \x01(\x02\"Q\n\x13RobotExplainRequest\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x18\n\x0b\x66rame_index\x18\x02 \x01(\rH\x00\x88\x01\x01\x42\x0e\n\x0c_frame_index\"\x0f\n\rStatusRequest\"\xfd\x01\n\x0bStatusReply\x12\r\n\x05swarm\x18\x01 \x01(\t\x12\x0f\n\x07version\x18\x02 \x01(\t\x12\x0f\n\x07serving\x18\x03 \x01(\x08\x12\x10\n\x08n_robots\x18\x04 \x01(\r\x12\x46\n\x10services_by_kind\x18\x05 \x03(\x0b\x32,.swarmrec.v1.StatusReply.ServicesByKindEntry\x12\x16\n\x0ezenoh_security\x18\x06 \x01(\t\x12\x14\n\x0copen_streams\x18\x07 \x01(\r\x1a\x35\n\x13ServicesByKindEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\r:\x02\x38\x01\"!\n\x0cWatchRequest\x12\x11\n\trobot_ids\x18\x01 \x03(\r\"A\n\x10MembershipChange\x12\x0c\n\x04kind\x18\x01 \x01(\t\x12\x10\n\x08robot_id\x18\x02 \x01(\r\x12\r\n\x05\x61live\x18\x03 \x01(\x08\"j\n\x11PlaceQueryRequest\x12\x12\n\ndescriptor\x18\x01 \x03(\x02\x12\r\n\x05image\x18\x02 \x01(\x0c\x12\x1d\n\x10\x65xclude_robot_id\x18\x03 \x01(\rH\x00\x88\x01\x01\x42\x13\n\x11_exclude_robot_id\"\xa7\x01\n\x0fPlaceQueryReply\x12\x0f\n\x07\x63luster\x18\x01 \x01(\r\x12\x16\n\x0eowner_robot_id\x18\x02 \x01(\r\x12\x1a\n\x12\x61ssignment_version\x18\x03 \x01(\x04\x12&\n\x05match\x18\x04 \x01(\x0b\x32\x17.swarmrec.v1.PlaceMatch\x12\x12\n\ndescriptor\x18\x05 \x03(\x02\x12\x13\n\x0b\x64uration_us\x18\x06 \x01(\r\"\x15\n\x13\x43lusterTableRequest\"\x8e\x01\n\x11\x43lusterTableReply\x12\x0f\n\x07version\x18\x01 \x01(\x04\x12\x12\n\ntable_json\x18\x02 \x01(\t\x12\x16\n\x0e\x63\x65ntres_sha256\x18\x03 \x01(\t\x12\x0e\n\x06\x61greed\x18\x04 \x01(\x08\x12,\n\x06owners\x18\x05 \x03(\x0b\x32\x1c.swarmrec.v1.AssignmentReply\"\x11\n\x0fSlamTeamRequest\"8\n\rSlamTeamReply\x12\'\n\x06robots\x18\x01 \x03(\x0b\x32\x17.swarmrec.v1.SlamStatus\"$\n\x10SlamRobotRequest\x12\x10\n\x08robot_id\x18\x01 \x01(\r\"A\n\x18WatchSlamEstimateRequest\x12\x10\n\x08robot_id\x18\x01 \x01(\r\x12\x13\n\x0binterval_ms\x18\x02 \x01(\r\"\x10\n\x0eSlamMapRequest\"\xf8\x01\n\x0cSlamMapReply\x12\x10\n\x08solve_id\x18\x01 \x01(\r\x12\x0c\n\x04keys\x18\x02 \x03(\x06\x12\x0e\n\x06values\x18\x03 \x03(\x01\x12\x11\n\trobot_ids\x18\x04 \x03(\r\x12\x35\n\x06states\x18\x05 \x03(\x0b\x32%.swarmrec.v1.SlamMapReply.StatesEntry\x12\x19\n\x11missing_robot_ids\x18\x06 \x03(\r\x12\x0c\n\x04\x64one\x18\x07 \x01(\x08\x1a\x45\n\x0bStatesEntry\x12\x0b\n\x03key\x18\x01 \x01(\r\x12%\n\x05value\x18\x02 \x01(\x0e\x32\x16.swarmrec.v1.SlamState:\x02\x38\x01\":\n\x14LandmarkRoundRequest\x12\x15\n\x08round_id\x18\x01 \x01(\rH\x00\x88\x01\x01\x42\x0b\n\t_round_id\"X\n\x12LandmarkRoundReply\x12\x30\n\nposteriors\x18\x01 \x03(\x0b\x32\x1c.swarmrec.v1.FusionPosterior\x12\x10\n\x08not_held\x18\x02 \x01(\r2\xe3\n\n\x0cSwarmGateway\x12\x41\n\x07Members\x12\x1b.swarmrec.v1.MembersRequest\x1a\x19.swarmrec.v1.MembersReply\x12;\n\x05Query\x12\x19.swarmrec.v1.QueryRequest\x1a\x17.swarmrec.v1.QueryReply\x12S\n\x0cLoopClosures\x12%.swarmrec.v1.RobotLoopClosuresRequest\x1a\x1c.swarmrec.v1.LoopClosureList\x12\x46\n\x07\x45xplain\x12 .swarmrec.v1.RobotExplainRequest\x1a\x19.swarmrec.v1.ExplainReply\x12>\n\x06Status\x12\x1a.swarmrec.v1.StatusRequest\x1a\x18.swarmrec.v1.StatusReply\x12J\n\x11WatchLoopClosures\x12\x19.swarmrec.v1.WatchRequest\x1a\x18.swarmrec.v1.LoopClosure0\x01\x12J\n\x11WatchQueryReports\x12\x19.swarmrec.v1.WatchRequest\x1a\x18.swarmrec.v1.QueryReport0\x01\x12\x45\n\x0bWatchFusion\x12\x19.swarmrec.v1.WatchRequest\x1a\x19.swarmrec.v1.FusionUpdate0\x01\x12M\n\x0fWatchMembership\x12\x19.swarmrec.v1.WatchRequest\x1a\x1d.swarmrec.v1.MembershipChange0\x01\x12J\n\nPlaceQuery\x12\x1e.swarmrec.v1.PlaceQueryRequest\x1a\x1c.swarmrec.v1.PlaceQueryReply\x12P\n\x0c\x43lusterTable\x12 .swarmrec.v1.ClusterTableRequest\x1a\x1e.swarmrec.v1.ClusterTableReply\x12X\n\x11PlaceLoopClosures\x12%.swarmrec.v1.RobotLoopClosuresRequest\x1a\x1c.swarmrec.v1.LoopClosureList\x12J\n\x11WatchPlaceReports\x12\x19.swarmrec.v1.WatchRequest\x1a\x18.swarmrec.v1.PlaceReport0\x01\x12\x44\n\x08SlamTeam\x12\x1c.swarmrec.v1.SlamTeamRequest\x1a\x1a.swarmrec.v1.SlamTeamReply\x12M\n\x11SlamRobotEstimate\x12\x1d.swarmrec.v1.SlamRobotRequest\x1a\x19.swarmrec.v1.SlamEstimate\x12W\n\x11WatchSlamEstimate\x12%.swarmrec.v1.WatchSlamEstimateRequest\x1a\x19.swarmrec.v1.SlamEstimate0\x01\x12\x41\n\x07SlamMap\x12\x1b.swarmrec.v1.SlamMapRequest\x1a\x19.swarmrec.v1.SlamMapReply\x12S\n\rLandmarkRound\x12!.swarmrec.v1.LandmarkRoundRequest\x1a\x1f.swarmrec.v1.LandmarkRoundReplyb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -38,28 +40,56 @@ if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_STATUSREPLY_SERVICESBYKINDENTRY']._loaded_options = None
   _globals['_STATUSREPLY_SERVICESBYKINDENTRY']._serialized_options = b'8\001'
-  _globals['_MEMBERSREQUEST']._serialized_start=179
-  _globals['_MEMBERSREQUEST']._serialized_end=195
-  _globals['_MEMBERSREPLY']._serialized_start=197
-  _globals['_MEMBERSREPLY']._serialized_end=253
-  _globals['_QUERYREQUEST']._serialized_start=255
-  _globals['_QUERYREQUEST']._serialized_end=336
-  _globals['_QUERYREPLY']._serialized_start=339
-  _globals['_QUERYREPLY']._serialized_end=533
-  _globals['_ROBOTLOOPCLOSURESREQUEST']._serialized_start=535
-  _globals['_ROBOTLOOPCLOSURESREQUEST']._serialized_end=598
-  _globals['_ROBOTEXPLAINREQUEST']._serialized_start=600
-  _globals['_ROBOTEXPLAINREQUEST']._serialized_end=681
-  _globals['_STATUSREQUEST']._serialized_start=683
-  _globals['_STATUSREQUEST']._serialized_end=698
-  _globals['_STATUSREPLY']._serialized_start=701
-  _globals['_STATUSREPLY']._serialized_end=954
-  _globals['_STATUSREPLY_SERVICESBYKINDENTRY']._serialized_start=901
-  _globals['_STATUSREPLY_SERVICESBYKINDENTRY']._serialized_end=954
-  _globals['_WATCHREQUEST']._serialized_start=956
-  _globals['_WATCHREQUEST']._serialized_end=989
-  _globals['_MEMBERSHIPCHANGE']._serialized_start=991
-  _globals['_MEMBERSHIPCHANGE']._serialized_end=1056
-  _globals['_SWARMGATEWAY']._serialized_start=1059
-  _globals['_SWARMGATEWAY']._serialized_end=1724
+  _globals['_SLAMMAPREPLY_STATESENTRY']._loaded_options = None
+  _globals['_SLAMMAPREPLY_STATESENTRY']._serialized_options = b'8\001'
+  _globals['_MEMBERSREQUEST']._serialized_start=226
+  _globals['_MEMBERSREQUEST']._serialized_end=242
+  _globals['_MEMBERSREPLY']._serialized_start=244
+  _globals['_MEMBERSREPLY']._serialized_end=300
+  _globals['_QUERYREQUEST']._serialized_start=302
+  _globals['_QUERYREQUEST']._serialized_end=383
+  _globals['_QUERYREPLY']._serialized_start=386
+  _globals['_QUERYREPLY']._serialized_end=580
+  _globals['_ROBOTLOOPCLOSURESREQUEST']._serialized_start=582
+  _globals['_ROBOTLOOPCLOSURESREQUEST']._serialized_end=645
+  _globals['_ROBOTEXPLAINREQUEST']._serialized_start=647
+  _globals['_ROBOTEXPLAINREQUEST']._serialized_end=728
+  _globals['_STATUSREQUEST']._serialized_start=730
+  _globals['_STATUSREQUEST']._serialized_end=745
+  _globals['_STATUSREPLY']._serialized_start=748
+  _globals['_STATUSREPLY']._serialized_end=1001
+  _globals['_STATUSREPLY_SERVICESBYKINDENTRY']._serialized_start=948
+  _globals['_STATUSREPLY_SERVICESBYKINDENTRY']._serialized_end=1001
+  _globals['_WATCHREQUEST']._serialized_start=1003
+  _globals['_WATCHREQUEST']._serialized_end=1036
+  _globals['_MEMBERSHIPCHANGE']._serialized_start=1038
+  _globals['_MEMBERSHIPCHANGE']._serialized_end=1103
+  _globals['_PLACEQUERYREQUEST']._serialized_start=1105
+  _globals['_PLACEQUERYREQUEST']._serialized_end=1211
+  _globals['_PLACEQUERYREPLY']._serialized_start=1214
+  _globals['_PLACEQUERYREPLY']._serialized_end=1381
+  _globals['_CLUSTERTABLEREQUEST']._serialized_start=1383
+  _globals['_CLUSTERTABLEREQUEST']._serialized_end=1404
+  _globals['_CLUSTERTABLEREPLY']._serialized_start=1407
+  _globals['_CLUSTERTABLEREPLY']._serialized_end=1549
+  _globals['_SLAMTEAMREQUEST']._serialized_start=1551
+  _globals['_SLAMTEAMREQUEST']._serialized_end=1568
+  _globals['_SLAMTEAMREPLY']._serialized_start=1570
+  _globals['_SLAMTEAMREPLY']._serialized_end=1626
+  _globals['_SLAMROBOTREQUEST']._serialized_start=1628
+  _globals['_SLAMROBOTREQUEST']._serialized_end=1664
+  _globals['_WATCHSLAMESTIMATEREQUEST']._serialized_start=1666
+  _globals['_WATCHSLAMESTIMATEREQUEST']._serialized_end=1731
+  _globals['_SLAMMAPREQUEST']._serialized_start=1733
+  _globals['_SLAMMAPREQUEST']._serialized_end=1749
+  _globals['_SLAMMAPREPLY']._serialized_start=1752
+  _globals['_SLAMMAPREPLY']._serialized_end=2000
+  _globals['_SLAMMAPREPLY_STATESENTRY']._serialized_start=1931
+  _globals['_SLAMMAPREPLY_STATESENTRY']._serialized_end=2000
+  _globals['_LANDMARKROUNDREQUEST']._serialized_start=2002
+  _globals['_LANDMARKROUNDREQUEST']._serialized_end=2060
+  _globals['_LANDMARKROUNDREPLY']._serialized_start=2062
+  _globals['_LANDMARKROUNDREPLY']._serialized_end=2150
+  _globals['_SWARMGATEWAY']._serialized_start=2153
+  _globals['_SWARMGATEWAY']._serialized_end=3532
 # @@protoc_insertion_point(module_scope)

@@ -3,6 +3,8 @@ from . import events_pb2 as _events_pb2
 from . import fusion_pb2 as _fusion_pb2
 from . import health_pb2 as _health_pb2
 from . import replay_pb2 as _replay_pb2
+from . import slam_pb2 as _slam_pb2
+from . import vpr_pb2 as _vpr_pb2
 from google.protobuf.internal import containers as _containers
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
@@ -105,3 +107,114 @@ class MembershipChange(_message.Message):
     robot_id: int
     alive: bool
     def __init__(self, kind: _Optional[str] = ..., robot_id: _Optional[int] = ..., alive: _Optional[bool] = ...) -> None: ...
+
+class PlaceQueryRequest(_message.Message):
+    __slots__ = ("descriptor", "image", "exclude_robot_id")
+    DESCRIPTOR_FIELD_NUMBER: _ClassVar[int]
+    IMAGE_FIELD_NUMBER: _ClassVar[int]
+    EXCLUDE_ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    descriptor: _containers.RepeatedScalarFieldContainer[float]
+    image: bytes
+    exclude_robot_id: int
+    def __init__(self, descriptor: _Optional[_Iterable[float]] = ..., image: _Optional[bytes] = ..., exclude_robot_id: _Optional[int] = ...) -> None: ...
+
+class PlaceQueryReply(_message.Message):
+    __slots__ = ("cluster", "owner_robot_id", "assignment_version", "match", "descriptor", "duration_us")
+    CLUSTER_FIELD_NUMBER: _ClassVar[int]
+    OWNER_ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    ASSIGNMENT_VERSION_FIELD_NUMBER: _ClassVar[int]
+    MATCH_FIELD_NUMBER: _ClassVar[int]
+    DESCRIPTOR_FIELD_NUMBER: _ClassVar[int]
+    DURATION_US_FIELD_NUMBER: _ClassVar[int]
+    cluster: int
+    owner_robot_id: int
+    assignment_version: int
+    match: _vpr_pb2.PlaceMatch
+    descriptor: _containers.RepeatedScalarFieldContainer[float]
+    duration_us: int
+    def __init__(self, cluster: _Optional[int] = ..., owner_robot_id: _Optional[int] = ..., assignment_version: _Optional[int] = ..., match: _Optional[_Union[_vpr_pb2.PlaceMatch, _Mapping]] = ..., descriptor: _Optional[_Iterable[float]] = ..., duration_us: _Optional[int] = ...) -> None: ...
+
+class ClusterTableRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class ClusterTableReply(_message.Message):
+    __slots__ = ("version", "table_json", "centres_sha256", "agreed", "owners")
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    TABLE_JSON_FIELD_NUMBER: _ClassVar[int]
+    CENTRES_SHA256_FIELD_NUMBER: _ClassVar[int]
+    AGREED_FIELD_NUMBER: _ClassVar[int]
+    OWNERS_FIELD_NUMBER: _ClassVar[int]
+    version: int
+    table_json: str
+    centres_sha256: str
+    agreed: bool
+    owners: _containers.RepeatedCompositeFieldContainer[_vpr_pb2.AssignmentReply]
+    def __init__(self, version: _Optional[int] = ..., table_json: _Optional[str] = ..., centres_sha256: _Optional[str] = ..., agreed: _Optional[bool] = ..., owners: _Optional[_Iterable[_Union[_vpr_pb2.AssignmentReply, _Mapping]]] = ...) -> None: ...
+
+class SlamTeamRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class SlamTeamReply(_message.Message):
+    __slots__ = ("robots",)
+    ROBOTS_FIELD_NUMBER: _ClassVar[int]
+    robots: _containers.RepeatedCompositeFieldContainer[_slam_pb2.SlamStatus]
+    def __init__(self, robots: _Optional[_Iterable[_Union[_slam_pb2.SlamStatus, _Mapping]]] = ...) -> None: ...
+
+class SlamRobotRequest(_message.Message):
+    __slots__ = ("robot_id",)
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    def __init__(self, robot_id: _Optional[int] = ...) -> None: ...
+
+class WatchSlamEstimateRequest(_message.Message):
+    __slots__ = ("robot_id", "interval_ms")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    INTERVAL_MS_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    interval_ms: int
+    def __init__(self, robot_id: _Optional[int] = ..., interval_ms: _Optional[int] = ...) -> None: ...
+
+class SlamMapRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class SlamMapReply(_message.Message):
+    __slots__ = ("solve_id", "keys", "values", "robot_ids", "states", "missing_robot_ids", "done")
+    class StatesEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: int
+        value: _slam_pb2.SlamState
+        def __init__(self, key: _Optional[int] = ..., value: _Optional[_Union[_slam_pb2.SlamState, str]] = ...) -> None: ...
+    SOLVE_ID_FIELD_NUMBER: _ClassVar[int]
+    KEYS_FIELD_NUMBER: _ClassVar[int]
+    VALUES_FIELD_NUMBER: _ClassVar[int]
+    ROBOT_IDS_FIELD_NUMBER: _ClassVar[int]
+    STATES_FIELD_NUMBER: _ClassVar[int]
+    MISSING_ROBOT_IDS_FIELD_NUMBER: _ClassVar[int]
+    DONE_FIELD_NUMBER: _ClassVar[int]
+    solve_id: int
+    keys: _containers.RepeatedScalarFieldContainer[int]
+    values: _containers.RepeatedScalarFieldContainer[float]
+    robot_ids: _containers.RepeatedScalarFieldContainer[int]
+    states: _containers.ScalarMap[int, _slam_pb2.SlamState]
+    missing_robot_ids: _containers.RepeatedScalarFieldContainer[int]
+    done: bool
+    def __init__(self, solve_id: _Optional[int] = ..., keys: _Optional[_Iterable[int]] = ..., values: _Optional[_Iterable[float]] = ..., robot_ids: _Optional[_Iterable[int]] = ..., states: _Optional[_Mapping[int, _slam_pb2.SlamState]] = ..., missing_robot_ids: _Optional[_Iterable[int]] = ..., done: _Optional[bool] = ...) -> None: ...
+
+class LandmarkRoundRequest(_message.Message):
+    __slots__ = ("round_id",)
+    ROUND_ID_FIELD_NUMBER: _ClassVar[int]
+    round_id: int
+    def __init__(self, round_id: _Optional[int] = ...) -> None: ...
+
+class LandmarkRoundReply(_message.Message):
+    __slots__ = ("posteriors", "not_held")
+    POSTERIORS_FIELD_NUMBER: _ClassVar[int]
+    NOT_HELD_FIELD_NUMBER: _ClassVar[int]
+    posteriors: _containers.RepeatedCompositeFieldContainer[_fusion_pb2.FusionPosterior]
+    not_held: int
+    def __init__(self, posteriors: _Optional[_Iterable[_Union[_fusion_pb2.FusionPosterior, _Mapping]]] = ..., not_held: _Optional[int] = ...) -> None: ...

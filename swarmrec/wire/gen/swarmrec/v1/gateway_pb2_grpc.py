@@ -7,6 +7,8 @@ from . import events_pb2 as swarmrec_dot_v1_dot_events__pb2
 from . import fusion_pb2 as swarmrec_dot_v1_dot_fusion__pb2
 from . import gateway_pb2 as swarmrec_dot_v1_dot_gateway__pb2
 from . import replay_pb2 as swarmrec_dot_v1_dot_replay__pb2
+from . import slam_pb2 as swarmrec_dot_v1_dot_slam__pb2
+from . import vpr_pb2 as swarmrec_dot_v1_dot_vpr__pb2
 
 GRPC_GENERATED_VERSION = '1.85.1'
 GRPC_VERSION = grpc.__version__
@@ -86,6 +88,51 @@ class SwarmGatewayStub:
                 request_serializer=swarmrec_dot_v1_dot_gateway__pb2.WatchRequest.SerializeToString,
                 response_deserializer=swarmrec_dot_v1_dot_gateway__pb2.MembershipChange.FromString,
                 _registered_method=True)
+        self.PlaceQuery = channel.unary_unary(
+                '/swarmrec.v1.SwarmGateway/PlaceQuery',
+                request_serializer=swarmrec_dot_v1_dot_gateway__pb2.PlaceQueryRequest.SerializeToString,
+                response_deserializer=swarmrec_dot_v1_dot_gateway__pb2.PlaceQueryReply.FromString,
+                _registered_method=True)
+        self.ClusterTable = channel.unary_unary(
+                '/swarmrec.v1.SwarmGateway/ClusterTable',
+                request_serializer=swarmrec_dot_v1_dot_gateway__pb2.ClusterTableRequest.SerializeToString,
+                response_deserializer=swarmrec_dot_v1_dot_gateway__pb2.ClusterTableReply.FromString,
+                _registered_method=True)
+        self.PlaceLoopClosures = channel.unary_unary(
+                '/swarmrec.v1.SwarmGateway/PlaceLoopClosures',
+                request_serializer=swarmrec_dot_v1_dot_gateway__pb2.RobotLoopClosuresRequest.SerializeToString,
+                response_deserializer=swarmrec_dot_v1_dot_replay__pb2.LoopClosureList.FromString,
+                _registered_method=True)
+        self.WatchPlaceReports = channel.unary_stream(
+                '/swarmrec.v1.SwarmGateway/WatchPlaceReports',
+                request_serializer=swarmrec_dot_v1_dot_gateway__pb2.WatchRequest.SerializeToString,
+                response_deserializer=swarmrec_dot_v1_dot_vpr__pb2.PlaceReport.FromString,
+                _registered_method=True)
+        self.SlamTeam = channel.unary_unary(
+                '/swarmrec.v1.SwarmGateway/SlamTeam',
+                request_serializer=swarmrec_dot_v1_dot_gateway__pb2.SlamTeamRequest.SerializeToString,
+                response_deserializer=swarmrec_dot_v1_dot_gateway__pb2.SlamTeamReply.FromString,
+                _registered_method=True)
+        self.SlamRobotEstimate = channel.unary_unary(
+                '/swarmrec.v1.SwarmGateway/SlamRobotEstimate',
+                request_serializer=swarmrec_dot_v1_dot_gateway__pb2.SlamRobotRequest.SerializeToString,
+                response_deserializer=swarmrec_dot_v1_dot_slam__pb2.SlamEstimate.FromString,
+                _registered_method=True)
+        self.WatchSlamEstimate = channel.unary_stream(
+                '/swarmrec.v1.SwarmGateway/WatchSlamEstimate',
+                request_serializer=swarmrec_dot_v1_dot_gateway__pb2.WatchSlamEstimateRequest.SerializeToString,
+                response_deserializer=swarmrec_dot_v1_dot_slam__pb2.SlamEstimate.FromString,
+                _registered_method=True)
+        self.SlamMap = channel.unary_unary(
+                '/swarmrec.v1.SwarmGateway/SlamMap',
+                request_serializer=swarmrec_dot_v1_dot_gateway__pb2.SlamMapRequest.SerializeToString,
+                response_deserializer=swarmrec_dot_v1_dot_gateway__pb2.SlamMapReply.FromString,
+                _registered_method=True)
+        self.LandmarkRound = channel.unary_unary(
+                '/swarmrec.v1.SwarmGateway/LandmarkRound',
+                request_serializer=swarmrec_dot_v1_dot_gateway__pb2.LandmarkRoundRequest.SerializeToString,
+                response_deserializer=swarmrec_dot_v1_dot_gateway__pb2.LandmarkRoundReply.FromString,
+                _registered_method=True)
 
 
 class SwarmGatewayServicer:
@@ -159,6 +206,73 @@ class SwarmGatewayServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def PlaceQuery(self, request, context):
+        """Full-image place recognition (docs/vpr.md). Where a full-image descriptor (given, or
+        computed by the gateway from an image) was seen: routed by the swarm's cluster table to
+        the owner of its nearest centre, which searches what it holds; nothing is stored.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def ClusterTable(self, request, context):
+        """The cluster table the place owners route and own by, and its version.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def PlaceLoopClosures(self, request, context):
+        """The loop closures one robot's place owner has found, oldest first.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def WatchPlaceReports(self, request, context):
+        """The report of every full-image query the robots run from now on.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def SlamTeam(self, request, context):
+        """Object-based SLAM (docs/slam.md). Every slam service's solve: state, stage, iteration.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def SlamRobotEstimate(self, request, context):
+        """One robot's estimate of its own vertices.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def WatchSlamEstimate(self, request, context):
+        """One robot's estimate each time it moves on (a new iteration, stage or state), from now
+        until its solve ends (the stream then ends OK after the final estimate).
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def SlamMap(self, request, context):
+        """The merged map: every robot's estimate of the newest solve, in one key order.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def LandmarkRound(self, request, context):
+        """Cooperative landmark recognition (docs/landmarks.md): every robot's fused posterior of
+        one round.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_SwarmGatewayServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -206,6 +320,51 @@ def add_SwarmGatewayServicer_to_server(servicer, server):
                     servicer.WatchMembership,
                     request_deserializer=swarmrec_dot_v1_dot_gateway__pb2.WatchRequest.FromString,
                     response_serializer=swarmrec_dot_v1_dot_gateway__pb2.MembershipChange.SerializeToString,
+            ),
+            'PlaceQuery': grpc.unary_unary_rpc_method_handler(
+                    servicer.PlaceQuery,
+                    request_deserializer=swarmrec_dot_v1_dot_gateway__pb2.PlaceQueryRequest.FromString,
+                    response_serializer=swarmrec_dot_v1_dot_gateway__pb2.PlaceQueryReply.SerializeToString,
+            ),
+            'ClusterTable': grpc.unary_unary_rpc_method_handler(
+                    servicer.ClusterTable,
+                    request_deserializer=swarmrec_dot_v1_dot_gateway__pb2.ClusterTableRequest.FromString,
+                    response_serializer=swarmrec_dot_v1_dot_gateway__pb2.ClusterTableReply.SerializeToString,
+            ),
+            'PlaceLoopClosures': grpc.unary_unary_rpc_method_handler(
+                    servicer.PlaceLoopClosures,
+                    request_deserializer=swarmrec_dot_v1_dot_gateway__pb2.RobotLoopClosuresRequest.FromString,
+                    response_serializer=swarmrec_dot_v1_dot_replay__pb2.LoopClosureList.SerializeToString,
+            ),
+            'WatchPlaceReports': grpc.unary_stream_rpc_method_handler(
+                    servicer.WatchPlaceReports,
+                    request_deserializer=swarmrec_dot_v1_dot_gateway__pb2.WatchRequest.FromString,
+                    response_serializer=swarmrec_dot_v1_dot_vpr__pb2.PlaceReport.SerializeToString,
+            ),
+            'SlamTeam': grpc.unary_unary_rpc_method_handler(
+                    servicer.SlamTeam,
+                    request_deserializer=swarmrec_dot_v1_dot_gateway__pb2.SlamTeamRequest.FromString,
+                    response_serializer=swarmrec_dot_v1_dot_gateway__pb2.SlamTeamReply.SerializeToString,
+            ),
+            'SlamRobotEstimate': grpc.unary_unary_rpc_method_handler(
+                    servicer.SlamRobotEstimate,
+                    request_deserializer=swarmrec_dot_v1_dot_gateway__pb2.SlamRobotRequest.FromString,
+                    response_serializer=swarmrec_dot_v1_dot_slam__pb2.SlamEstimate.SerializeToString,
+            ),
+            'WatchSlamEstimate': grpc.unary_stream_rpc_method_handler(
+                    servicer.WatchSlamEstimate,
+                    request_deserializer=swarmrec_dot_v1_dot_gateway__pb2.WatchSlamEstimateRequest.FromString,
+                    response_serializer=swarmrec_dot_v1_dot_slam__pb2.SlamEstimate.SerializeToString,
+            ),
+            'SlamMap': grpc.unary_unary_rpc_method_handler(
+                    servicer.SlamMap,
+                    request_deserializer=swarmrec_dot_v1_dot_gateway__pb2.SlamMapRequest.FromString,
+                    response_serializer=swarmrec_dot_v1_dot_gateway__pb2.SlamMapReply.SerializeToString,
+            ),
+            'LandmarkRound': grpc.unary_unary_rpc_method_handler(
+                    servicer.LandmarkRound,
+                    request_deserializer=swarmrec_dot_v1_dot_gateway__pb2.LandmarkRoundRequest.FromString,
+                    response_serializer=swarmrec_dot_v1_dot_gateway__pb2.LandmarkRoundReply.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -455,6 +614,249 @@ class SwarmGateway:
             '/swarmrec.v1.SwarmGateway/WatchMembership',
             swarmrec_dot_v1_dot_gateway__pb2.WatchRequest.SerializeToString,
             swarmrec_dot_v1_dot_gateway__pb2.MembershipChange.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def PlaceQuery(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/swarmrec.v1.SwarmGateway/PlaceQuery',
+            swarmrec_dot_v1_dot_gateway__pb2.PlaceQueryRequest.SerializeToString,
+            swarmrec_dot_v1_dot_gateway__pb2.PlaceQueryReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def ClusterTable(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/swarmrec.v1.SwarmGateway/ClusterTable',
+            swarmrec_dot_v1_dot_gateway__pb2.ClusterTableRequest.SerializeToString,
+            swarmrec_dot_v1_dot_gateway__pb2.ClusterTableReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def PlaceLoopClosures(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/swarmrec.v1.SwarmGateway/PlaceLoopClosures',
+            swarmrec_dot_v1_dot_gateway__pb2.RobotLoopClosuresRequest.SerializeToString,
+            swarmrec_dot_v1_dot_replay__pb2.LoopClosureList.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def WatchPlaceReports(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_stream(
+            request,
+            target,
+            '/swarmrec.v1.SwarmGateway/WatchPlaceReports',
+            swarmrec_dot_v1_dot_gateway__pb2.WatchRequest.SerializeToString,
+            swarmrec_dot_v1_dot_vpr__pb2.PlaceReport.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def SlamTeam(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/swarmrec.v1.SwarmGateway/SlamTeam',
+            swarmrec_dot_v1_dot_gateway__pb2.SlamTeamRequest.SerializeToString,
+            swarmrec_dot_v1_dot_gateway__pb2.SlamTeamReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def SlamRobotEstimate(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/swarmrec.v1.SwarmGateway/SlamRobotEstimate',
+            swarmrec_dot_v1_dot_gateway__pb2.SlamRobotRequest.SerializeToString,
+            swarmrec_dot_v1_dot_slam__pb2.SlamEstimate.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def WatchSlamEstimate(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_stream(
+            request,
+            target,
+            '/swarmrec.v1.SwarmGateway/WatchSlamEstimate',
+            swarmrec_dot_v1_dot_gateway__pb2.WatchSlamEstimateRequest.SerializeToString,
+            swarmrec_dot_v1_dot_slam__pb2.SlamEstimate.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def SlamMap(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/swarmrec.v1.SwarmGateway/SlamMap',
+            swarmrec_dot_v1_dot_gateway__pb2.SlamMapRequest.SerializeToString,
+            swarmrec_dot_v1_dot_gateway__pb2.SlamMapReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def LandmarkRound(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/swarmrec.v1.SwarmGateway/LandmarkRound',
+            swarmrec_dot_v1_dot_gateway__pb2.LandmarkRoundRequest.SerializeToString,
+            swarmrec_dot_v1_dot_gateway__pb2.LandmarkRoundReply.FromString,
             options,
             channel_credentials,
             insecure,
