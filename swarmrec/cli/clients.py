@@ -1,9 +1,9 @@
-"""``swarmrec query``, ``members`` and ``loop-closures``: ask a running swarm, from any host
-that reaches its router (``--connect tls/host:7447``) or its gRPC gateway
-(``--connect grpc://host:50051``), as the identity ``--identity`` of the PKI in ``--pki-dir``;
-or, on the machine that runs it, from the folder of a swarm left running (``--run DIR``:
-its ``swarm.json`` names the router, the swarm and the PKI; ``runs/up`` by default when a
-``swarmrec up`` keeps a swarm there)."""
+"""``swarmrec query``, ``members`` and ``loop-closures`` (``--method dvpr``: the place
+owner's): ask a running swarm, from any host that reaches its router (``--connect
+tls/host:7447``) or its gRPC gateway (``--connect grpc://host:50051``), as the identity
+``--identity`` of the PKI in ``--pki-dir``; or, on the machine that runs it, from the folder
+of a swarm left running (``--run DIR``: its ``swarm.json`` names the router, the swarm and
+the PKI; ``runs/up`` by default when a ``swarmrec up`` keeps a swarm there)."""
 
 from __future__ import annotations
 
@@ -85,6 +85,12 @@ def add(sub: Subparsers) -> None:
     p = sub.add_parser("loop-closures", help="fetch the loop closures a robot has found")
     p.add_argument("robot", type=int, help="robot id")
     p.add_argument("--min-score", type=float, default=0.0, help="only closures at least this good")
+    p.add_argument(
+        "--method",
+        choices=("constellations", "dvpr"),
+        default="constellations",
+        help="whose: the robot's descriptor (constellations, the default) or its place owner (dvpr)",
+    )
     common(p)
     p.set_defaults(handler=_loop_closures)
 
@@ -205,7 +211,10 @@ def _members(args: argparse.Namespace) -> int:
 
 def _loop_closures(args: argparse.Namespace) -> int:
     with client_of(args) as swarm:
-        closures = swarm.loop_closures(args.robot, args.min_score)
+        if args.method == "dvpr":
+            closures = swarm.place_loop_closures(args.robot, args.min_score)
+        else:
+            closures = swarm.loop_closures(args.robot, args.min_score)
     if args.json:
         print(
             json.dumps(
