@@ -4,8 +4,9 @@
 
 1. **Balance.** The TUM constellations (``../shared/data``) through a live 10-robot swarm in
    lock-step, three ways, in the same run: the paper's layout (one replica a label group,
-   the published 2.67 busiest/mean), two replicas without rebalancing, and two replicas
-   rebalanced from the load the shards observe (target 1.5). For each: the busiest shard's
+   the published 2.67 busiest/mean), two replicas without rebalancing, two replicas
+   rebalanced by the rule before the plan (``rebalance_rule="greedy"``, target 1.5), and two
+   replicas rebalanced by the plan (swarmrec.core.rebalance, the default target). For each: the busiest shard's
    share of partial queries over the whole run and over its second half (after the
    coordinator has seen enough load to move groups), bytes per query (the two-step query,
    the replicas' copies, the index's own traffic), placements published, descriptors handed
@@ -87,6 +88,7 @@ def balance(name: str, index: IndexSettings, work: Path) -> dict[str, Any]:
         "name": name,
         "replicas": index.replicas,
         "rebalance_target": index.rebalance_target,
+        "rebalance_rule": index.rebalance_rule,
         "loads": whole,
         "balance_ratio": _ratio(whole),
         "loads_second_half": second,
@@ -207,7 +209,9 @@ def main_bench() -> None:
     configs = [
         ("paper layout (1 replica)", IndexSettings(replicas=1, rebalance_target=1000.0)),
         ("2 replicas", IndexSettings(replicas=2, rebalance_target=1000.0)),
-        ("2 replicas, rebalanced", IndexSettings(replicas=2, rebalance_target=1.5)),
+        # The rule before the plan, as the baseline measured in the same run (its target then, 1.5).
+        ("2 replicas, greedy rule", IndexSettings(replicas=2, rebalance_target=1.5, rebalance_rule="greedy")),
+        ("2 replicas, rebalanced", IndexSettings(replicas=2)),
     ]
     with tempfile.TemporaryDirectory(prefix="bench-elastic-") as tmp:
         work = Path(tmp)

@@ -23,7 +23,7 @@ from swarmrec.deployments.kubernetes import DEFAULT_OVERLAY, KubernetesDeploymen
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.errors import ConfigError
 from swarmrec.experiments.places import PixelSettings, PlacesSettings, PlacesSummary, main
-from swarmrec.experiments.places.report import DetectorFigures, FunnelStats
+from swarmrec.experiments.places.report import DetectorFigures, FunnelStats, IndexSummary
 from swarmrec.services.settings import IndexSettings
 
 __all__ = ["add", "print_summary", "run"]
@@ -267,6 +267,7 @@ def print_summary(s: PlacesSummary, out: Path) -> None:
             f"({ix.placements_published:.0f} published, {ix.handoff_records:.0f} descriptors handed off), "
             f"{state}{weight}"
         )
+        _print_index_balance(ix)
     if s.positions_effect is not None:
         pe = s.positions_effect
         print(
@@ -306,6 +307,25 @@ def print_summary(s: PlacesSummary, out: Path) -> None:
     start = f"start {t['start_s']:.1f} s, " if "start_s" in t else ""
     print(f"  time: {start}replay {t['replay_s']:.1f} s, total {t['total_s']:.1f} s")
     print(f"  written to {out}/ (summary.json, pairs.csv, loop_closures.csv, funnel.csv, *.png)")
+
+
+def _print_index_balance(ix: IndexSummary) -> None:
+    """The hottest label groups with their owners, and why each placement came."""
+    if ix.group_queries and ix.owners:
+        hottest = sorted(range(len(ix.group_queries)), key=lambda g: -ix.group_queries[g])[:4]
+        groups = ", ".join(f"{g}: {ix.group_queries[g]} on {ix.owners[g]}" for g in hottest)
+        print(f"  hottest label groups (partial queries on owners): {groups}")
+    for h in ix.history:
+        why = h["reason"].replace("_", " ")
+        plan = h.get("plan")
+        if plan:
+            busiest = f"{plan['busiest_before']:.0f} -> {plan['busiest_after']:.0f}"
+            why += f" (busiest {busiest}, mean {plan['mean']:.0f})"
+        moved = ", ".join(
+            f"{g}" + (f" +{c['gained']}" if c["gained"] else "") + (f" -{c['lost']}" if c["lost"] else "")
+            for g, c in h["groups"].items()
+        )
+        print(f"  placement {h['version']}: {why}" + (f"; groups {moved}" if moved else ""))
 
 
 def _print_funnel(f: FunnelStats) -> None:

@@ -13,14 +13,14 @@ decides *where* groups live; nothing here touches a score.
 * :func:`follow_members`: the next placement when members join or leave: every
   group keeps its live owners and gets new ones by rendezvous order, so a lost
   shard's groups are served at once by their other replicas.
-* :func:`rebalance`: from observed load (partial queries per group), more replicas
-  for hot groups and moves from the busiest shard, until the worst balance ratio
-  is at most ``target`` (or no move helps). A query is spread over a group's
+* :func:`owner_load` and :func:`shard_loads`: the load a placement puts on each shard
+  under observed load (partial queries per group). A query is spread over a group's
   replicas by :func:`serving_owner`, so a group of load ``L`` on ``r`` replicas puts
   ``L / r`` queries on each; but every replica also stores every slice of the group,
   the ``r - 1`` it was not asked for as a ``ShardStore`` of relative cost
-  ``store_weight`` (:func:`owner_load`). A replica only lightens its owners when a
-  store costs less than a query (``store_weight < 1``), and less so the more there are.
+  ``store_weight``. A replica only lightens its owners when a store costs less than a
+  query (``store_weight < 1``), and less so the more there are. Where groups should
+  live under that load is :mod:`swarmrec.core.rebalance`'s.
 * :func:`serving_owner`: the replica of a group that answers a given query, chosen
   by a stable hash of (robot, frame, group) among the live owners.
 
@@ -61,7 +61,6 @@ __all__ = [
     "owner_load",
     "place",
     "promote",
-    "rebalance",
     "ring",
     "serving_owner",
     "shard_loads",
@@ -361,90 +360,6 @@ def balance_ratio(loads: Mapping[int, float] | Sequence[float]) -> float:
     return max(values) / mean if mean > 0 else 0.0
 
 
-def rebalance(
-    current: Placement,
-    group_load: Mapping[int, float],
-    *,
-    target: float = 1.5,
-    max_changes: int = 64,
-    store_weight: float = 0.0,
-    min_replica_gain: float = 0.0,
-) -> Placement:
-    """A placement whose worst balance ratio under ``group_load`` is at most ``target``
-    where moves can get it there: the busiest shard's hottest group gets one more
-    replica on the least loaded shard (which spreads its queries), or, when that does
-    not help (a store costs as much as a query: ``store_weight``, :func:`owner_load`)
-    or it is already everywhere it can be, a group moves off the busiest shard. A step
-    is taken only when it lowers the busiest shard's load and lifts no shard to it; a
-    replica only when it also lowers each owner's share of its group by
-    ``min_replica_gain`` at least (with stores counted, each replica helps less than
-    the last: this bounds a hot group's replicas, each a ShardStore more a query). At
-    most ``max_changes`` steps; every group keeps at least its ``replicas`` owners.
-    Deterministic: the same placement and loads give the same result."""
-    _check_finite(group_load.values())
-    _check_weight(store_weight)
-    owners = [list(o) for o in current.owners]
-    members = list(current.members)
-
-    def share(g: int, n_owners: int) -> float:
-        return owner_load(float(group_load.get(g, 0.0)), n_owners, store_weight)
-
-    def loads() -> dict[int, float]:
-        out = dict.fromkeys(members, 0.0)
-        for g, own in enumerate(owners):
-            for m in own:
-                out[m] += share(g, len(own))
-        return out
-
-    def helps(now: dict[int, float], busiest: int, g: int, trial: list[int]) -> bool:
-        """Whether ``g`` on ``trial`` instead lowers the busiest load and lifts none to it."""
-        after = dict(now)
-        for m in owners[g]:
-            after[m] -= share(g, len(owners[g]))
-        for m in trial:
-            after[m] += share(g, len(trial))
-        top = now[busiest]
-        return after[busiest] < top and all(after[m] < top for m in set(trial) | set(owners[g]))
-
-    for _ in range(max_changes):
-        now = loads()
-        if balance_ratio(now) <= target:
-            break
-        busiest = max(members, key=lambda m: (now[m], -m))
-        idle = min(members, key=lambda m: (now[m], m))
-        held = sorted(
-            (g for g, own in enumerate(owners) if busiest in own),
-            key=lambda g: (-share(g, len(owners[g])), g),
-        )
-        step = None
-        for g in held:
-            k = len(owners[g])
-            if idle not in owners[g] and share(g, k + 1) <= (1.0 - min_replica_gain) * share(g, k):
-                trial = owners[g] + [idle]
-                if helps(now, busiest, g, trial):
-                    step = (g, trial)
-                    break
-        if step is None:
-            # No replica helps (every hot group is on the idle shard already, or stores cost
-            # as much as the queries they would spread): move one replica off the busiest.
-            for g in held:
-                others = [m for m in members if m not in owners[g]]
-                if not others:
-                    continue
-                dest = min(others, key=lambda m: (now[m], m))
-                trial = [dest if m == busiest else m for m in owners[g]]
-                if helps(now, busiest, g, trial):
-                    step = (g, trial)
-                    break
-        if step is None:
-            break
-        g, trial = step
-        owners[g] = trial
-    new = tuple(tuple(o) for o in owners)
-    version = current.version + 1 if new != current.owners else current.version
-    return Placement(version, current.groups, new, current.members, current.replicas)
-
-
 def serving_owner(
     placement: Placement, group: int, robot: int, frame: int, alive: Iterable[int]
 ) -> int | None:
@@ -468,9 +383,3 @@ def groups_from_bounds(bounds: Sequence[int]) -> tuple[tuple[int, int], ...]:
 def _check_weight(store_weight: float) -> None:
     if not (math.isfinite(store_weight) and store_weight >= 0.0):
         raise ConfigError(f"a store's weight must be finite and at least 0, got {store_weight}")
-
-
-def _check_finite(values: Iterable[float]) -> None:
-    for v in values:
-        if not math.isfinite(v) or v < 0:
-            raise ConfigError(f"a load must be a finite number >= 0, got {v}")

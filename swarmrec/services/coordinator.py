@@ -18,7 +18,7 @@ tick (``placement_tick_s``) the acting coordinator:
 5. otherwise follows membership (:func:`~swarmrec.core.placement.follow_members`:
    a gone shard's groups stay answered by their other replicas and get new
    ones) and, once ``rebalance_min_queries`` (and 20 a member shard) partial queries were served since
-   the last look, the observed load (:func:`~swarmrec.core.placement.rebalance`,
+   the last look, the observed load (:func:`~swarmrec.core.rebalance.rebalance`,
    to ``rebalance_target``), and starts the handoff
    (:func:`~swarmrec.core.placement.transition`). The load is every query the
    shards served since they started, not the last window's: a robot crossing
@@ -50,15 +50,17 @@ import time
 from collections.abc import Iterable
 from typing import Protocol
 
+import zenoh
+
 from swarmrec.core.placement import (
     Placement,
     follow_members,
     groups_from_bounds,
     promote,
-    rebalance,
     shard_loads,
     transition,
 )
+from swarmrec.core.rebalance import RULES
 from swarmrec.errors import CallError, WireError
 from swarmrec.runtime import ServiceContext, keys
 from swarmrec.runtime.settings import BusSettings
@@ -139,7 +141,45 @@ class Shard(Protocol):
     def follow_own(self, placement: Placement) -> None: ...
 
 
-__all__ = ["Coordinator", "Shard", "ShardSettings", "present_members", "served_load"]
+__all__ = [
+    "Coordinator",
+    "Shard",
+    "ShardSettings",
+    "View",
+    "group_changes",
+    "must_look",
+    "present_members",
+    "served_load",
+]
+
+#: What the coordinator sees without asking anyone: the live shards, the draining ones, and
+#: the members that keep their groups (the live ones and those within a grace).
+View = tuple[frozenset[int], frozenset[int], frozenset[int]]
+
+
+def must_look(
+    *,
+    acting: bool,
+    settled: bool,
+    confirmed: bool,
+    view: View,
+    last_view: View | None,
+    dirty: bool,
+    learning: bool,
+    since_look_s: float,
+    interval_s: float,
+) -> bool:
+    """Whether this tick asks every shard for its state. A hundred shards' states every
+    second were most of a large swarm's index traffic (194 B a query at 100 robots), and in
+    a settled swarm nothing in them changes: so they are asked for on taking over, during a
+    handoff (the learners' progress), when a shard came, went, or began draining (the view),
+    after an adoption a shard did not confirm (``dirty``), while the coordinator has not yet
+    looked at a whole window of load (``learning``: the first rebalancing comes as early as the
+    load allows), and otherwise every ``interval_s`` (a shard on another placement, the load
+    for the next rebalancing look)."""
+    if not acting or not settled or not confirmed or dirty or learning or view != last_view:
+        return True
+    return since_look_s >= interval_s
 
 
 def present_members(
@@ -164,6 +204,23 @@ def present_members(
         elif now - last < grace_s:
             present.add(m)
     return present
+
+
+def group_changes(before: Placement, after: Placement) -> list[pb.GroupChange]:
+    """The groups whose holders changed from ``before`` to ``after``: the shards that now store
+    a group and did not (new learners; owners added at once), and those that let it go or will
+    (owners gone, or leaving once the handoff is done)."""
+    out = []
+    for g in range(min(len(before.groups), len(after.groups))):
+        held_before = set(before.store_targets(g))
+        gained = sorted(set(after.store_targets(g)) - held_before)
+        lost = sorted(
+            (set(before.owners[g]) - set(after.store_targets(g)))
+            | (set(after.leaving[g]) - set(before.leaving[g]))
+        )
+        if gained or lost:
+            out.append(pb.GroupChange(group=g, gained=gained, lost=lost))
+    return out
 
 
 def served_load(state: pb.ShardState, n_groups: int) -> dict[int, int]:
@@ -200,6 +257,15 @@ class Coordinator:
         self._started = time.monotonic()
         # The last time this shard's session got its link to the swarm back (monotonic).
         self._rejoined = 0.0
+        # The last look at every shard's state (monotonic), what it saw without asking, and
+        # whether an adoption since went unconfirmed (see must_look).
+        self._looked = -math.inf
+        self._view: View | None = None
+        self._dirty = False
+        # Whether a rebalancing look has seen a whole window of load since this shard took over.
+        self._learning = True
+        # The load the last rebalancing was planned on (for its PlacementChange event).
+        self._plan: pb.PlacementChange | None = None
 
     def start(self) -> None:
         if self._thread is not None:
@@ -324,19 +390,41 @@ class Coordinator:
             try:
                 pending.result(pb.ShardState)
             except CallError as e:
+                self._dirty = True  # look again next tick: it gets the placement then
                 self.log.info(f"shard {m} did not adopt placement {placement.version}: {e}")
 
-    def publish(self, placement: Placement, live: set[int]) -> None:
-        """Follow ``placement`` here, then send it to every other live shard."""
+    def publish(
+        self,
+        placement: Placement,
+        live: set[int],
+        reason: int,
+        plan: pb.PlacementChange | None = None,
+    ) -> None:
+        """Follow ``placement`` here, send it to every other live shard, and say so: a
+        ``PlacementChange`` event with the ``reason`` (and a rebalancing's ``plan``: the load
+        it was planned on), the placement's history as a run's report and any watcher read it."""
         s = self.shard
+        before = s.placement
         s.follow_own(placement)
+        change = pb.PlacementChange()
+        if plan is not None:
+            change.CopyFrom(plan)
+        change.version, change.coordinator = placement.version, s.shard
+        change.reason = pb.PlacementReason.ValueType(reason)
+        change.changes.extend(group_changes(before, placement))
+        change.unix_time_ns = time.time_ns()
         fields = {
             "version": placement.version,
+            "reason": pb.PlacementReason.Name(reason).removeprefix("PLACEMENT_REASON_").lower(),
             "owners": [list(o) for o in placement.owners],
             "learners": [list(x) for x in placement.learners],
         }
         self.log.info("placement published", extra={"fields": fields})
         self._adopt(sorted(live - {s.shard}), placement)
+        try:
+            s.ctx.publish(keys.event(s.bus.swarm, "placement", s.shard), change)
+        except zenoh.ZError as e:  # the session closing under a stopping shard: nobody to tell
+            self.log.info(f"placement change not announced: {e}")
 
     # --- one tick -----------------------------------------------------------------------
 
@@ -390,6 +478,26 @@ class Coordinator:
         if s.shard != min(here):
             self.acting = False
             return
+        view: View = (
+            frozenset(live),
+            frozenset(self.live.draining_ids()),
+            frozenset(self._present(s.placement, live, now)),
+        )
+        look = must_look(
+            acting=self.acting,
+            settled=s.placement.settled,
+            confirmed=s.confirmed,
+            view=view,
+            last_view=self._view,
+            dirty=self._dirty,
+            learning=self._learning,
+            since_look_s=now - self._looked,
+            interval_s=self.settings.state_interval_s,
+        )
+        self._view = view
+        if not look:
+            return
+        self._looked, self._dirty = now, False
         # Acting, it knows the placement: the shards following it need not send it back.
         known = s.placement.version if self.acting else None
         states = {m: st for m, st in self.states(known).items() if m in live}
@@ -415,6 +523,7 @@ class Coordinator:
                 self.log.info("acting as the index coordinator", extra=fields)
                 # A new coordinator looks at a window of its own before it rebalances.
                 self._load_mark = None
+                self._learning = True
             self.acting = True
         current = s.placement
         # Members gone for less than the grace (or not started yet) still count: a shard
@@ -440,9 +549,11 @@ class Coordinator:
             ready[s.shard] = sorted(s.ready)
             done = promote(current, ready, present)
             if done is not None:
-                self.publish(done, live)
+                self.publish(done, live, pb.PlacementReason.PLACEMENT_REASON_HANDOFF_DONE)
             return
         target = follow_members(current, present)
+        reason = pb.PlacementReason.PLACEMENT_REASON_MEMBERS
+        self._plan = None
         # The load of every present member, or no rebalancing: one on part of the swarm's
         # load (states lost to a timeout in an overloaded swarm) moves groups by mistake.
         if (
@@ -450,12 +561,15 @@ class Coordinator:
             and set(target.members) == set(current.members)
             and present <= set(states)
         ):
-            target = self._rebalanced(current, states) or target
+            balanced = self._rebalanced(current, states)
+            if balanced is not None:
+                target, reason = balanced, pb.PlacementReason.PLACEMENT_REASON_REBALANCE
         # Owners gone for less than the grace stay owners (a restart keeps its groups);
         # draining ones are leaving: they answer and are copied from until the learners own.
         step = transition(current, target, alive=present | draining | live)
         if step is not None:
-            self.publish(step, live)
+            plan = self._plan if reason == pb.PlacementReason.PLACEMENT_REASON_REBALANCE else None
+            self.publish(step, live, reason, plan)
 
     def _rebalanced(self, current: Placement, states: dict[int, pb.ShardState]) -> Placement | None:
         """A placement with a better balance under every partial query the shards served,
@@ -483,9 +597,10 @@ class Coordinator:
         if sum(window.values()) < needed:
             return None
         self._load_mark = totals
+        self._learning = False
         load = {g: float(n) for g, n in totals.items()}
         weight = store_weight(states.values())
-        balanced = rebalance(
+        balanced = RULES[self.settings.rebalance_rule](
             current,
             load,
             target=self.settings.rebalance_target,
@@ -506,4 +621,11 @@ class Coordinator:
             self.log.info("rebalancing skipped: too small a gain", extra={"fields": fields})
             return None
         self.log.info("rebalancing", extra={"fields": fields})
+        self._plan = pb.PlacementChange(
+            queries=sum(totals.values()),
+            store_weight=weight,
+            busiest_before=before,
+            busiest_after=after,
+            mean_load=sum(shard_loads(balanced, load, weight).values()) / len(balanced.members),
+        )
         return balanced

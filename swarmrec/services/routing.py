@@ -118,6 +118,11 @@ class LiveShards:
         with self._lock:
             return set(self._alive)
 
+    def draining_ids(self) -> set[int]:
+        """The live shards that declared they are stopping (needs ``watch_draining``)."""
+        with self._lock:
+            return self._draining & self._alive
+
     def anyone_stays(self, shard: int) -> bool:
         """Whether a live shard other than ``shard`` has not declared it is stopping
         (needs ``watch_draining``; a token not seen yet counts as staying)."""

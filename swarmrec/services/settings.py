@@ -52,6 +52,8 @@ PlaceMethod = Literal["constellations", "dvpr"]
 PLACE_METHODS: tuple[str, ...] = ("constellations", "dvpr")
 VprCode = Literal["int8", "float32"]
 VPR_CODES: tuple[str, ...] = ("int8", "float32")
+RebalanceRule = Literal["pack", "greedy"]
+REBALANCE_RULES: tuple[str, ...] = ("pack", "greedy")
 
 
 @dataclass(frozen=True)
@@ -180,6 +182,11 @@ class IndexSettings(Component):
     placement_tick_s: float = setting(
         1.0, "how often the coordinator (the lowest live shard) checks members, handoffs and load"
     )
+    state_interval_s: float = setting(
+        10.0,
+        "while the placement is settled and no shard came, went or began draining, the coordinator "
+        "asks every shard for its state (versions, load) this often instead of every tick",
+    )
     member_grace_s: float = setting(
         5.0,
         "a shard gone this long loses its groups to the others' new replicas; "
@@ -192,7 +199,13 @@ class IndexSettings(Component):
         "shards still starting and back is churn)",
     )
     rebalance_target: float = setting(
-        1.5, "the coordinator moves and adds replicas while the busiest shard's load is above this x the mean"
+        1.25,
+        "the coordinator moves and adds replicas while the busiest shard's load is above this x the mean",
+    )
+    rebalance_rule: RebalanceRule = setting(
+        "pack",
+        "pack: owners per group planned and packed onto the shards (swarmrec.core.rebalance); "
+        "greedy: the rule before it, one move at a time off the busiest shard (a benchmark's baseline)",
     )
     rebalance_min_queries: int = setting(
         200, "partial queries to observe (since the last rebalancing) before rebalancing on them"
@@ -231,13 +244,23 @@ class IndexSettings(Component):
                 problems.append(f"{name} must be 0.01 to 3600 s, got {value}")
         if self.max_shards < 0:
             problems.append(f"max_shards must be >= 0, got {self.max_shards}")
-        for name in ("suspect_s", "member_grace_s", "member_start_grace_s", "drain_timeout_s"):
+        for name in (
+            "suspect_s",
+            "member_grace_s",
+            "member_start_grace_s",
+            "drain_timeout_s",
+            "state_interval_s",
+        ):
             value = getattr(self, name)
             if not (math.isfinite(value) and 0 <= value <= 3600):
                 problems.append(f"{name} must be 0 to 3600 s, got {value}")
         if not (math.isfinite(self.rebalance_target) and self.rebalance_target >= 1.0):
             problems.append(
                 f"rebalance_target must be >= 1 (1 is perfect balance), got {self.rebalance_target}"
+            )
+        if self.rebalance_rule not in REBALANCE_RULES:
+            problems.append(
+                f"rebalance_rule must be {', '.join(REBALANCE_RULES)}; got {self.rebalance_rule!r}"
             )
         if self.rebalance_min_queries < 1:
             problems.append(f"rebalance_min_queries must be >= 1, got {self.rebalance_min_queries}")

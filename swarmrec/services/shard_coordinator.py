@@ -124,6 +124,7 @@ class CompiledShardCoordinator(Coordinator):
         super().__init__(shard)
         self.compiled = shard
         self.checked = threading.Event()
+        self._viewed = -float("inf")
 
     def confirm_on_start(self) -> None:
         try:
@@ -140,14 +141,25 @@ class CompiledShardCoordinator(Coordinator):
             self.checked.set()
 
     def tick(self) -> None:
-        try:
-            # The placement only when it changed: a hundred shards' placements a second were
-            # most of a large swarm's index traffic (the coordinator asks every shard the same).
-            known = self.compiled.placement.version if self.compiled.confirmed else None
-            self.compiled.state(known)
-        except CallError as e:
-            self.log.info(f"the compiled shard did not answer: {e}")
-            return
+        # The view is what the coordinator acts on: fresh at every tick where it acts or may
+        # take over (its shard the lowest alive); otherwise it serves only to tell who is
+        # present, and a hundred coordinators each asking their shard every second is a
+        # hundred requests a second for nothing.
+        now = time.monotonic()
+        if (
+            self.acting
+            or self.lowest_live() == self.shard.shard
+            or now - self._viewed >= self.settings.state_interval_s
+        ):
+            try:
+                # The placement only when it changed: a hundred shards' placements a second
+                # were most of a large swarm's index traffic.
+                known = self.compiled.placement.version if self.compiled.confirmed else None
+                self.compiled.state(known)
+            except CallError as e:
+                self.log.info(f"the compiled shard did not answer: {e}")
+                return
+            self._viewed = now
         super().tick()
 
 

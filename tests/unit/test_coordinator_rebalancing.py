@@ -22,6 +22,8 @@ from swarmrec.services.coordinator import (
     MIN_COST_SAMPLES,
     MIN_GAIN,
     Coordinator,
+    View,
+    must_look,
     present_members,
     served_load,
     store_weight,
@@ -86,7 +88,7 @@ def test_a_move_that_lowers_the_busiest_load_by_the_gain_is_taken() -> None:
 def test_the_load_is_every_query_served_not_the_last_window() -> None:
     # Served so far: a balanced layout for a load spread evenly over the four groups.
     current = Placement(1, GROUPS, ((0,), (1,), (2,), (0, 1, 2)), (0, 1, 2), replicas=1)
-    c = coordinator()
+    c = coordinator(target=1.2)
     first = states([300, 0, 0, 100], [0, 300, 0, 100], [0, 0, 300, 100])
     assert c._rebalanced(current, first) is None  # balanced: nothing to move
     # The next window is all group 0 (a robot in a room full of one label): over that window
@@ -127,13 +129,13 @@ def test_a_shard_reporting_nonsense_costs_is_left_out_and_the_weight_bounded() -
 
 
 def test_where_a_store_costs_as_much_as_a_query_the_coordinator_moves_rather_than_copies() -> None:
-    # Shard 0 holds the hot group 0 (120 queries) with shard 1, and group 1 (60) with
-    # shard 2; shard 3 is idle. With stores nearly free a third replica spreads group 0;
+    # Shard 0 holds the hot group 0 (300 queries) with shard 1, and group 1 (60) with
+    # shard 2; shard 3 is idle. With stores nearly free more replicas spread group 0;
     # with stores measured as costly as queries a replica spreads nothing (each owner
     # stores every slice), so a group moves off shard 0 instead.
     groups = ((0, 1), (1, 2))
     current = Placement(1, groups, ((0, 1), (0, 2)), (0, 1, 2, 3), replicas=2)
-    per_shard = [[60, 30], [60, 0], [0, 30], [0, 0]]
+    per_shard = [[150, 30], [150, 0], [0, 30], [0, 0]]
 
     def seen(store_s: float) -> dict[int, pb.ShardState]:
         return {
@@ -148,7 +150,7 @@ def test_where_a_store_costs_as_much_as_a_query_the_coordinator_moves_rather_tha
             for m, q in enumerate(per_shard)
         }
 
-    load = {0: 120.0, 1: 60.0}
+    load = {0: 300.0, 1: 60.0}
     costly = coordinator()._rebalanced(current, seen(0.3))
     assert costly is not None
     assert [len(o) for o in costly.owners] == [2, 2]
@@ -194,3 +196,52 @@ def test_a_shard_whose_load_does_not_check_out_is_left_out_of_the_rebalancing() 
     with_liar = coordinator()._rebalanced(current, {**seen, 3: liar})
     assert honest is not None and with_liar is not None
     assert with_liar.owners == honest.owners
+
+
+def _view(live: set[int], draining: frozenset[int] = frozenset(), present: set[int] | None = None) -> View:
+    return (frozenset(live), frozenset(draining), frozenset(live if present is None else present))
+
+
+def test_a_settled_coordinator_asks_the_shards_only_every_interval() -> None:
+    quiet = {
+        "acting": True,
+        "settled": True,
+        "confirmed": True,
+        "dirty": False,
+        "learning": False,
+        "interval_s": 10.0,
+    }
+    v = _view({0, 1, 2})
+    assert not must_look(view=v, last_view=v, since_look_s=9.9, **quiet)  # type: ignore[arg-type]
+    assert must_look(view=v, last_view=v, since_look_s=10.0, **quiet)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        {"acting": False},  # taking over: it reads everyone first
+        {"settled": False},  # a handoff: the learners' progress is in the states
+        {"confirmed": False},
+        {"dirty": True},  # a shard did not confirm an adoption
+        {"learning": True},  # no whole window of load seen yet: the first rebalancing waits on it
+        {"view": _view({0, 1})},  # a shard went
+        {"view": _view({0, 1, 2, 3})},  # one came
+        {"view": _view({0, 1, 2}, draining=frozenset({2}))},  # one began draining
+        {"view": _view({0, 1, 2}, present={0, 1, 2, 5})},  # a member's grace ran out, or began
+    ],
+)
+def test_the_coordinator_looks_at_once_when_anything_changed(change: dict[str, object]) -> None:
+    v = _view({0, 1, 2})
+    args: dict[str, object] = {
+        "acting": True,
+        "settled": True,
+        "confirmed": True,
+        "dirty": False,
+        "learning": False,
+        "interval_s": 10.0,
+        "view": v,
+        "last_view": v,
+        "since_look_s": 0.5,
+    }
+    assert not must_look(**args)  # type: ignore[arg-type]
+    assert must_look(**{**args, **change})  # type: ignore[arg-type]

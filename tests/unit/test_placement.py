@@ -13,7 +13,6 @@ from swarmrec.core.placement import (
     owner_load,
     place,
     promote,
-    rebalance,
     ring,
     serving_owner,
     shard_loads,
@@ -71,19 +70,6 @@ def test_a_member_joining_takes_only_what_rendezvous_gives_it() -> None:
 def test_nothing_changes_when_the_members_do_not() -> None:
     a = place(GROUPS, MEMBERS)
     assert follow_members(a, MEMBERS) == a
-
-
-def test_rebalancing_brings_the_tum_load_under_one_and_a_half_without_losing_a_replica() -> None:
-    a = place(GROUPS, MEMBERS, replicas=2)
-    before = balance_ratio(shard_loads(a, TUM_LOAD))
-    b = rebalance(a, TUM_LOAD, target=1.5)
-    after = balance_ratio(shard_loads(b, TUM_LOAD))
-    assert before > 1.5 and after <= 1.5
-    assert b.version == a.version + 1
-    assert all(len(own) >= 2 for own in b.owners)
-    # The mean cannot move: every query goes to one replica of each group it touches.
-    assert sum(shard_loads(b, TUM_LOAD).values()) == pytest.approx(sum(TUM_LOAD.values()))
-    assert rebalance(b, TUM_LOAD, target=1.5) == b  # already balanced: no new version
 
 
 def test_balance_ratio_by_hand() -> None:
@@ -241,34 +227,7 @@ def test_shard_loads_count_the_stores_of_the_slices_others_were_asked_for() -> N
     assert shard_loads(p, {0: 10.0, 1: 4.0}, 0.5) == {0: 7.5, 1: 11.5}
 
 
-HOT = {0: 1000.0, 1: 10.0, 2: 10.0, 3: 10.0, 4: 10.0, 5: 10.0, 6: 10.0, 7: 10.0, 8: 10.0, 9: 10.0}
-
-
-def test_with_free_stores_a_hot_group_is_copied_widely() -> None:
-    b = rebalance(place(GROUPS, MEMBERS, replicas=2), HOT, target=1.5)
-    assert len(b.owners[0]) > 3  # what the store-aware tests below bound
-
-
-def test_stores_as_costly_as_queries_add_no_replica() -> None:
-    a = place(GROUPS, MEMBERS, replicas=2)
-    b = rebalance(a, HOT, target=1.5, store_weight=1.0)
-    assert [len(o) for o in b.owners] == [len(o) for o in a.owners]
-    # It still helps where it can: the hot group's owners keep nothing else.
-    before = max(shard_loads(a, HOT, 1.0).values())
-    assert max(shard_loads(b, HOT, 1.0).values()) < before
-    hot_owners = set(b.owners[0])
-    assert all(not (set(own) & hot_owners) for own in b.owners[1:])
-
-
-def test_a_replica_must_lower_its_groups_share_by_the_minimum_gain() -> None:
-    b = rebalance(place(GROUPS, MEMBERS, replicas=2), HOT, target=1.5, store_weight=0.5, min_replica_gain=0.1)
-    # At weight 0.5 a third replica lowers each owner's share by 11 %, a fourth by 6 %.
-    assert len(b.owners[0]) == 3
-
-
 @pytest.mark.parametrize("weight", [float("nan"), -0.1, float("inf")])
 def test_a_store_weight_must_be_finite_and_not_negative(weight: float) -> None:
-    with pytest.raises(ConfigError):
-        rebalance(place(GROUPS, MEMBERS), TUM_LOAD, store_weight=weight)
     with pytest.raises(ConfigError):
         shard_loads(place(GROUPS, MEMBERS), TUM_LOAD, weight)

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
+import zenoh
 
 from swarmrec.client import ZenohClient
 from swarmrec.core.association import build_table
@@ -41,7 +42,7 @@ from swarmrec.core.split import split_frames
 from swarmrec.core.types import ConstellationSequence, Trajectory
 from swarmrec.datasets.constellations import write_constellations
 from swarmrec.deployments.base import Deployment, SwarmSpec, running
-from swarmrec.errors import ConfigError
+from swarmrec.errors import ConfigError, WireError
 from swarmrec.evaluation.scoring import label_frequency_prior
 from swarmrec.evaluation.source import load_dataset
 from swarmrec.experiments.places.pixels import PixelSource, detected_sequence, prepare_pixels, rgbd_settings
@@ -55,10 +56,12 @@ from swarmrec.experiments.places.report import (
     write_report,
 )
 from swarmrec.experiments.places.settings import PlacesSettings
+from swarmrec.runtime import keys
 from swarmrec.runtime.settings import Component
 from swarmrec.services.registry import WORKLOADS
 from swarmrec.services.settings import DetectorSettings, PlaceSettings
-from swarmrec.wire.codec import constellation_from_proto, constellation_to_proto
+from swarmrec.wire import messages as pb
+from swarmrec.wire.codec import constellation_from_proto, constellation_to_proto, decode
 
 #: How long a run waits after its replay for handoffs and retried stores to finish.
 SETTLE_TIMEOUT_S = 60.0
@@ -201,6 +204,18 @@ def _refuse(settings: PlacesSettings, deployment: Deployment) -> None:
         raise ConfigError("a schedule in steps needs a lock-step replay; give its times in seconds")
 
 
+def _drain_placement_changes(sub: zenoh.Subscriber[zenoh.Handler[zenoh.Sample]]) -> list[pb.PlacementChange]:
+    """The PlacementChange events the subscriber holds; one that does not decode is left out
+    (the report's history is what the coordinators said, never a guess)."""
+    out = []
+    while (sample := sub.try_recv()) is not None:
+        try:
+            out.append(decode(sample.payload.to_bytes(), pb.PlacementChange))
+        except WireError:
+            continue
+    return out
+
+
 def main(
     settings: PlacesSettings,
     deployment: Deployment,
@@ -235,6 +250,8 @@ def main(
         ) as session,
         # The operator identity: it drives the replay (detector step/replay).
         deployment.client(settings.request_timeout_s) as client,
+        # The index coordinator says why each placement came: the report's history of them.
+        client.session.declare_subscriber(keys.event(spec.bus.swarm, "placement", "*")) as placements,
     ):
         # Every robot's shard confirmed on one settled placement before the first
         # frame: in a big swarm started at once, a shard that comes up after the
@@ -268,6 +285,7 @@ def main(
         metrics = deployment.metrics()
         timings["scrape_s"] = time.perf_counter() - t0
         closures = collect_loop_closures(client, settings.robots, result)
+        placement_changes = _drain_placement_changes(placements)
     exit_codes = session.exit_codes
     seq, detector = prepared.sequence, None
     if prepared.pixels is not None:
@@ -310,6 +328,7 @@ def main(
         deployment=deployment.description,
         loop_closure_min_score=places.loop_closure_min_score,
         index=index_state,
+        placement_changes=placement_changes,
         detector=detector,
         # From pixels the constellations are the detections written back above.
         dataset_folder=out / "detections" if prepared.pixels is not None else Path(replayed.dataset),

@@ -19,6 +19,7 @@ import csv
 import json
 import threading
 from collections import Counter
+from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -56,6 +57,7 @@ __all__ = [
     "DatasetInfo",
     "DetectorFigures",
     "FunnelStats",
+    "IndexSummary",
     "OfflineCheck",
     "OfflineEvaluation",
     "PairStats",
@@ -64,6 +66,7 @@ __all__ = [
     "ShardLoad",
     "SwarmInfo",
     "pair_matrix",
+    "placement_history",
     "write_report",
 ]
 
@@ -170,6 +173,12 @@ class IndexSummary:
     #: coordinator weighs a replica's stores with it when it rebalances); None when the
     #: run had no stores or no queries.
     store_weight: float | None = None
+    #: Robots' partial queries served per label group, by every owner together
+    #: (``swarmrec_shard_group_queries_total``): the load the coordinator rebalances on.
+    group_queries: list[int] = field(default_factory=list)
+    #: Every placement the coordinator published during the run, oldest first, and why
+    #: (its ``PlacementChange`` events; :func:`placement_history`).
+    history: list[dict[str, Any]] = field(default_factory=list)
 
 
 @dataclass
@@ -546,6 +555,8 @@ class RunRecord:
     deployment: str
     loop_closure_min_score: float
     index: IndexState | None = None
+    #: The coordinator's PlacementChange events heard during the run.
+    placement_changes: list[pb.PlacementChange] = field(default_factory=list)
     detector: DetectorFigures | None = None
     links: LinkReport | None = None
     #: Where the replayed constellations are on disk, and their label list (None: COCO).
@@ -571,7 +582,42 @@ def measured_store_weight(metrics: Scrape) -> float | None:
     return mean["store"] / mean["query"]
 
 
-def _index_summary(state: IndexState, metrics: Scrape, replicas: int) -> IndexSummary:
+def placement_history(changes: Iterable[pb.PlacementChange]) -> list[dict[str, Any]]:
+    """The placement changes a run saw, one dict each, by version (a change heard twice, say
+    from a coordinator that took over, is kept once)."""
+    by_version: dict[int, pb.PlacementChange] = {}
+    for c in changes:
+        by_version.setdefault(c.version, c)
+    out = []
+    for v in sorted(by_version):
+        c = by_version[v]
+        entry: dict[str, Any] = {
+            "version": v,
+            "reason": pb.PlacementReason.Name(c.reason).removeprefix("PLACEMENT_REASON_").lower(),
+            "coordinator": c.coordinator,
+            "unix_time_ns": c.unix_time_ns,
+            "groups": {str(g.group): {"gained": list(g.gained), "lost": list(g.lost)} for g in c.changes},
+        }
+        if c.reason == pb.PlacementReason.PLACEMENT_REASON_REBALANCE:
+            entry["plan"] = {
+                "queries": c.queries,
+                "store_weight": round(c.store_weight, 4),
+                "busiest_before": round(c.busiest_before, 2),
+                "busiest_after": round(c.busiest_after, 2),
+                "mean": round(c.mean_load, 2),
+            }
+        out.append(entry)
+    return out
+
+
+def _group_queries(metrics: Scrape, n_groups: int) -> list[int]:
+    by_group = metrics.of_kind("index-shard").by_label("swarmrec_shard_group_queries_total", "group")
+    return [int(by_group.get(str(g), 0.0)) for g in range(n_groups)]
+
+
+def _index_summary(
+    state: IndexState, metrics: Scrape, replicas: int, changes: Sequence[pb.PlacementChange]
+) -> IndexSummary:
     p = state.placement
     return IndexSummary(
         version=p.version if p is not None else -1,
@@ -583,6 +629,8 @@ def _index_summary(state: IndexState, metrics: Scrape, replicas: int) -> IndexSu
         handoff_records=metrics.total("swarmrec_shard_handoff_records_total"),
         refused=metrics.by_label("swarmrec_shard_refused_total", "reason"),
         store_weight=measured_store_weight(metrics),
+        group_queries=_group_queries(metrics, len(p.groups)) if p is not None else [],
+        history=placement_history(changes),
     )
 
 
@@ -654,7 +702,7 @@ def write_report(settings: ReportSettings, run: RunRecord) -> PlacesSummary:
     if run.detector is not None:
         summary.detector = _detector_figures(run.detector, metrics)
     if run.index is not None:
-        summary.index = _index_summary(run.index, metrics, settings.replicas)
+        summary.index = _index_summary(run.index, metrics, settings.replicas, run.placement_changes)
     summary.funnel = funnel_stats(replay.reports, run.closures, metrics)
     offline = run.offline
     # Frames delivered late were stored after their step: the lock-step identity is off then.

@@ -22,6 +22,13 @@ class FunnelReason(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     FUNNEL_REASON_OUTRANKED: _ClassVar[FunnelReason]
     FUNNEL_REASON_ALREADY_CLOSED: _ClassVar[FunnelReason]
     FUNNEL_REASON_ACCEPTED: _ClassVar[FunnelReason]
+
+class PlacementReason(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    PLACEMENT_REASON_UNSPECIFIED: _ClassVar[PlacementReason]
+    PLACEMENT_REASON_MEMBERS: _ClassVar[PlacementReason]
+    PLACEMENT_REASON_REBALANCE: _ClassVar[PlacementReason]
+    PLACEMENT_REASON_HANDOFF_DONE: _ClassVar[PlacementReason]
 FUNNEL_REASON_UNSPECIFIED: FunnelReason
 FUNNEL_REASON_BELOW_SHARD_CUT: FunnelReason
 FUNNEL_REASON_ROBOT_NOT_CHOSEN: FunnelReason
@@ -35,6 +42,10 @@ FUNNEL_REASON_OWN_RECENT_FRAME: FunnelReason
 FUNNEL_REASON_OUTRANKED: FunnelReason
 FUNNEL_REASON_ALREADY_CLOSED: FunnelReason
 FUNNEL_REASON_ACCEPTED: FunnelReason
+PLACEMENT_REASON_UNSPECIFIED: PlacementReason
+PLACEMENT_REASON_MEMBERS: PlacementReason
+PLACEMENT_REASON_REBALANCE: PlacementReason
+PLACEMENT_REASON_HANDOFF_DONE: PlacementReason
 
 class LoopClosure(_message.Message):
     __slots__ = ("query_robot_id", "query_frame_index", "match_robot_id", "match_frame_index", "score", "semantic_score", "n_matched", "unix_time_ns")
@@ -117,3 +128,37 @@ class CandidateOutcome(_message.Message):
     frame_index: int
     reason: FunnelReason
     def __init__(self, robot_id: _Optional[int] = ..., frame_index: _Optional[int] = ..., reason: _Optional[_Union[FunnelReason, str]] = ...) -> None: ...
+
+class GroupChange(_message.Message):
+    __slots__ = ("group", "gained", "lost")
+    GROUP_FIELD_NUMBER: _ClassVar[int]
+    GAINED_FIELD_NUMBER: _ClassVar[int]
+    LOST_FIELD_NUMBER: _ClassVar[int]
+    group: int
+    gained: _containers.RepeatedScalarFieldContainer[int]
+    lost: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, group: _Optional[int] = ..., gained: _Optional[_Iterable[int]] = ..., lost: _Optional[_Iterable[int]] = ...) -> None: ...
+
+class PlacementChange(_message.Message):
+    __slots__ = ("version", "coordinator", "reason", "changes", "queries", "store_weight", "busiest_before", "busiest_after", "mean_load", "unix_time_ns")
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    COORDINATOR_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    CHANGES_FIELD_NUMBER: _ClassVar[int]
+    QUERIES_FIELD_NUMBER: _ClassVar[int]
+    STORE_WEIGHT_FIELD_NUMBER: _ClassVar[int]
+    BUSIEST_BEFORE_FIELD_NUMBER: _ClassVar[int]
+    BUSIEST_AFTER_FIELD_NUMBER: _ClassVar[int]
+    MEAN_LOAD_FIELD_NUMBER: _ClassVar[int]
+    UNIX_TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    version: int
+    coordinator: int
+    reason: PlacementReason
+    changes: _containers.RepeatedCompositeFieldContainer[GroupChange]
+    queries: int
+    store_weight: float
+    busiest_before: float
+    busiest_after: float
+    mean_load: float
+    unix_time_ns: int
+    def __init__(self, version: _Optional[int] = ..., coordinator: _Optional[int] = ..., reason: _Optional[_Union[PlacementReason, str]] = ..., changes: _Optional[_Iterable[_Union[GroupChange, _Mapping]]] = ..., queries: _Optional[int] = ..., store_weight: _Optional[float] = ..., busiest_before: _Optional[float] = ..., busiest_after: _Optional[float] = ..., mean_load: _Optional[float] = ..., unix_time_ns: _Optional[int] = ...) -> None: ...
