@@ -29,7 +29,7 @@ them all). The *worst balance ratio* is ``max_r load[r] / (Q / n)``, Q the numbe
 **Bytes** (the brief's model, not measured on a wire): a query whose owner is another robot
 sends the descriptor (``4 d`` B as float32, or the quantised code) plus 5 B (querier 1 B,
 frame 4 B) and gets 13 B back (squared distance 4 B, robot 1 B, frame 8 B); a query owned by
-its own robot costs 0 B. A replica stored at another robot than the querier costs the same
+its own robot costs 0 B. Each copy stored at another robot than the querier costs the same
 upload again, without an answer.
 """
 
@@ -102,13 +102,13 @@ def eligible(robots: IntArray, order: IntArray) -> BoolArray:
 class Answers:
     """Per frame (in frame order): the owner its query went to, the answer's frame (-1: none)
     and squared distance (inf: none); how many stored descriptors were moved or copied when
-    owners changed; where each frame was stored a second time."""
+    owners changed; where else each frame was stored."""
 
     owners: IntArray
     matches: IntArray
     distances: FloatArray
     migrated: int = 0
-    #: Per frame: the robot it was also stored at (-1: none).
+    #: (N, m): per frame, the robots it was also stored at (-1: none).
     replicas: IntArray | None = None
 
     @property
@@ -119,8 +119,8 @@ class Answers:
 @dataclass(frozen=True, eq=False)
 class Reassignment:
     """From position ``at`` of the arrival order on, frame ``i`` goes to ``owners[i]`` (and is also
-    stored at ``replicas[i]`` when that is >= 0); what was stored before moves to where each
-    stored frame now belongs."""
+    stored at each robot of ``replicas[i]`` that is >= 0: one per frame, or a row of several);
+    what was stored before moves to where each stored frame now belongs."""
 
     at: int
     owners: IntArray
@@ -137,9 +137,10 @@ def run_queries(
 ) -> Answers:
     """Send every frame's query to ``owners[frame]`` in ``order``: one :class:`OwnerIndex` per
     owner, each query searched then stored (frames are stored under their own index), and stored
-    without a search at ``replicas[frame]`` too when given and >= 0 (a second copy near a cell
-    boundary, :mod:`swarmrec.vpr.balance`). At each reassignment's place in the order the owners
-    change and stored entries move. ``Answers.migrated`` counts descriptors moved or copied."""
+    without a search at ``replicas[frame]`` too when given (``(N,)`` or ``(N, m)``; -1: none;
+    copies near a cell boundary, :mod:`swarmrec.vpr.balance`). At each reassignment's place in the
+    order the owners change and stored entries move. ``Answers.migrated`` counts descriptors
+    moved or copied."""
     x = as_descriptors(descriptors, descriptors.shape[1] if descriptors.ndim == 2 else -1)
     n = len(x)
     if not (len(robots) == len(owners) == n and sorted(order.tolist()) == list(range(n))):
@@ -152,28 +153,45 @@ def run_queries(
             "each reassignment must give an owner to every frame and switch at its own place in the order"
         )
     current = owners.astype(np.int64)
-    copies = np.full(n, -1, np.int64) if replicas is None else replicas.astype(np.int64)
+    copies = _copy_table(replicas, n)
+    width = max([copies.shape[1]] + [_copy_table(r.replicas, n).shape[1] for r in reassignments])
     indexes: dict[int, OwnerIndex] = {}
     used = np.empty(n, np.int64)
     matches = np.full(n, -1, np.int64)
     distances = np.full(n, np.inf)
     migrated = 0
-    stored_twice = np.full(n, -1, np.int64)
+    stored_at = np.full((n, width), -1, np.int64)
     for position, i in enumerate(order.tolist()):
         if position in switches:
             switch = switches[position]
             current = switch.owners.astype(np.int64)
-            copies = np.full(n, -1, np.int64) if switch.replicas is None else switch.replicas.astype(np.int64)
+            copies = _copy_table(switch.replicas, n)
             migrated += _migrate(indexes, current, copies, x.shape[1])
         owner = int(current[i])
         used[i] = owner
         match = indexes.setdefault(owner, OwnerIndex(x.shape[1])).query_then_store(x[i], int(robots[i]), i)
         if match is not None:
             matches[i], distances[i] = match.frame, match.distance
-        if copies[i] >= 0 and copies[i] != owner:
-            indexes.setdefault(int(copies[i]), OwnerIndex(x.shape[1])).store(x[i], int(robots[i]), i)
-            stored_twice[i] = copies[i]
-    return Answers(used, matches, distances, migrated, stored_twice)
+        for column, robot in enumerate(_others(copies[i], owner)):
+            indexes.setdefault(robot, OwnerIndex(x.shape[1])).store(x[i], int(robots[i]), i)
+            stored_at[i, column] = robot
+    return Answers(used, matches, distances, migrated, stored_at)
+
+
+def _copy_table(replicas: IntArray | None, n: int) -> IntArray:
+    """Copies as an ``(n, m)`` table of robots (-1: none); one copy a frame is a column."""
+    if replicas is None:
+        return np.full((n, 1), -1, np.int64)
+    table = np.asarray(replicas, np.int64)
+    table = table[:, None] if table.ndim == 1 else table
+    if table.ndim != 2 or len(table) != n:
+        raise ConfigError(f"replicas must be ({n},) or ({n}, m), got {np.shape(replicas)}")
+    return table
+
+
+def _others(row: IntArray, owner: int) -> list[int]:
+    """The distinct robots of a copy row other than the owner, in row order."""
+    return list(dict.fromkeys(int(r) for r in row if r >= 0 and r != owner))
 
 
 def _migrate(indexes: dict[int, OwnerIndex], owners: IntArray, replicas: IntArray, dimension: int) -> int:
@@ -184,7 +202,7 @@ def _migrate(indexes: dict[int, OwnerIndex], owners: IntArray, replicas: IntArra
         robots, frames, vectors = index.export()
         leaving = []
         for j, frame in enumerate(frames.tolist()):
-            targets = {int(owners[frame])} | ({int(replicas[frame])} if replicas[frame] >= 0 else set())
+            targets = {int(owners[frame])} | {int(r) for r in replicas[frame] if r >= 0}
             if holder not in targets:
                 leaving.append(j)
             for target in targets - {holder}:
@@ -230,12 +248,14 @@ def worst_balance_ratio(owners: IntArray, n_robots: int) -> float:
 
 def bytes_per_query(answers: Answers, robots: IntArray, code_bytes: int) -> dict[str, float]:
     """Mean bytes a query sends and receives under the byte model (``code_bytes``: the
-    descriptor on the wire, 4 d for float32), second copies included."""
+    descriptor on the wire, 4 d for float32), copies included (``replica_share``: copies sent
+    to another robot per query)."""
     remote = answers.owners != robots
     share = float(remote.mean()) if len(remote) else 0.0
     copies = 0.0
-    if answers.replicas is not None:
-        copies = float(((answers.replicas >= 0) & (answers.replicas != robots)).mean())
+    if answers.replicas is not None and len(remote):
+        table = _copy_table(answers.replicas, len(remote))
+        copies = float(((table >= 0) & (table != robots[:, None])).sum() / len(remote))
     up = (share + copies) * (code_bytes + QUERY_HEADER_BYTES)
     down = share * ANSWER_BYTES
     return {"remote_share": share, "replica_share": copies, "up": up, "down": down, "total": up + down}

@@ -118,7 +118,22 @@ def test_a_frame_stored_twice_is_found_from_either_owner() -> None:
     answers = run_queries(x, robots, np.array([0, 1, 1, 0]), order, replicas=np.array([1, -1, -1, -1]))
     assert answers.matches.tolist() == [-1, 2, 0, 0]
     assert answers.distances[2] == 0.0 and answers.replicas is not None
-    assert answers.replicas.tolist() == [1, -1, -1, -1]
+    assert answers.replicas.tolist() == [[1], [-1], [-1], [-1]]
+
+
+def test_a_frame_stored_at_two_other_robots_is_found_from_each_and_both_copies_cost_bytes() -> None:
+    x = np.array([[1, 0], [1, 0], [1, 0]], np.float32)  # one place, seen by three robots
+    robots = np.array([0, 1, 2])
+    order = arrival_order(robots)  # 0, 1, 2
+    # Frame 0 goes to robot 0 and is also stored at robots 1 and 2 (its owner listed again is
+    # no copy); frames 1 and 2 go to robots 1 and 2, which find it there.
+    copies = np.array([[1, 2, 0], [-1, -1, -1], [-1, -1, -1]])
+    answers = run_queries(x, robots, np.array([0, 1, 2]), order, replicas=copies)
+    assert answers.matches.tolist() == [-1, 0, 0]
+    assert answers.replicas is not None and answers.replicas.tolist()[0] == [1, 2, -1]
+    # Two copies of frame 0 left its robot: 2 uploads of 517 B over 3 queries; no query was remote.
+    cost = bytes_per_query(answers, robots, 512)
+    assert cost["replica_share"] == pytest.approx(2 / 3) and cost["up"] == pytest.approx(2 / 3 * 517)
 
 
 def test_a_reassignment_puts_copies_where_the_new_tables_say() -> None:
