@@ -6,8 +6,8 @@
    lock-step, three ways, in the same run: the paper's layout (one replica a label group,
    the published 2.67 busiest/mean), two replicas without rebalancing, two replicas
    rebalanced by the rule before the plan (``rebalance_rule="greedy"``, target 1.5), and two
-   replicas rebalanced by the plan (swarmrec.core.rebalance, the default target). For each: the busiest shard's
-   share of partial queries over the whole run and over its second half (after the
+   replicas rebalanced by the plan (swarmrec.core.rebalance, the default target). For each:
+   the busiest shard's share of partial queries over the whole run and over its second half (after the
    coordinator has seen enough load to move groups), bytes per query (the two-step query,
    the replicas' copies, the index's own traffic), placements published, descriptors handed
    off, and whether the pair scores equal the offline evaluation's.

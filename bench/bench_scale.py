@@ -26,11 +26,13 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import csv
 import json
 import os
 import platform
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -71,7 +73,31 @@ def tree_rss_mb(pid: int) -> float:
     return sum(rss_mb(p) for p in tree(pid))
 
 
-def run(robots: int, hosting: str, work: Path, rebalance_target: float) -> dict[str, Any]:
+def _shard_loads(run_dir: Path, robots: int, first_step: int = 0) -> list[int]:
+    """Partial queries each shard answered, from the run's funnel_queries.csv (frames from
+    ``first_step`` on): the second half of a run shows the placement the coordinator chose."""
+    counts: Counter[int] = Counter()
+    with (run_dir / "funnel_queries.csv").open(encoding="utf-8") as f:
+        for row in csv.DictReader(f):
+            if int(row["frame"]) < first_step:
+                continue
+            for item in row["shard_candidates"].split():
+                counts[int(item.partition(":")[0].partition("/")[2])] += 1
+    return [counts.get(r, 0) for r in range(robots)]
+
+
+def _ratio(loads: list[int]) -> float:
+    mean = sum(loads) / len(loads) if loads else 0.0
+    return max(loads) / mean if mean else 0.0
+
+
+def _versions_after_first_rebalance(history: list[dict[str, Any]]) -> int | None:
+    """Placements published after the first rebalancing's (None: it never rebalanced)."""
+    first = next((h["version"] for h in history if h["reason"] == "rebalance"), None)
+    return None if first is None else sum(1 for h in history if h["version"] > first)
+
+
+def run(robots: int, hosting: str, work: Path, rebalance_target: float, rule: str = "pack") -> dict[str, Any]:
     held: list[LocalDeployment] = []
     memory: dict[str, float] = {}
     steps = FRAMES_PER_ROBOT
@@ -88,14 +114,14 @@ def run(robots: int, hosting: str, work: Path, rebalance_target: float) -> dict[
             memory["router_mb"] = rss_mb(d.router.proc.pid) if d.router else 0.0
             memory["processes"] = sum(len(tree(sp.proc.pid)) for sp in procs) + 1
 
-    name = f"{robots}-{hosting.replace(':', '-')}"
+    name = f"{robots}-{hosting.replace(':', '-')}-{rule}-{rebalance_target:g}"
     settings = PlacesSettings(
         source=DatasetSource(frames=FRAMES_PER_ROBOT * robots),
         robots=robots,
         out=work / name,
         swarm=f"scale-{name}",
         request_timeout_s=30.0,
-        index=IndexSettings(rebalance_target=rebalance_target),
+        index=IndexSettings(rebalance_target=rebalance_target, rebalance_rule=rule),  # type: ignore[arg-type]
         progress=False,
         plots=False,
     )
@@ -108,10 +134,13 @@ def run(robots: int, hosting: str, work: Path, rebalance_target: float) -> dict[
     )
     wall = time.perf_counter() - t0
     total = memory.get("services_mb", 0.0) + memory.get("router_mb", 0.0)
+    history = s.index.history if s.index else []
+    second = _shard_loads(settings.out, robots, first_step=steps // 2)
     return {
         "robots": robots,
         "hosting": hosting,
         "rebalance_target": rebalance_target,
+        "rebalance_rule": rule,
         "frames": s.dataset.frames,
         "processes": memory.get("processes"),
         "wall_s": wall,
@@ -125,12 +154,25 @@ def run(robots: int, hosting: str, work: Path, rebalance_target: float) -> dict[
         "memory_per_robot_mb": total / robots,
         "bytes_per_query": s.bytes.per_query,
         "balance_ratio": s.shard_load.balance_ratio,
+        "loads": s.shard_load.partial_queries,
+        # The second half of the run: the placement the coordinator settled on.
+        "balance_ratio_second_half": _ratio(second),
+        "loads_second_half": second,
+        "group_queries": s.index.group_queries if s.index else [],
+        "history": history,
+        "versions_after_first_rebalance": _versions_after_first_rebalance(history),
         # The index at the end: placement version, the most replicas a group got, what
         # storing replicas and index control cost a query, and the store weight measured.
         "placement_version": s.index.version if s.index else None,
         "max_group_replicas": max((len(o) for o in s.index.owners), default=0) if s.index else None,
         "replication_bytes_per_query": s.bytes.replication_per_query,
         "index_control_bytes_per_query": s.bytes.index_control_per_query,
+        # The issue's budget: replica stores and index control over the two-step query's bytes.
+        "replicas_and_control_over_query_bytes": (
+            (s.bytes.replication_per_query + s.bytes.index_control_per_query) / s.bytes.per_query
+            if s.bytes.per_query
+            else None
+        ),
         "store_weight": s.index.store_weight if s.index else None,
         "query_p50_ms": s.queries.latency_ms.get("p50"),
         # A lock-step step: from the step's start until every robot's query of it is answered.
@@ -174,6 +216,40 @@ def plot(results: list[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
+#: What each name of ``--rules`` runs: (rebalance_target, rebalance_rule).
+RULES = {"off": (1000.0, "pack"), "greedy": (1.5, "greedy"), "pack": (IndexSettings.rebalance_target, "pack")}
+
+
+def compare_rules(sizes: list[int], rules: list[str], processes: int, out: Path) -> None:
+    """Each size under each rule, one after the other in the same run (the same machine, the
+    same hour): the balance, its bytes and the placements each rule published."""
+    unknown = [r for r in rules if r not in RULES]
+    if unknown:
+        raise SystemExit(f"unknown rules {unknown}: choose from {sorted(RULES)}")
+    result: dict[str, Any] = {"machine": {"python": platform.python_version(), "cpus": os.cpu_count()}}
+    runs: list[dict[str, Any]] = []
+    result["runs"] = runs
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in sizes:
+            for rule in rules:
+                per = max(1, -(-n // processes))
+                target, name = RULES[rule]
+                print(f"{n} robots, {per} a process, rule {rule} ...", flush=True)
+                r = run(n, f"robots:{per}", Path(tmp), target, name)
+                r["rule"] = rule
+                runs.append(r)
+                write(out, result)
+                print(
+                    f"  busiest/mean {r['balance_ratio']:.2f} "
+                    f"(2nd half {r['balance_ratio_second_half']:.2f}), "
+                    f"{r['bytes_per_query']:.0f} B/query + {r['replication_bytes_per_query']:.0f} replicas "
+                    f"+ {r['index_control_bytes_per_query']:.0f} control, version {r['placement_version']} "
+                    f"({r['versions_after_first_rebalance']} after the first rebalancing), "
+                    f"identical {r['identical_to_offline']}",
+                    flush=True,
+                )
+
+
 def main_bench() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "scale.json")
@@ -188,9 +264,19 @@ def main_bench() -> None:
         default=1000.0,
         help="busiest / mean that triggers a rebalancing (default 1000: never; 0: the swarm's default)",
     )
+    ap.add_argument(
+        "--rules",
+        default="",
+        help="compare placements in the same run, each size under each (comma list of off: no "
+        "rebalancing; greedy: the rule before the plan, target 1.5; pack: the plan, the default "
+        "target); overrides --rebalance-target, and skips the process-per-service baseline",
+    )
     args = ap.parse_args()
     target = args.rebalance_target or IndexSettings.rebalance_target
     sizes = [int(x) for x in args.robots.split(",")]
+    if args.rules:
+        compare_rules(sizes, args.rules.split(","), args.processes, args.out)
+        return
     result: dict[str, Any] = {"machine": {"python": platform.python_version(), "cpus": os.cpu_count()}}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
