@@ -114,7 +114,7 @@ def run(robots: int, hosting: str, work: Path, rebalance_target: float, rule: st
             memory["router_mb"] = rss_mb(d.router.proc.pid) if d.router else 0.0
             memory["processes"] = sum(len(tree(sp.proc.pid)) for sp in procs) + 1
 
-    name = f"{robots}-{hosting.replace(':', '-')}-{rule}-{rebalance_target:g}"
+    name = f"{robots}-{hosting.replace(':', '-')}-{rule}-{rebalance_target:g}".replace(".", "_")
     settings = PlacesSettings(
         source=DatasetSource(frames=FRAMES_PER_ROBOT * robots),
         robots=robots,
