@@ -121,7 +121,13 @@ def run(robots: int, hosting: str, work: Path, rebalance_target: float, rule: st
         out=work / name,
         swarm=f"scale-{name}",
         request_timeout_s=30.0,
-        index=IndexSettings(rebalance_target=rebalance_target, rebalance_rule=rule),  # type: ignore[arg-type]
+        # Ticks of 0.25 s: a lock-step replay here lasts 1 to 5 s, and with the default 1 s tick
+        # the coordinator would see its load only when it is nearly over.
+        index=IndexSettings(
+            rebalance_target=rebalance_target,
+            rebalance_rule=rule,  # type: ignore[arg-type]  # a str from RULES, checked by IndexSettings
+            placement_tick_s=TICK_S,
+        ),
         progress=False,
         plots=False,
     )
@@ -141,6 +147,7 @@ def run(robots: int, hosting: str, work: Path, rebalance_target: float, rule: st
         "hosting": hosting,
         "rebalance_target": rebalance_target,
         "rebalance_rule": rule,
+        "placement_tick_s": TICK_S,
         "frames": s.dataset.frames,
         "processes": memory.get("processes"),
         "wall_s": wall,
@@ -215,6 +222,9 @@ def plot(results: list[dict[str, Any]], path: Path) -> None:
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
+
+#: The coordinator's tick in these runs (see run()).
+TICK_S = 0.25
 
 #: What each name of ``--rules`` runs: (rebalance_target, rebalance_rule).
 RULES = {"off": (1000.0, "pack"), "greedy": (1.5, "greedy"), "pack": (IndexSettings.rebalance_target, "pack")}
