@@ -48,12 +48,14 @@ import math
 import threading
 import time
 from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import Protocol
 
 import zenoh
 
 from swarmrec.core.placement import (
     Placement,
+    balance_ratio,
     follow_members,
     groups_from_bounds,
     promote,
@@ -74,6 +76,16 @@ from swarmrec.wire.placement import placement_from_proto, placement_to_proto
 #: ``rebalance_min_queries``): 200 for 10 shards, 2000 for 100.
 QUERIES_PER_SHARD = 20
 
+#: Whole windows of load a coordinator looks at, asking every shard at every tick, before it
+#: asks only every ``state_interval_s`` (Coordinator._rebalanced): each may publish a
+#: rebalancing (two placement versions), so at most 2 x (LEARNING_LOOKS - 1) versions follow
+#: the first rebalancing while it learns.
+LEARNING_LOOKS = 3
+
+#: A starting shard asks this many of the lowest live shards whether the swarm is further
+#: along than the placement it loaded, before it asks every shard (Coordinator._states_on_start).
+CONFIRM_SAMPLE = 3
+
 #: A rebalancing must lower the busiest shard's share of the load by at least this
 #: fraction, or nothing moves: every move is a handoff, and a placement every querier
 #: must learn (stores routed with the old one are refused until their sender refreshes).
@@ -90,10 +102,37 @@ MIN_COST_SAMPLES = 100
 MAX_STORE_WEIGHT = 4.0
 
 
-def store_weight(states: Iterable[pb.ShardState]) -> float:
-    """A ShardStore's CPU cost over a partial query's, from what the shards measured since
-    they started (their sums); ``DEFAULT_STORE_WEIGHT`` until each was measured
-    ``MIN_COST_SAMPLES`` times. A report that is not finite or is negative is left out."""
+@dataclass(frozen=True)
+class Costs:
+    """Partial queries and ShardStores the shards served, and the CPU seconds they took, summed."""
+
+    query_calls: int = 0
+    query_cpu_s: float = 0.0
+    store_calls: int = 0
+    store_cpu_s: float = 0.0
+
+    def minus(self, earlier: Costs) -> Costs:
+        return Costs(
+            self.query_calls - earlier.query_calls,
+            self.query_cpu_s - earlier.query_cpu_s,
+            self.store_calls - earlier.store_calls,
+            self.store_cpu_s - earlier.store_cpu_s,
+        )
+
+    def weight(self) -> float | None:
+        """A store's mean cost over a query's; None until each was measured ``MIN_COST_SAMPLES``
+        times (or when a shard's restart made a difference of sums negative)."""
+        if self.query_calls < MIN_COST_SAMPLES or self.store_calls < MIN_COST_SAMPLES:
+            return None
+        if self.query_cpu_s <= 0.0 or self.store_cpu_s < 0.0:
+            return None
+        return min(
+            MAX_STORE_WEIGHT, (self.store_cpu_s / self.store_calls) / (self.query_cpu_s / self.query_calls)
+        )
+
+
+def cost_totals(states: Iterable[pb.ShardState]) -> Costs:
+    """The shards' measured costs summed; a report that is not finite or is negative is left out."""
     q_n = s_n = 0
     q_s = s_s = 0.0
     for st in states:
@@ -101,9 +140,22 @@ def store_weight(states: Iterable[pb.ShardState]) -> float:
             continue
         q_n, q_s = q_n + st.query_calls, q_s + st.query_cpu_s
         s_n, s_s = s_n + st.store_calls, s_s + st.store_cpu_s
-    if q_n < MIN_COST_SAMPLES or s_n < MIN_COST_SAMPLES or q_s <= 0.0:
-        return DEFAULT_STORE_WEIGHT
-    return min(MAX_STORE_WEIGHT, (s_s / s_n) / (q_s / q_n))
+    return Costs(q_n, q_s, s_n, s_s)
+
+
+def store_weight(states: Iterable[pb.ShardState], since: Costs | None = None) -> float:
+    """A ShardStore's CPU cost over a partial query's, from what the shards measured: over the
+    window since ``since`` (the sums at the last look) where it has enough of both, else since
+    they started; ``DEFAULT_STORE_WEIGHT`` until each was measured ``MIN_COST_SAMPLES`` times.
+    The window first: a query searches every stored slice of its group, so it costs more as the
+    index fills, and the first queries of a run (an index nearly empty) overstate a store's
+    weight, which would keep a hot group from the replica it needs."""
+    now = cost_totals(states)
+    recent = now.minus(since).weight() if since is not None else None
+    if recent is not None:
+        return recent
+    overall = now.weight()
+    return DEFAULT_STORE_WEIGHT if overall is None else overall
 
 
 class ShardSettings:
@@ -143,9 +195,11 @@ class Shard(Protocol):
 
 __all__ = [
     "Coordinator",
+    "Costs",
     "Shard",
     "ShardSettings",
     "View",
+    "cost_totals",
     "group_changes",
     "must_look",
     "present_members",
@@ -262,8 +316,13 @@ class Coordinator:
         self._looked = -math.inf
         self._view: View | None = None
         self._dirty = False
-        # Whether a rebalancing look has seen a whole window of load since this shard took over.
+        # Whether this coordinator still looks at the load every tick (see _rebalanced), and
+        # how many whole windows of load it has looked at since it took over.
         self._learning = True
+        self._learning_looks = 0
+        # The shards' measured costs at the last rebalancing look (a store's weight is read
+        # over the window since).
+        self._cost_mark: Costs | None = None
         # The load the last rebalancing was planned on (for its PlacementChange event).
         self._plan: pb.PlacementChange | None = None
 
@@ -347,9 +406,7 @@ class Coordinator:
         for the coordinator to send it; otherwise the one loaded (or version 0) is it."""
         s = self.shard
         try:
-            # Only a newer placement matters here: the shards on this one need not send it
-            # (every shard of a starting swarm asks every other).
-            states = self.states(s.placement.version)
+            states = self._states_on_start()
         except CallError:
             states = {}
         newest = max(
@@ -368,6 +425,51 @@ class Coordinator:
                 "the swarm is further along: waiting for the coordinator",
                 extra={"fields": {"version": s.placement.version, "swarm_version": newest}},
             )
+
+    def _states_on_start(self) -> dict[int, pb.ShardState]:
+        """What a starting shard asks to learn whether the swarm is further along: the
+        ``CONFIRM_SAMPLE`` lowest live shards first (the lowest present is the coordinator,
+        which follows the newest placement), every shard only when none of those is confirmed
+        (a swarm starting, or the lowest ones restarting with it). Every shard of a starting
+        hundred asking every other was 10,000 states, most of a short run's index traffic.
+        Only a newer placement matters: the shards on this one leave it out of their answer."""
+        s = self.shard
+        known = s.placement.version
+        live: set[int] = set()
+        for rep in s.ctx.session.liveliness().get(
+            keys.alive(s.bus.swarm, "index-shard", "*"), timeout=s.bus.request_timeout_s
+        ):
+            if rep.ok is not None and (parsed := keys.parse_alive(str(rep.ok.key_expr))) is not None:
+                live.add(parsed[1])
+        sample = sorted(live - {s.shard})[:CONFIRM_SAMPLE]
+        if sample:
+            states = self._ask_states(sample, known)
+            if any(st.confirmed for st in states.values()):
+                return states
+        return self.states(known)
+
+    def _ask_states(self, shards: list[int], known_version: int) -> dict[int, pb.ShardState]:
+        """The states of ``shards``, asked all at once; one that does not answer is left out."""
+        s = self.shard
+        asked = [
+            (
+                m,
+                s.ctx.caller.start(
+                    keys.endpoint(s.bus.swarm, "index-shard", m, "placement"),
+                    pb.PlacementRequest(known_version=known_version),
+                    target_robot=m,
+                    endpoint="placement",
+                ),
+            )
+            for m in shards
+        ]
+        out = {}
+        for m, pending in asked:
+            try:
+                out[m] = pending.result(pb.ShardState)
+            except CallError:
+                continue
+        return out
 
     def _adopt(self, shards: list[int], placement: Placement) -> None:
         """Send ``placement`` to ``shards`` (all at once); a shard that does not answer gets
@@ -523,7 +625,7 @@ class Coordinator:
                 self.log.info("acting as the index coordinator", extra=fields)
                 # A new coordinator looks at a window of its own before it rebalances.
                 self._load_mark = None
-                self._learning = True
+                self._learning, self._learning_looks, self._cost_mark = True, 0, None
             self.acting = True
         current = s.placement
         # Members gone for less than the grace (or not started yet) still count: a shard
@@ -597,9 +699,18 @@ class Coordinator:
         if sum(window.values()) < needed:
             return None
         self._load_mark = totals
-        self._learning = False
+        # Learning (asking every tick) ends once the load is within the target, or after
+        # LEARNING_LOOKS windows: the first windows of a run see an index still nearly empty
+        # (queries cheap, so a store's weight high) and loads still shifting, and the next
+        # window may well plan better; under a steady load the plan no longer changes.
+        self._learning_looks += 1
+        self._learning = self._learning_looks < LEARNING_LOOKS
         load = {g: float(n) for g, n in totals.items()}
-        weight = store_weight(states.values())
+        weight = store_weight(states.values(), self._cost_mark)
+        self._cost_mark = cost_totals(states.values())
+        if balance_ratio(shard_loads(current, load, weight)) <= self.settings.rebalance_target:
+            self._learning = False
+            return None
         balanced = RULES[self.settings.rebalance_rule](
             current,
             load,

@@ -41,7 +41,7 @@ import zenoh
 
 from swarmrec.client import ZenohClient
 from swarmrec.core.descriptor import semantic_descriptor
-from swarmrec.core.placement import Placement, groups_from_bounds
+from swarmrec.core.placement import Placement, balance_ratio, groups_from_bounds, shard_loads
 from swarmrec.core.presets import get_preset
 from swarmrec.core.split import split_frames
 from swarmrec.core.types import ConstellationSequence
@@ -542,6 +542,12 @@ def test_the_shard_statefulset_scales_from_3_to_6_to_2_and_back(swarm: Swarm) ->
     # SWARMREC_MAX_SHARDS, the Secret their identities), and the elastic index places the run's
     # label groups (its bounds unchanged) on whichever shards are alive.
     before = check_swarm(swarm, {0, 1, 2})
+    # The run's load per label group, as the shards counted it (Prometheus, every pod): the same
+    # partial queries as the query reports say the shards answered. Each placement the scaling
+    # settles on is recorded with the busiest / mean it gives that load.
+    assert swarm.summary.index is not None
+    group_load = dict(enumerate(float(n) for n in swarm.summary.index.group_queries))
+    assert sum(group_load.values()) == sum(swarm.summary.shard_load.partial_queries) > 0
     uids = {n: p["uid"] for n, p in swarm.pods("index-shard").items()}
     maps = json.loads(swarm.k("get", "configmaps", "-o", "json"))["items"]
     (shared,) = [m["data"] for m in maps if "SWARMREC_N_ROBOTS" in m.get("data", {})]
@@ -561,6 +567,9 @@ def test_the_shard_statefulset_scales_from_3_to_6_to_2_and_back(swarm: Swarm) ->
         placement = settled_on(swarm.deployment, set(range(n)))
         swarm.timings[f"scale_to_{n}_pods_s"] = pods_s
         swarm.timings[f"scale_to_{n}_settled_s"] = time.monotonic() - t0
+        ratio = balance_ratio(shard_loads(placement, group_load))
+        swarm.timings[f"scale_to_{n}_balance_ratio"] = ratio
+        assert 1.0 <= ratio <= n, (n, ratio, placement.owners)
         return check_swarm(swarm, set(range(n)), placement)
 
     six = resize(6)

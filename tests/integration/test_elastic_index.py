@@ -30,7 +30,7 @@ import pytest
 
 from swarmrec.client import ZenohClient
 from swarmrec.core.descriptor import semantic_descriptor
-from swarmrec.core.placement import Placement
+from swarmrec.core.placement import Placement, ring
 from swarmrec.core.presets import get_preset
 from swarmrec.core.split import split_frames
 from swarmrec.datasets.constellations import read_constellations
@@ -183,6 +183,16 @@ def test_a_shard_killed_and_a_new_one_added_mid_run_lose_nothing_and_scores_stay
     assert summary.index.store_weight is not None and 0.0 < summary.index.store_weight < MAX_STORE_WEIGHT
     final = seen["final"]
     assert victim[0] in final.members and final.groups_of(victim[0]), "the new shard took groups"
+    # The report's history is every placement published, and explains the last one: from
+    # version 0 (every shard's ring), each change's gained and lost holders give its owners.
+    history = summary.index.history
+    assert [h["version"] for h in history] == list(range(1, summary.index.version + 1)), history
+    assert {h["reason"] for h in history} == {"members", "handoff_done"}  # no rebalancing here
+    held = [set(own) for own in ring(final.groups, range(ROBOTS), replicas=2).owners]
+    for h in history:
+        for g, change in h["groups"].items():
+            held[int(g)] = (held[int(g)] | set(change["gained"])) - set(change["lost"])
+    assert held == [set(own) for own in final.owners]
 
 
 @pytest.mark.slow

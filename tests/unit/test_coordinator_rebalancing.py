@@ -18,11 +18,13 @@ from swarmrec.core.placement import Placement, shard_loads
 from swarmrec.errors import WireError
 from swarmrec.services.coordinator import (
     DEFAULT_STORE_WEIGHT,
+    LEARNING_LOOKS,
     MAX_STORE_WEIGHT,
     MIN_COST_SAMPLES,
     MIN_GAIN,
     Coordinator,
     View,
+    cost_totals,
     must_look,
     present_members,
     served_load,
@@ -245,3 +247,36 @@ def test_the_coordinator_looks_at_once_when_anything_changed(change: dict[str, o
     }
     assert not must_look(**args)  # type: ignore[arg-type]
     assert must_look(**{**args, **change})  # type: ignore[arg-type]
+
+
+def test_learning_ends_with_a_balanced_load_or_after_a_few_windows() -> None:
+    # Balanced already: nothing to learn.
+    even = Placement(1, GROUPS, ((0,), (1,), (2,), (0, 1, 2)), (0, 1, 2), replicas=1)
+    c = coordinator(target=1.2)
+    assert c._rebalanced(even, states([300, 0, 0, 100], [0, 300, 0, 100], [0, 0, 300, 100])) is None
+    assert not c._learning
+    # Unbalanced, and no move gains enough (the 5 % case above): it looks again at the next
+    # windows, LEARNING_LOOKS of them, then only every state_interval_s. A rebalancing does not
+    # end it either: the first windows of a run may plan on loads that still shift.
+    current = Placement(1, GROUPS, ((0,), (0,), (1,), (2,)), (0, 1, 2), replicas=1)
+    c = coordinator()
+    per_shard = ([95, 10, 0, 0], [0, 0, 100, 0], [0, 0, 0, 50])
+    for look in range(1, LEARNING_LOOKS + 1):
+        grown = states(*([n * look for n in q] for q in per_shard))
+        assert c._rebalanced(current, grown) is None
+        assert c._learning == (look < LEARNING_LOOKS)
+    c = coordinator()
+    assert c._rebalanced(current, states([60, 60, 0, 0], [0, 0, 10, 0], [0, 0, 0, 10])) is not None
+    assert c._learning
+
+
+def test_the_store_weight_is_read_over_the_window_since_the_last_look_when_it_has_enough() -> None:
+    # Since the start: stores 0.5 ms, queries 1 ms (weight 0.5); over the last window queries
+    # cost 2 ms (the index has filled), stores the same: 0.25.
+    start = [costed(200, 0.2, 200, 0.1)]
+    later = [costed(400, 0.6, 400, 0.2)]
+    assert store_weight(later) == pytest.approx(1 / 3)  # (0.2 / 400) / (0.6 / 400)
+    assert store_weight(later, cost_totals(start)) == pytest.approx(0.25)
+    # Too few new samples, or a shard restarted (sums went down): since the start instead.
+    assert store_weight([costed(250, 0.25, 250, 0.125)], cost_totals(start)) == pytest.approx(0.5)
+    assert store_weight(start, cost_totals(later)) == pytest.approx(0.5)
