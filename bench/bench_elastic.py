@@ -47,6 +47,9 @@ ROBOTS = 10
 #: The coordinator's tick in the balance runs: the lock-step replay lasts about 5 s, and with the
 #: default 1 s tick the coordinator sees its load only a third of the way in.
 TICK_S = 0.25
+#: Each lock-step step of the balance runs lasts at least this (robots at 20 frames a second, a
+#: 13 s replay): a replay over in 5 s measures mostly how long the coordinator took to see it.
+STEP_S = 0.05
 
 
 def _loads(run: Path, robots: int, first_step: int = 0) -> list[int]:
@@ -80,8 +83,17 @@ def balance(name: str, index: IndexSettings, work: Path) -> dict[str, Any]:
         plots=False,
         index=index,
     )
+    paced = [time.perf_counter()]
+
+    def on_step(t: int) -> None:
+        # Each lock-step step lasts at least STEP_S: robots whose frames come at a rate.
+        wait = paced[0] + STEP_S - time.perf_counter()
+        if wait > 0:
+            time.sleep(wait)
+        paced[0] = time.perf_counter()
+
     t0 = time.perf_counter()
-    s = main(settings, LocalDeployment.for_run(settings.out))
+    s = main(settings, LocalDeployment.for_run(settings.out), on_step=on_step)
     wall = time.perf_counter() - t0
     steps = max(len(b) for b in split_frames(s.dataset.frames, ROBOTS))
     whole = _loads(out, ROBOTS)
@@ -92,6 +104,7 @@ def balance(name: str, index: IndexSettings, work: Path) -> dict[str, Any]:
         "replicas": index.replicas,
         "rebalance_target": index.rebalance_target,
         "rebalance_rule": index.rebalance_rule,
+        "step_s": STEP_S,
         "placement_tick_s": index.placement_tick_s,
         "loads": whole,
         "balance_ratio": _ratio(whole),

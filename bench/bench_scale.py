@@ -97,7 +97,9 @@ def _versions_after_first_rebalance(history: list[dict[str, Any]]) -> int | None
     return None if first is None else sum(1 for h in history if h["version"] > first)
 
 
-def run(robots: int, hosting: str, work: Path, rebalance_target: float, rule: str = "pack") -> dict[str, Any]:
+def run(
+    robots: int, hosting: str, work: Path, rebalance_target: float, rule: str = "pack", step_s: float = 0.0
+) -> dict[str, Any]:
     held: list[LocalDeployment] = []
     memory: dict[str, float] = {}
     steps = FRAMES_PER_ROBOT
@@ -106,7 +108,15 @@ def run(robots: int, hosting: str, work: Path, rebalance_target: float, rule: st
         assert isinstance(d, LocalDeployment)
         held.append(d)
 
+    paced = [time.perf_counter()]
+
     def on_step(t: int) -> None:
+        # Each lock-step step lasts at least step_s: robots whose frames come at a rate, as
+        # real ones do, while the swarm still answers every step before the next.
+        wait = paced[0] + step_s - time.perf_counter()
+        if wait > 0:
+            time.sleep(wait)
+        paced[0] = time.perf_counter()
         if t == steps - 1:  # the last step: every process holds all it will hold
             d = held[0]
             procs = [sp for sp in d.procs if sp.proc.poll() is None]
@@ -148,6 +158,7 @@ def run(robots: int, hosting: str, work: Path, rebalance_target: float, rule: st
         "rebalance_target": rebalance_target,
         "rebalance_rule": rule,
         "placement_tick_s": TICK_S,
+        "step_s": step_s,
         "frames": s.dataset.frames,
         "processes": memory.get("processes"),
         "wall_s": wall,
@@ -225,6 +236,10 @@ def plot(results: list[dict[str, Any]], path: Path) -> None:
 
 #: The coordinator's tick in these runs (see run()).
 TICK_S = 0.25
+#: In ``--rules`` runs each lock-step step lasts at least this (robots at 5 frames a second):
+#: the coordinator rebalances on the load it sees, and a replay that is over in a few seconds
+#: measures mostly how long it took to see it.
+STEP_S = 0.2
 
 #: What each name of ``--rules`` runs: (rebalance_target, rebalance_rule).
 RULES = {"off": (1000.0, "pack"), "greedy": (1.5, "greedy"), "pack": (IndexSettings.rebalance_target, "pack")}
@@ -245,7 +260,7 @@ def compare_rules(sizes: list[int], rules: list[str], processes: int, out: Path)
                 per = max(1, -(-n // processes))
                 target, name = RULES[rule]
                 print(f"{n} robots, {per} a process, rule {rule} ...", flush=True)
-                r = run(n, f"robots:{per}", Path(tmp), target, name)
+                r = run(n, f"robots:{per}", Path(tmp), target, name, STEP_S)
                 r["rule"] = rule
                 runs.append(r)
                 write(out, result)

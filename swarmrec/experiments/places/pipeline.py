@@ -279,13 +279,16 @@ def main(
         t0 = time.perf_counter()
         index_state = client.wait_index_settled(timeout_s=SETTLE_TIMEOUT_S, stall_s=SETTLE_STALL_S)
         timings["settle_s"] = time.perf_counter() - t0
+        # The history up to the placement the report describes: a coordinator may publish
+        # another after it (it does not know the replay is over).
+        final = index_state.placement.version if index_state.placement is not None else -1
+        placement_changes = [c for c in _drain_placement_changes(placements) if c.version <= final]
         if after_replay is not None:
             after_replay(deployment)
         t0 = time.perf_counter()
         metrics = deployment.metrics()
         timings["scrape_s"] = time.perf_counter() - t0
         closures = collect_loop_closures(client, settings.robots, result)
-        placement_changes = _drain_placement_changes(placements)
     exit_codes = session.exit_codes
     seq, detector = prepared.sequence, None
     if prepared.pixels is not None:
