@@ -57,6 +57,13 @@ import swarmrec
 from swarmrec.client import GatewayClient, ZenohClient
 from swarmrec.deployments.base import AttachFile, DeploymentError, SwarmSpec
 from swarmrec.deployments.identities import client_tls, swarm_pki
+from swarmrec.deployments.k8s_workloads import (
+    detections_of,
+    made_here,
+    pod_inputs,
+    robot_kinds_of,
+    workload_objects,
+)
 from swarmrec.deployments.metrics import Scrape, scrape_prometheus
 from swarmrec.deployments.pod_status import not_ready_containers, not_ready_report, selector_of
 from swarmrec.errors import ConfigError
@@ -300,9 +307,16 @@ def secret_objects(
     return objs
 
 
-def make_secrets(kubectl: Kubectl, pki: Path, swarm: str, robots: int, namespace: str) -> list[str]:
-    """Create (or update) the swarm's Secrets in ``namespace``; their names."""
-    objs = secret_objects(pki, swarm, robots, namespace)
+def make_secrets(
+    kubectl: Kubectl,
+    pki: Path,
+    swarm: str,
+    robots: int,
+    namespace: str,
+    kinds: Sequence[str] = ROBOT_KINDS,
+) -> list[str]:
+    """Create (or update) the Secrets of a swarm running ``kinds`` in ``namespace``; their names."""
+    objs = secret_objects(pki, swarm, robots, namespace, kinds)
     kubectl.apply(objs)
     return [o["metadata"]["name"] for o in objs]
 
@@ -365,7 +379,7 @@ def install_identities(
     this machine can reach both by address), then the PKI is made or completed in ``pki`` for
     ``max_robots`` robots (at least the overlay's robots and its ``SWARMREC_MAX_SHARDS``, so
     every shard the StatefulSet may be scaled to has its identity), and the Secrets applied.
-    The pods of the overlay, applied after, find them."""
+    The pods of the overlay, applied after, find them (a Secret for each of its robot kinds)."""
     namespace, swarm, _ = swarm_of(objects)
     robots = max(max_shards_of(objects), max_robots)
     kubectl.apply([o for o in objects if o["kind"] in ("Namespace", "Service")])
@@ -384,7 +398,7 @@ def install_identities(
         router_names=(ips["router"], *router_names),
         gateway_names=(ips["gateway"], *gateway_names),
     )
-    names = make_secrets(kubectl, folder, swarm, robots, namespace)
+    names = make_secrets(kubectl, folder, swarm, robots, namespace, robot_kinds_of(objects) or ROBOT_KINDS)
     return Identities(namespace, swarm, robots, folder, ips, names)
 
 
@@ -502,25 +516,29 @@ def index_shard_patch(spec: SwarmSpec) -> Obj:
 
 
 def overlay_document(spec: SwarmSpec, namespace: str, base: str, files: dict[str, str]) -> Obj:
-    """The kustomization of one run on top of the overlay at the relative path ``base``."""
+    """The kustomization of one run on top of the overlay at the relative path ``base``
+    (``files``: the replaying detectors' dataset; none for a spec whose robot StatefulSets
+    are made after rendering, :mod:`swarmrec.deployments.k8s_workloads`)."""
+    generators: list[Obj] = [
+        {
+            "name": "swarm",
+            "behavior": "merge",
+            "literals": [f"{k}={v}" for k, v in shared_env(spec).items()],
+        }
+    ]
+    patches = [{"path": "index-shard.json", "target": {"kind": "StatefulSet", "name": "index-shard"}}]
+    if files:
+        generators.append({"name": DATASET_CONFIGMAP, "files": sorted(files)})
+        patches.insert(0, {"path": "detector.json", "target": {"kind": "StatefulSet", "name": "detector"}})
     return {
         "apiVersion": "kustomize.config.k8s.io/v1beta1",
         "kind": "Kustomization",
         "namespace": namespace,
         "resources": [base],
-        "replicas": [{"name": kind, "count": spec.robots} for kind in spec.kinds],
-        "configMapGenerator": [
-            {
-                "name": "swarm",
-                "behavior": "merge",
-                "literals": [f"{k}={v}" for k, v in shared_env(spec).items()],
-            },
-            {"name": DATASET_CONFIGMAP, "files": sorted(files)},
-        ],
-        "patches": [
-            {"path": "detector.json", "target": {"kind": "StatefulSet", "name": "detector"}},
-            {"path": "index-shard.json", "target": {"kind": "StatefulSet", "name": "index-shard"}},
-        ],
+        # The kinds the manifests have; the others' StatefulSets are made with the spec's robots.
+        "replicas": [{"name": kind, "count": spec.robots} for kind in spec.kinds if kind in ROBOT_KINDS],
+        "configMapGenerator": generators,
+        "patches": patches,
     }
 
 
@@ -529,10 +547,14 @@ def write_overlay(spec: SwarmSpec, namespace: str, overlay: Path, folder: Path) 
     ``overlay``, the detector's patch and the dataset's files; returns ``folder``."""
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
-    files = dataset_files(spec, folder)
-    (folder / "detector.json").write_text(json.dumps(detector_patch(files), indent=1) + "\n")
+    files: dict[str, str] = {}
+    if not made_here(spec):
+        files = dataset_files(spec, folder)
+        (folder / "detector.json").write_text(json.dumps(detector_patch(files), indent=1) + "\n")
     (folder / "index-shard.json").write_text(json.dumps(index_shard_patch(spec), indent=1) + "\n")
-    doc = overlay_document(spec, namespace, os.path.relpath(overlay.resolve(), folder.resolve()), files)
+    # The settings as the pods read them: host paths become the pods' (k8s_workloads.pod_inputs).
+    pods = pod_inputs(spec).spec
+    doc = overlay_document(pods, namespace, os.path.relpath(overlay.resolve(), folder.resolve()), files)
     # JSON is YAML: kustomize reads it, and nothing needs a YAML library.
     (folder / "kustomization.yaml").write_text(
         f"# Generated by swarmrec {swarmrec.__version__} (swarmrec/deployments/kubernetes.py): "
@@ -647,7 +669,6 @@ class KubernetesDeployment:
 
     #: An operator may scale the robots' StatefulSets while a run replays.
     fixed_size = False
-    local_data_dir = None
     emulated_links = None
 
     def __init__(self, settings: KubernetesSettings, *, info: KubernetesFile | None = None) -> None:
@@ -664,6 +685,10 @@ class KubernetesDeployment:
         self._progress = False
         #: Node folders of the namespace's volumes, removed with it.
         self._volumes: list[str] = list(info.node_volumes) if info is not None else []
+        #: The rgbd detectors' node folders by robot (copied back at stop).
+        self._detections: dict[int, Path] = {}
+        self._node_roots: list[Path] | None = None
+        self._attached = info is not None
 
     @classmethod
     def attached(cls, folder: Path) -> KubernetesDeployment:
@@ -749,11 +774,49 @@ class KubernetesDeployment:
         return after if self._baseline is None else after.minus(self._baseline)
 
     def stop(self) -> dict[str, int]:
-        """Remove the namespace this deployment created (unless ``keep``); no exit codes (the
-        pods are the cluster's)."""
+        """Copy what the rgbd detectors wrote to :attr:`local_data_dir`, then remove the namespace
+        this deployment created (unless ``keep``); no exit codes (the pods are the cluster's)."""
+        if self.created:
+            self._copy_detections()
         if self.created and not self.settings.keep:
             self.remove()
         return {}
+
+    @property
+    def local_data_dir(self) -> Path | None:
+        """Where the run reads what the detectors wrote (``robot<r>/detector``, as a local run lays
+        it out), copied there from their node folders when the swarm stops: ``<out>/data`` when
+        this deployment starts the swarm on an overlay that keeps volumes on this node; None for
+        a swarm attached to, or one whose volumes are claims elsewhere."""
+        if self._attached:
+            return None
+        if self._node_roots is None:
+            self._node_roots = sorted(_hostpath_roots(self.kubectl.render(self.settings.overlay)))
+        return self.settings.out.resolve() / "data" if self._node_roots else None
+
+    def _frames_folder(self, objects: Sequence[Obj], needed: bool) -> Path | None:
+        """The node folder the detectors' RGB-D frames go in, when the spec has some; ConfigError
+        when the overlay keeps nothing on the node."""
+        if not needed:
+            return None
+        roots = sorted(_hostpath_roots(objects))
+        if not roots:
+            raise ConfigError(
+                "detectors that read RGB-D frames get them from a node folder, and this overlay keeps no "
+                f"volume on the node ({self.settings.overlay}): use k8s/overlays/local, or run from pixels "
+                "on local processes"
+            )
+        return roots[0] / self.namespace / "frames"
+
+    def _copy_detections(self) -> None:
+        """The rgbd detectors' data folders, from the node into ``<out>/data/robot<r>/detector``."""
+        if not self._detections:
+            return
+        target = self.settings.out.resolve() / "data"
+        shutil.rmtree(target, ignore_errors=True)
+        for robot, folder in self._detections.items():
+            if folder.is_dir():
+                shutil.copytree(folder, target / f"robot{robot}" / "detector")
 
     # --- deploying ------------------------------------------------------------------------
 
@@ -790,10 +853,9 @@ class KubernetesDeployment:
     def _deploy(self, spec: SwarmSpec) -> SwarmSpec:
         """Deploy ``spec`` (as :func:`cluster_spec` makes it for the certificates' robots)."""
         s, t0 = self.settings, time.monotonic()
-        if spec.kinds != ROBOT_KINDS or spec.swarm_kinds != ("gateway",):
+        if spec.swarm_kinds != ("gateway",):
             raise ConfigError(
-                f"the Kubernetes manifests run {', '.join(ROBOT_KINDS)} on each robot and a gateway "
-                f"(the places workload), not {', '.join(spec.kinds)}"
+                f"the Kubernetes manifests run a router and a gateway for the swarm, not {spec.swarm_kinds}"
             )
         if 0 < s.max_robots < spec.robots:
             raise ConfigError(f"max_robots ({s.max_robots}) is smaller than the swarm ({spec.robots} robots)")
@@ -805,6 +867,9 @@ class KubernetesDeployment:
         spec = cluster_spec(spec, max_robots)
         out = s.out.resolve()
         objects = self.kubectl.render(write_overlay(spec, self.namespace, s.overlay, out / "overlay"))
+        inputs = pod_inputs(spec)
+        frames_on_node = self._frames_folder(objects, inputs.frames is not None)
+        objects = workload_objects(objects, inputs, self.namespace, frames_on_node)
         self.timings["render_s"] = time.monotonic() - t0
 
         if self.kubectl.run("get", "namespace", self.namespace, "--ignore-not-found", "-o", "name").strip():
@@ -822,6 +887,11 @@ class KubernetesDeployment:
         t1 = time.monotonic()
         self._volumes = sorted(str(r / self.namespace) for r in roots)
         self.created = True  # from here on, stop() removes what was made
+        if inputs.frames is not None and frames_on_node is not None:
+            # The detectors' RGB-D frames, on the node (read-only in their pods).
+            shutil.copytree(inputs.frames, frames_on_node)
+        if inputs.frames is not None:
+            self._detections = detections_of(objects, self.namespace, sorted(roots), spec.robots)
         ids = install_identities(self.kubectl, objects, out / "pki", max_robots=max_robots)
         ips, pki = ids.cluster_ips, ids.pki
         if not ips.get("prometheus") or ips["prometheus"] == "None":
