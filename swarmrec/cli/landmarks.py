@@ -6,8 +6,10 @@ import argparse
 from pathlib import Path
 
 from swarmrec.cli.common import Subparsers
+from swarmrec.cli.k8s import add_cluster_flags, kubectl_of
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.compose import ComposeDeployment
+from swarmrec.deployments.kubernetes import DEFAULT_OVERLAY, KubernetesDeployment, KubernetesSettings
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.errors import ConfigError
 from swarmrec.experiments.landmarks import DEFAULT_LAWS, VIEW_PRESETS, LandmarkSettings, main, parse_law
@@ -54,6 +56,18 @@ def add(sub: Subparsers) -> None:
         help="run the rounds through the compose swarm of DIR (swarmrec compose up --workload landmarks) "
         "instead of starting local processes",
     )
+    p.add_argument(
+        "--deployment",
+        choices=("local", "k8s"),
+        default="local",
+        help="where the robots run when not attached: local processes (default), or k8s: a detector and a "
+        "fusion pod per robot in a new namespace of a Kubernetes cluster (docs/kubernetes.md)",
+    )
+    k8s = p.add_argument_group("kubernetes", "with --deployment k8s")
+    k8s.add_argument(
+        "--namespace", default="swarmrec-landmarks", help="the swarm's namespace (default swarmrec-landmarks)"
+    )
+    add_cluster_flags(k8s)
     p.add_argument("--out", type=Path, default=Path("runs/landmarks"), help="report folder")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(handler=run)
@@ -83,7 +97,21 @@ def run(args: argparse.Namespace) -> int:
     )
     if fixed:
         settings = settings.with_(**fixed)
-    deployment: Deployment = attached if attached is not None else LocalDeployment.for_run(settings.out)
+    deployment: Deployment
+    if attached is not None:
+        deployment = attached
+    elif args.deployment == "k8s":
+        deployment = KubernetesDeployment(
+            KubernetesSettings(
+                namespace=args.namespace,
+                out=settings.out / "k8s",
+                overlay=args.overlay or DEFAULT_OVERLAY,
+                kubectl=kubectl_of(args),
+                max_robots=args.max_robots,
+            )
+        )
+    else:
+        deployment = LocalDeployment.for_run(settings.out)
     summary = main(settings, deployment, figure_law=args.figure_law)
     st, checks = summary.settings, summary.checks
     print(

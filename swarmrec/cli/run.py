@@ -150,6 +150,31 @@ def add(sub: Subparsers) -> None:
     p.set_defaults(handler=run)
 
 
+def _kubernetes(args: argparse.Namespace, out: Path) -> KubernetesDeployment:
+    """``--deployment k8s``: the run's namespace, its overlay, PKI and report under ``out/k8s``."""
+    if args.link_rate or args.link_latency or args.link_schedule:
+        raise ConfigError("emulated links are set up by the local deployment (not --deployment k8s)")
+    if args.insecure or args.hosting != "service":
+        raise ConfigError(
+            "a Kubernetes swarm runs one service per pod under mutual TLS: drop --insecure and --hosting"
+        )
+    if args.data_plane != "compiled":
+        raise ConfigError(
+            "a Kubernetes swarm runs what its images and overlay say: --data-plane applies to "
+            "local processes (set SWARMREC_DATA_PLANE in the overlay instead)"
+        )
+    return KubernetesDeployment(
+        KubernetesSettings(
+            namespace=args.namespace,
+            out=out / "k8s",
+            overlay=args.overlay or DEFAULT_OVERLAY,
+            kubectl=kubectl_of(args),
+            max_robots=args.max_robots,
+            keep=args.keep,
+        )
+    )
+
+
 def _camera(text: str) -> tuple[float, float, float, float]:
     try:
         fx, fy, cx, cy = (float(v) for v in text.split(","))
@@ -198,33 +223,18 @@ def run(args: argparse.Namespace) -> int:
         **common,
     )
     if args.method != "constellations":
-        if args.deployment == "k8s":
-            raise ConfigError("--method dvpr and both run on local processes (not --deployment k8s)")
-        return run_method(args, settings, local_settings(args), print_summary)
+        if args.deployment != "k8s":
+            return run_method(args, settings, local_settings(args), print_summary)
+        if args.keep:
+            raise ConfigError("--keep leaves a places swarm running; --method dvpr and both remove theirs")
+        # Each method's swarm in the run's namespace, one after the other.
+        return run_method(
+            args, settings, local_settings(args), print_summary, lambda folder: _kubernetes(args, folder)
+        )
     deployment: Deployment
     k8s: KubernetesDeployment | None = None
     if args.deployment == "k8s":
-        if args.link_rate or args.link_latency or args.link_schedule:
-            raise ConfigError("emulated links are set up by the local deployment (not --deployment k8s)")
-        if args.insecure or args.hosting != "service":
-            raise ConfigError(
-                "a Kubernetes swarm runs one service per pod under mutual TLS: drop --insecure and --hosting"
-            )
-        if args.data_plane != "compiled":
-            raise ConfigError(
-                "a Kubernetes swarm runs what its images and overlay say: --data-plane applies to "
-                "local processes (set SWARMREC_DATA_PLANE in the overlay instead)"
-            )
-        k8s = KubernetesDeployment(
-            KubernetesSettings(
-                namespace=args.namespace,
-                out=args.out / "k8s",
-                overlay=args.overlay or DEFAULT_OVERLAY,
-                kubectl=kubectl_of(args),
-                max_robots=args.max_robots,
-                keep=args.keep,
-            )
-        )
+        k8s = _kubernetes(args, args.out)
         deployment = k8s
     else:
         # (Links, hosting and security are the local deployment's; a bad schedule is refused here.)

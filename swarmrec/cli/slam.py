@@ -7,12 +7,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from swarmrec.cli.common import Subparsers
+from swarmrec.cli.k8s import add_cluster_flags, kubectl_of
 from swarmrec.slam.centralized import METHODS
 from swarmrec.slam.dgs import DEFAULT_ETA, DEFAULT_LINEARISATIONS, MODES, DgsSettings
 from swarmrec.slam.ordering import ORDERINGS
 from swarmrec.slam.scenarios import WORLDS
 
 if TYPE_CHECKING:
+    from swarmrec.deployments.base import Deployment
     from swarmrec.deployments.local import LocalSettings
 
 __all__ = ["add", "run"]
@@ -119,6 +121,18 @@ def add(sub: Subparsers) -> None:
         "--solve-timeout-s", type=float, default=600.0, help="the longest the whole solve may take"
     )
     live.add_argument("--insecure", action="store_true", help="plaintext links (debugging; logged)")
+    live.add_argument(
+        "--deployment",
+        choices=("local", "k8s"),
+        default="local",
+        help="where the team runs: local processes (default), or k8s: one slam pod per robot in a new "
+        "namespace of a Kubernetes cluster, mutual TLS from Secrets made for the run (docs/kubernetes.md)",
+    )
+    k8s = live.add_argument_group("kubernetes", "with --deployment k8s")
+    k8s.add_argument(
+        "--namespace", default="swarmrec-slam", help="the team's namespace (default swarmrec-slam)"
+    )
+    add_cluster_flags(k8s)
     live.add_argument("--no-check", action="store_true", help="skip the comparison with the in-process solve")
     live.add_argument("--overwrite", action="store_true", help="replace an earlier report in OUT")
     live.add_argument("--quiet", action="store_true", help="no progress")
@@ -195,8 +209,29 @@ def _local(args: argparse.Namespace) -> LocalSettings:
     return LocalSettings(security="insecure" if args.insecure else "mtls")
 
 
-def run_live(args: argparse.Namespace) -> int:
+def _live_deployment(args: argparse.Namespace, out: Path) -> Deployment:
+    """Local processes, or (``--deployment k8s``) a namespace of the cluster, its files in ``out/k8s``."""
     from swarmrec.deployments.local import LocalDeployment
+
+    if args.deployment == "local":
+        return LocalDeployment.for_run(out, _local(args))
+    from swarmrec.deployments.kubernetes import DEFAULT_OVERLAY, KubernetesDeployment, KubernetesSettings
+    from swarmrec.errors import ConfigError
+
+    if args.insecure:
+        raise ConfigError("a Kubernetes team runs under mutual TLS: drop --insecure")
+    return KubernetesDeployment(
+        KubernetesSettings(
+            namespace=args.namespace,
+            out=out / "k8s",
+            overlay=args.overlay or DEFAULT_OVERLAY,
+            kubectl=kubectl_of(args),
+            max_robots=args.max_robots,
+        )
+    )
+
+
+def run_live(args: argparse.Namespace) -> int:
     from swarmrec.experiments.slam import LiveSlamSettings, format_summary, main
 
     settings = LiveSlamSettings(
@@ -213,7 +248,7 @@ def run_live(args: argparse.Namespace) -> int:
         overwrite=args.overwrite,
         solver=_solver(args),
     )
-    summary = main(settings, LocalDeployment.for_run(settings.out, _local(args)))
+    summary = main(settings, _live_deployment(args, settings.out))
     print(format_summary(summary))
     print(f"  report: {args.out / 'summary.json'}")
     identical = summary.check is None or summary.check.identical

@@ -14,6 +14,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from swarmrec.cli.common import Subparsers
+from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.local import LocalDeployment, LocalSettings
 from swarmrec.errors import ConfigError
 from swarmrec.experiments.places import PlacesSettings, PlacesSummary
@@ -221,9 +222,11 @@ def run_method(
     run: PlacesSettings,
     local: LocalSettings,
     print_places: Callable[[PlacesSummary, Path], None],
+    swarm_at: Callable[[Path], Deployment] | None = None,
 ) -> int:
     """``swarmrec run --method dvpr|both`` with the run's shared settings ``run``, on local
-    processes (``local``); ``print_places`` prints the constellation run's summary
+    processes (``local``) or, with ``swarm_at``, on the deployment it gives for each method's
+    folder (``--deployment k8s``); ``print_places`` prints the constellation run's summary
     (``swarmrec run``'s own printer)."""
     if args.attach is not None:
         raise ConfigError(
@@ -241,7 +244,9 @@ def run_method(
         ),
         method=args.method,
     )
-    result = vpr_main(settings, lambda folder: LocalDeployment.for_run(folder, local), say=print)
+    if swarm_at is None:
+        swarm_at = lambda folder: LocalDeployment.for_run(folder, local)  # noqa: E731
+    result = vpr_main(settings, swarm_at, say=print)
     if isinstance(result, BothSummary):
         print("constellations:")
         print_places(result.constellations, settings.out / "constellations")
