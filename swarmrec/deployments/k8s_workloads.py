@@ -14,10 +14,10 @@ says a robot pod is:
   (:data:`TEMPLATE_KIND`, the plainest stateful robot kind) under its own name, serving
   ``swarmrec serve <kind>`` with its own Secret; a kind the registry does not call
   stateful, and that keeps nothing on disk, loses the data volume;
-* the host files the spec's settings name (an assignment table, k-means centres trained
-  for the run, a SLAM team's robot folder, the label list) travel in one ConfigMap,
-  ``input``, mounted read-only at :data:`INPUT_MOUNT` into the pods whose kind reads them;
-  the shipped models are the image's own (:data:`IMAGE_MODELS`), not copied;
+* the host files the spec's settings name (an assignment table, the k-means centres, a
+  SLAM team's robot folder, the label list) travel in one ConfigMap, ``input``, mounted
+  read-only at :data:`INPUT_MOUNT` into the pods whose kind reads them; the shipped ONNX
+  models are the image's own (:data:`IMAGE_MODELS`), not copied;
 * detectors that read RGB-D frames get them from a node folder (:data:`FRAMES_MOUNT`;
   frames are megabytes, a ConfigMap holds one): only an overlay that keeps volumes on
   the node (``k8s/overlays/local``) can run them, and they keep what they detect in their
@@ -126,8 +126,11 @@ def made_here(spec: SwarmSpec) -> bool:
 
 
 def _shipped(path: Path) -> Path | None:
-    """Where the image has ``path``, when it is one of the shipped models; else None."""
+    """Where the image has ``path``, when it is one of the shipped ONNX models; else None. (The
+    image holds the models only, deploy/build.sh: the shipped k-means centres travel as any file.)"""
     resolved = path.resolve()
+    if resolved.suffix != ".onnx":
+        return None
     for folder in model_search_path():
         if resolved.is_relative_to(folder.resolve()):
             return IMAGE_MODELS / resolved.relative_to(folder.resolve())

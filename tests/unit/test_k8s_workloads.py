@@ -178,9 +178,14 @@ def test_the_dvpr_pods_open_the_shipped_models_in_the_image_and_the_runs_files_f
     detector = service_config("detector", robot_environment(objs, "detector", 2))
     owner = service_config("place-owner", robot_environment(objs, "place-owner", 2))
     assert detector.get(RgbdSettings).detector_model == str(IMAGE_MODELS / DETECTOR_MODEL)
-    assert owner.get(VprSettings).vpr_centres == str(IMAGE_MODELS / DESCRIPTOR_CENTRES)
+    # The image holds the ONNX models only: the shipped centres travel with the run's files.
+    assert owner.get(VprSettings).vpr_centres == str(INPUT_MOUNT / "vpr_centres.npz")
     assert owner.get(VprSettings).vpr_assignment == INPUT_MOUNT / "vpr_assignment.json"
-    assert INPUT_MOUNT / "vpr_assignment.json" in _files_in_pod(objs, "place-owner")
+    assert {INPUT_MOUNT / "vpr_assignment.json", INPUT_MOUNT / "vpr_centres.npz"} <= _files_in_pod(
+        objs, "place-owner"
+    )
+    centres = find(objs, "ConfigMap", "input")["binaryData"]["vpr_centres.npz"]
+    assert base64.b64decode(centres) == shipped_model(DESCRIPTOR_CENTRES).read_bytes()
     # The detector reads its frames from the node folder and its labels from the ConfigMap.
     settings = detector.get(DetectorSettings)
     assert settings.dataset == str(FRAMES_MOUNT) and settings.labels_file == INPUT_MOUNT / "labels_file.txt"
