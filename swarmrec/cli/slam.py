@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from swarmrec.cli.common import Subparsers
 from swarmrec.cli.k8s import add_cluster_flags, kubectl_of
@@ -16,6 +16,7 @@ from swarmrec.slam.scenarios import WORLDS
 if TYPE_CHECKING:
     from swarmrec.deployments.base import Deployment
     from swarmrec.deployments.local import LocalSettings
+    from swarmrec.experiments.slam.report import LiveSlamSummary
 
 __all__ = ["add", "run"]
 
@@ -121,6 +122,13 @@ def add(sub: Subparsers) -> None:
         "--solve-timeout-s", type=float, default=600.0, help="the longest the whole solve may take"
     )
     live.add_argument("--insecure", action="store_true", help="plaintext links (debugging; logged)")
+    live.add_argument(
+        "--attach",
+        type=Path,
+        metavar="DIR",
+        help="start nothing: solve through the team `swarmrec compose up --workload slam --out DIR` "
+        "started (its robot folder or world, robots and swarm; the solver's flags still apply)",
+    )
     live.add_argument(
         "--deployment",
         choices=("local", "k8s"),
@@ -234,25 +242,48 @@ def _live_deployment(args: argparse.Namespace, out: Path) -> Deployment:
 def run_live(args: argparse.Namespace) -> int:
     from swarmrec.experiments.slam import LiveSlamSettings, format_summary, main
 
-    settings = LiveSlamSettings(
-        out=args.out,
-        folder=args.folder,
-        world=args.world,
-        robots=args.robots,
-        seed=args.seed,
-        centralized=args.centralized,
-        peer_timeout_s=args.peer_timeout_s,
-        solve_timeout_s=args.solve_timeout_s,
-        check=not args.no_check,
-        progress=not args.quiet,
-        overwrite=args.overwrite,
-        solver=_solver(args),
-    )
-    summary = main(settings, _live_deployment(args, settings.out))
+    solve = {
+        "out": args.out,
+        "centralized": args.centralized,
+        "solve_timeout_s": args.solve_timeout_s,
+        "check": not args.no_check,
+        "progress": not args.quiet,
+        "overwrite": args.overwrite,
+        "solver": _solver(args),
+    }
+    if args.attach is not None:
+        summary = _solve_attached(args, solve)
+    else:
+        settings = LiveSlamSettings(
+            folder=args.folder,
+            world=args.world,
+            robots=args.robots,
+            seed=args.seed,
+            peer_timeout_s=args.peer_timeout_s,
+            **solve,
+        )
+        summary = main(settings, _live_deployment(args, settings.out))
     print(format_summary(summary))
     print(f"  report: {args.out / 'summary.json'}")
     identical = summary.check is None or summary.check.identical
     return 0 if summary.outcome == "converged" and identical else 1
+
+
+def _solve_attached(args: argparse.Namespace, solve: dict[str, Any]) -> LiveSlamSummary:
+    """A solve through the running team ``--attach`` names (a compose swarm's)."""
+    from swarmrec.deployments.attach import attach
+    from swarmrec.errors import ConfigError
+    from swarmrec.experiments.slam import main
+    from swarmrec.experiments.slam.keep import from_record
+
+    if args.folder is not None or args.insecure:
+        raise ConfigError(
+            "--attach solves the running team's own problem, as it runs: drop FOLDER, --insecure"
+        )
+    deployment, info = attach(args.attach)
+    if info.workload != "slam":
+        raise ConfigError(f"{args.attach / 'swarm.json'} is a {info.workload} swarm, not a slam team")
+    return main(from_record(info.experiment, **solve), deployment)
 
 
 def run_merge(args: argparse.Namespace) -> int:

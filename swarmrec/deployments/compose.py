@@ -8,7 +8,11 @@ into files under ``settings.out``:
   ``docker compose`` v2. Each service's environment is its whole configuration
   (``SWARMREC_*``, generated from its settings components); a stateful kind (the
   registry says which) keeps its data in a named volume; a detector's dataset
-  folder is mounted read-only at ``/data/dataset``. The router, the gRPC
+  folder is mounted read-only at ``/data/dataset``, the files the settings name on
+  the host (models, k-means centres, an assignment table) at ``/data/files`` and a
+  SLAM team's robot folder at ``/data/slam``; a detector in rgbd mode writes what it
+  detects and describes to ``data/robot<r>/detector`` on the host (a bind mount), where
+  the run reads it back as from local processes. The router, the gRPC
   gateway (the one port a client needs) and Prometheus are published, on loopback.
 * ``pki/``: the run's PKI (mutual TLS on every zenoh link, by default), and
   ``secrets/<service>/``: what each container mounts at ``/run/swarmrec/pki``:
@@ -53,7 +57,13 @@ from swarmrec.errors import ConfigError
 from swarmrec.runtime.settings import BusSettings
 from swarmrec.runtime.tls import ACL_FILE, tls_endpoint
 from swarmrec.services import registry
-from swarmrec.services.settings import DetectorSettings, GatewaySettings
+from swarmrec.services.settings import (
+    DetectorSettings,
+    GatewaySettings,
+    RgbdSettings,
+    SlamServiceSettings,
+    VprSettings,
+)
 
 __all__ = [
     "MAX_ROBOTS",
@@ -85,6 +95,13 @@ CONTAINER_UID = 10001
 DATA_DIR = Path("/var/lib/swarmrec")
 DATASET_MOUNT = "/data/dataset"
 LABELS_MOUNT = "/data/labels.txt"
+#: The host files the settings name (models, centres, an assignment), copied to ``out/files``.
+FILES_MOUNT = "/data/files"
+#: A SLAM team's robot folder (``<robot>.g2o`` each), copied to ``out/slam``.
+SLAM_MOUNT = "/data/slam"
+#: Where the rgbd detectors' data folders are on the host, under ``out``: as a local
+#: deployment lays them out (``robot<r>/detector``), so a run reads them back alike.
+DETECTIONS_DIR = "data"
 
 
 class ComposeError(DeploymentError):
@@ -135,6 +152,9 @@ class SwarmFile(AttachFile):
     deployment: str = "compose"
     project: str
     compose_file: str
+    #: The rgbd detectors' data folders on this machine (``robot<r>/detector`` under it); "" when
+    #: the detectors replay constellations (they write nothing a run reads back).
+    detections_dir: str = ""
 
 
 def service_name(kind: str, robot: int) -> str:
@@ -143,20 +163,85 @@ def service_name(kind: str, robot: int) -> str:
     return f"r{robot}-{kind}"
 
 
+#: The settings that name one host file a service opens: (component, field).
+_FILE_SETTINGS: tuple[tuple[type[Any], str], ...] = (
+    (RgbdSettings, "detector_model"),
+    (VprSettings, "descriptor_model"),
+    (VprSettings, "vpr_centres"),
+    (VprSettings, "vpr_assignment"),
+)
+
+
+def host_files(spec: SwarmSpec) -> dict[str, Path]:
+    """The host files the spec's settings name, by the name each has under ``out/files``
+    (``<setting><suffix>``): a container sees them at ``/data/files/<name>``."""
+    files: dict[str, Path] = {}
+    for comp, name in _FILE_SETTINGS:
+        given = spec.component(comp)
+        value = getattr(given, name) if given is not None else None
+        if value:
+            path = Path(value)
+            files[f"{name}{path.suffix}"] = path
+    return files
+
+
+def _writes_detections(spec: SwarmSpec) -> bool:
+    """Whether the spec's detectors detect in RGB-D frames (and write what they made)."""
+    detector = spec.component(DetectorSettings)
+    return (
+        "detector" in spec.kinds
+        and isinstance(detector, DetectorSettings)
+        and detector.detector_mode == "rgbd"
+    )
+
+
 def _container_spec(spec: SwarmSpec) -> SwarmSpec:
     """``spec`` with host paths replaced by the mounts the containers see."""
+    mounted: dict[type[Any], Any] = {}
     detector = spec.component(DetectorSettings)
-    if not isinstance(detector, DetectorSettings) or not detector.dataset:
+    if isinstance(detector, DetectorSettings) and detector.dataset:
+        mounted[DetectorSettings] = detector.with_(
+            dataset=DATASET_MOUNT,
+            labels_file=Path(LABELS_MOUNT) if detector.labels_file is not None else None,
+        )
+    for comp, name in _FILE_SETTINGS:
+        given = mounted.get(comp) or spec.component(comp)
+        value = getattr(given, name) if given is not None else None
+        if given is not None and value:
+            inside = f"{FILES_MOUNT}/{name}{Path(value).suffix}"
+            mounted[comp] = given.with_(**{name: Path(inside) if isinstance(value, Path) else inside})
+    slam = spec.component(SlamServiceSettings)
+    if isinstance(slam, SlamServiceSettings) and slam.slam_folder is not None:
+        mounted[SlamServiceSettings] = slam.with_(slam_folder=Path(SLAM_MOUNT))
+    if not mounted:
         return spec
-    mounted = detector.with_(
-        dataset=DATASET_MOUNT, labels_file=Path(LABELS_MOUNT) if detector.labels_file is not None else None
-    )
-    parts = tuple(mounted if type(c) is DetectorSettings else c for c in spec.components)
+    parts = tuple(mounted.get(type(c), c) for c in spec.components)
     return SwarmSpec(spec.bus, spec.kinds, parts, spec.workload, dict(spec.overrides), spec.swarm_kinds)
+
+
+def _reads(kind: str, comps: tuple[type[Any], ...]) -> bool:
+    return any(c in registry.spec(kind).all_components for c in comps)
+
+
+def _data_mounts(spec: SwarmSpec, kind: str) -> list[str]:
+    """The read-only mounts of the host data ``kind`` reads (its files, a SLAM folder)."""
+    mounts = []
+    if host_files(spec) and _reads(kind, (RgbdSettings, VprSettings)):
+        mounts.append(f"./files:{FILES_MOUNT}:ro")
+    slam = spec.component(SlamServiceSettings)
+    if (
+        isinstance(slam, SlamServiceSettings)
+        and slam.slam_folder is not None
+        and _reads(kind, (SlamServiceSettings,))
+    ):
+        mounts.append(f"./slam:{SLAM_MOUNT}:ro")
+    return mounts
 
 
 def _environment(spec: SwarmSpec, kind: str, robot: int, security: Security = "mtls") -> dict[str, str]:
     entry = registry.spec(kind)
+    # An rgbd detector keeps what it detects in its data folder, a bind mount the run reads back.
+    keeps = entry.stateful or (kind == "detector" and _writes_detections(spec))
     scheme = "tcp" if security == "insecure" else "tls"
     config = spec.config_for(
         kind,
@@ -164,7 +249,7 @@ def _environment(spec: SwarmSpec, kind: str, robot: int, security: Security = "m
         # The router's certificate names "router" (its host name on the swarm's network).
         connect=(f"{scheme}/router:{ROUTER_PORT}",),
         listen=(f"{scheme}/0.0.0.0:{ROUTER_PORT}",) if kind == "router" else (),
-        data_dir=DATA_DIR if entry.stateful else None,
+        data_dir=DATA_DIR if keeps else None,
         metrics_port=METRICS_PORT,
         metrics_host="0.0.0.0",
     )
@@ -173,7 +258,15 @@ def _environment(spec: SwarmSpec, kind: str, robot: int, security: Security = "m
         config = config.replace(
             config.get(GatewaySettings).with_(grpc_host="0.0.0.0", grpc_port=GATEWAY_PORT)
         )
-    return config_env(config)
+    return config_env(config) | _numerics_env()
+
+
+def _numerics_env() -> dict[str, str]:
+    """This host's OpenBLAS settings (``OPENBLAS_CORETYPE`` ...), for every container: OpenBLAS
+    picks its kernels by them, and with them the last bits of a solve or a decomposition, so a
+    container computes as the run's offline check on this host does (lock-step identity is bit
+    for bit). None set here: each container detects its CPU, as the host does."""
+    return {k: v for k, v in sorted(os.environ.items()) if k.startswith("OPENBLAS_")}
 
 
 def _swarm_service_name(kind: str) -> str:
@@ -196,11 +289,14 @@ def _robot_service(spec: SwarmSpec, s: ComposeSettings, kind: str, robot: int) -
     volumes = [] if s.security == "insecure" else [f"./secrets/{name}:{PKI_MOUNT}:ro"]
     if registry.spec(kind).stateful:
         volumes.append(f"{name}-data:{DATA_DIR}")
+    elif kind == "detector" and _writes_detections(spec):
+        volumes.append(f"./{DETECTIONS_DIR}/robot{robot}/{kind}:{DATA_DIR}")
     detector = spec.component(DetectorSettings)
     if kind == "detector" and isinstance(detector, DetectorSettings) and detector.dataset:
         volumes.append(f"./dataset:{DATASET_MOUNT}:ro")
         if detector.labels_file is not None:
             volumes.append(f"./labels.txt:{LABELS_MOUNT}:ro")
+    volumes += _data_mounts(spec, kind)
     if volumes:
         svc["volumes"] = volumes
     return svc
@@ -237,8 +333,10 @@ def compose_document(spec: SwarmSpec, s: ComposeSettings) -> dict[str, Any]:
         }
         if kind == "gateway":
             services[name]["ports"] = [f"127.0.0.1:{s.gateway_port}:{GATEWAY_PORT}"]
-        if s.security != "insecure":
-            services[name]["volumes"] = [f"./secrets/{name}:{PKI_MOUNT}:ro"]
+        mounts = [] if s.security == "insecure" else [f"./secrets/{name}:{PKI_MOUNT}:ro"]
+        mounts += _data_mounts(spec, kind)
+        if mounts:
+            services[name]["volumes"] = mounts
     volumes: dict[str, Any] = {}
     for robot in range(spec.robots):
         for kind in spec.kinds:
@@ -342,6 +440,11 @@ def write_compose(
         _copy_dataset(Path(detector.dataset), out / "dataset")
         if detector.labels_file is not None:
             shutil.copy2(detector.labels_file, out / "labels.txt")
+    _copy_files(host_files(spec), out / "files")
+    slam = spec.component(SlamServiceSettings)
+    if isinstance(slam, SlamServiceSettings) and slam.slam_folder is not None:
+        _copy_dataset(slam.slam_folder, out / "slam")
+    detections = _detections_folders(spec, out) if _writes_detections(spec) else ""
     pki = ""
     if s.security == "mtls":
         pki = str(_write_secrets(spec, out))
@@ -371,6 +474,7 @@ def write_compose(
         gateway_address=f"grpc://127.0.0.1:{s.gateway_port}" if "gateway" in spec.swarm_kinds else "",
         security=s.security,
         pki_dir=pki,
+        detections_dir=detections,
     )
     (out / "swarm.json").write_text(json.dumps(asdict(info), indent=2) + "\n")
     return info
@@ -404,6 +508,33 @@ def _write_secrets(spec: SwarmSpec, out: Path) -> Path:
         if os.geteuid() == 0:  # the container's user must read its key; only root can give it
             os.chown(key, CONTAINER_UID, CONTAINER_UID)
     return pki
+
+
+def _copy_files(files: dict[str, Path], target: Path) -> None:
+    """The host files the services open, under the names the containers see them by."""
+    shutil.rmtree(target, ignore_errors=True)
+    if not files:
+        return
+    target.mkdir(parents=True)
+    for name, path in files.items():
+        if not path.is_file():
+            raise ConfigError(f"{path} (a file the swarm's settings name) is not a file")
+        shutil.copy2(path, target / name)
+
+
+def _detections_folders(spec: SwarmSpec, out: Path) -> str:
+    """Empty ``out/data/robot<r>/detector`` folders, writable by the containers' user: the
+    rgbd detectors' data folders (an earlier swarm's detections removed)."""
+    root = out / DETECTIONS_DIR
+    shutil.rmtree(root, ignore_errors=True)
+    for robot in range(spec.robots):
+        folder = root / f"robot{robot}" / "detector"
+        folder.mkdir(parents=True)
+        if os.geteuid() == 0:
+            os.chown(folder, CONTAINER_UID, CONTAINER_UID)
+        else:  # only root can give the folder away; let the container's user write it instead
+            os.chmod(folder, 0o777)
+    return str(root)
 
 
 def _copy_dataset(source: Path, target: Path) -> None:
@@ -467,6 +598,13 @@ class ComposeDeployment(AttachedSwarm):
         """The counters Prometheus holds now, less those at :meth:`start`."""
         after = scrape_prometheus(self.info.prometheus_url, fresh_after=time.time())
         return after if self._baseline is None else after.minus(self._baseline)
+
+    @property
+    # (AttachedSwarm says None: a swarm started elsewhere keeps its data elsewhere; a compose
+    # swarm's rgbd detectors write theirs to bind mounts on this machine.)
+    def local_data_dir(self) -> Path | None:  # type: ignore[override]
+        """The rgbd detectors' data folders (bind mounts on this machine), when the swarm has them."""
+        return Path(self.info.detections_dir) if self.info.detections_dir else None
 
     def stop(self) -> dict[str, int]:
         """Nothing: the containers belong to ``swarmrec compose``; no process was started here."""
