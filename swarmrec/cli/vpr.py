@@ -74,6 +74,9 @@ def add(sub: Subparsers) -> None:
         default=d.other_worlds,
         help=f"varied offices the k-means centres are trained on (default {d.other_worlds})",
     )
+    e.add_argument("--copy-neighbours", type=int, default=d.copy_neighbours,
+                   help="re-balancing: boundary copies go to the owners of up to this many next-nearest "
+                   f"cells (default {d.copy_neighbours})")  # fmt: skip
     e.add_argument("--threads", type=int, default=d.threads, help="faiss and onnxruntime threads (default 1)")
     e.add_argument("--quiet", action="store_true", help="no progress display")
     e.set_defaults(handler=run_evaluate)
@@ -117,6 +120,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         deployment_seed=args.deployment_seed,
         deployment_frames=args.deployment_frames,
         other_worlds=args.other_worlds,
+        copy_neighbours=args.copy_neighbours,
         threads=args.threads,
         progress=not args.quiet,
     )
@@ -156,7 +160,8 @@ def print_evaluation(summary: EvaluationSummary, settings: EvaluationSettings) -
         )
         print(
             f"  relative AUC {b['relative_auc_mean']:.3f}, worst balance {b['worst_balance_ratio_mean']:.2f}"
-            f"{worst_after}, migration {b['migration_bytes_per_query_mean']:.1f} B a query"
+            f"{worst_after}, boundary copies {b['copies_per_query_mean']:.2f} a query, "
+            f"migration {b['migration_bytes_per_query_mean']:.1f} B a query"
         )
     if summary.quantisation:
         print("descriptor codes (the model card's protocol: recall and AUC against float32)")

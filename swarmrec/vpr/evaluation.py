@@ -48,14 +48,7 @@ import numpy.typing as npt
 from tqdm import tqdm
 
 from swarmrec.errors import ConfigError
-from swarmrec.vpr.balance import (
-    balanced_assignment,
-    boundary_margin,
-    observe,
-    repair_assignment,
-    replica_owners,
-    split_hot_clusters,
-)
+from swarmrec.vpr.balance import RebalanceRule, schedule
 from swarmrec.vpr.centres import other_descriptors
 from swarmrec.vpr.clusters import Assignment, Router, random_assignment, train_centres
 from swarmrec.vpr.data import RenderedWorld, render_world
@@ -72,7 +65,6 @@ from swarmrec.vpr.quantize import Int8Quantizer, PQQuantizer, Quantizer
 from swarmrec.vpr.simulation import (
     QUERY_HEADER_BYTES,
     Answers,
-    Reassignment,
     answers_curve,
     arrival_order,
     bytes_per_query,
@@ -82,7 +74,17 @@ from swarmrec.vpr.simulation import (
     worst_balance_ratio,
 )
 
-__all__ = ["EvaluationSettings", "EvaluationSummary", "RunResult", "main"]
+__all__ = [
+    "EvaluationSettings",
+    "EvaluationSummary",
+    "RunResult",
+    "Team",
+    "main",
+    "make_team",
+    "random_run",
+    "rebalanced_run",
+    "team_auc",
+]
 
 Float32Array = npt.NDArray[np.float32]
 IntArray = npt.NDArray[np.int64]
@@ -111,9 +113,11 @@ class EvaluationSettings:
     #: Re-balancing: the random start's clusters per robot, the observed share, the capacity slack.
     balance_clusters_per_robot: int = 8
     rebalance_share: float = 0.05
-    #: Share of a period's queries near a cell boundary that are stored at the neighbour cell's owner too.
-    replica_share: float = 0.5
+    #: Share of a period's queries near a cell boundary that set the copy margin (1: every descriptor).
+    replica_share: float = 1.0
     slack: float = 0.25
+    #: Boundary copies go to the owners of up to this many next-nearest cells.
+    copy_neighbours: int = 1
     #: Product-quantisation code sizes (bytes) to measure beside int8.
     pq_bytes: tuple[int, ...] = (16, 32)
     max_distance_m: float = 0.5
@@ -143,9 +147,21 @@ class EvaluationSettings:
             raise ConfigError(f"replica_share must be in [0, 1], got {self.replica_share}")
         if not (math.isfinite(self.slack) and self.slack >= 0):
             raise ConfigError(f"slack must be >= 0, got {self.slack}")
+        if self.copy_neighbours < 1:
+            raise ConfigError(f"copy_neighbours must be >= 1, got {self.copy_neighbours}")
         if any(b < 1 or 128 % b for b in self.pq_bytes):
             raise ConfigError(f"pq_bytes must divide 128, got {self.pq_bytes}")
         PlaceThresholds(self.max_distance_m, self.max_angle_deg, 0)
+
+    def rebalance_rule(self) -> RebalanceRule:
+        """The re-balancing knobs as the rule :func:`swarmrec.vpr.balance.schedule` plays."""
+        return RebalanceRule(
+            clusters_per_robot=self.balance_clusters_per_robot,
+            period_share=self.rebalance_share,
+            slack=self.slack,
+            replica_share=self.replica_share,
+            neighbours=self.copy_neighbours,
+        )
 
 
 @dataclass(frozen=True)
@@ -193,7 +209,7 @@ class EvaluationSummary:
 
 
 @dataclass(frozen=True, eq=False)
-class _Team:
+class Team:
     """The deployment cut among ``n`` robots: who owns what, the order, what could match."""
 
     n_robots: int
@@ -203,22 +219,24 @@ class _Team:
     closures: BoolArray
 
 
-def _team(n_robots: int, same: BoolArray) -> _Team:
+def make_team(n_robots: int, same: BoolArray) -> Team:
+    """The deployment whose same-place matrix is ``same``, cut among ``n_robots`` robots."""
     robots = robot_of_frames(len(same), n_robots)
     order = arrival_order(robots)
     pairs = eligible(robots, order)
-    return _Team(n_robots, robots, order, pairs, same & pairs)
+    return Team(n_robots, robots, order, pairs, same & pairs)
 
 
-def _score(team: _Team, answers: Answers) -> float:
+def team_auc(team: Team, answers: Answers) -> float:
+    """The AUC of ``answers`` under the module's protocol (:func:`answers_curve`)."""
     return answers_curve(answers, team.closures, team.eligible).auc
 
 
 def _record(
-    name: str, experiment: str, team: _Team, c: int, seed: int, answers: Answers,
+    name: str, experiment: str, team: Team, c: int, seed: int, answers: Answers,
     centralized: float, assignment: Assignment, code_bytes: int, extra: dict[str, Any] | None = None,
 ) -> RunResult:  # fmt: skip
-    auc = _score(team, answers)
+    auc = team_auc(team, answers)
     return RunResult(
         name=name,
         experiment=experiment,
@@ -259,10 +277,11 @@ def _aggregate(runs: list[RunResult], key: str) -> list[dict[str, Any]]:
     return rows
 
 
-def _random_run(
-    name: str, experiment: str, team: _Team, c: int, seed: int, x: Float32Array, other: Float32Array,
+def random_run(
+    name: str, experiment: str, team: Team, c: int, seed: int, x: Float32Array, other: Float32Array,
     centralized: float, centres_out: dict[str, Any],
 ) -> RunResult:  # fmt: skip
+    """The paper's run: ``n x c`` k-means centres on ``other`` and ``c`` random clusters per robot."""
     centres = train_centres(other, team.n_robots * c, seed)
     assignment = random_assignment(team.n_robots, c, seed)
     _, owners = Router(centres, assignment).route_many(x)
@@ -274,54 +293,42 @@ def _random_run(
 
 
 def _balanced_run(
-    s: EvaluationSettings, team: _Team, seed: int, x: Float32Array, other: Float32Array,
+    s: EvaluationSettings, team: Team, seed: int, x: Float32Array, other: Float32Array,
     centralized: float, centres_out: dict[str, Any],
 ) -> RunResult:  # fmt: skip
-    """The paper's random start with ``c`` clusters per robot, then after every period of
-    ``rebalance_share`` of the queries: hot clusters of that period split, and a load- and
-    adjacency-aware table from that period's counts (:mod:`swarmrec.vpr.balance`). Routing does
-    not depend on answers, so every table is computed up front from the descriptors, exactly as
-    the owners would compute it from what they received."""
-    c = s.balance_clusters_per_robot
+    """The paper's random start, re-balanced after every period (:func:`swarmrec.vpr.balance.schedule`)."""
+    return rebalanced_run(s.rebalance_rule(), team, seed, x, other, centralized, centres_out)
+
+
+def rebalanced_run(
+    rule: RebalanceRule, team: Team, seed: int, x: Float32Array, other: Float32Array,
+    centralized: float, centres_out: dict[str, Any],
+) -> RunResult:  # fmt: skip
+    """One mission under ``rule``: its schedule through real owner indexes, scored and costed."""
     n = team.n_robots
-    start_centres = centres = train_centres(other, n * c, seed)
-    start = table = random_assignment(n, c, seed)
-    _, owners = Router(centres, start).route_many(x)
-    period = max(1, round(s.rebalance_share * len(x)))
-    capacity = (1.0 + s.slack) * period / n
-    switches: list[Reassignment] = []
-    for at in range(period, len(x), period):
-        window = x[team.order[at - period : at]]
-        centres = split_hot_clusters(centres, window, capacity, seed)
-        report = observe(centres, window)
-        # One new plan after the first period (touching cells onto one owner), then repairs.
-        table = (
-            balanced_assignment(report, n, s.slack, previous=table)
-            if not switches
-            else repair_assignment(report, table, s.slack)
-        )
-        margin = boundary_margin(centres, window, s.replica_share)
-        replicas = replica_owners(centres, table, x, margin)
-        switches.append(Reassignment(at, Router(centres, table).route_many(x)[1], replicas))
-    answers = run_queries(x, team.robots, owners, team.order, switches)
+    plan = schedule(rule, x, team.order, other, n, seed)
+    answers = run_queries(x, team.robots, plan.owners, team.order, plan.switches)
     name = f"balance_n{n}_run{seed}"
-    centres_out[f"{name}_start"] = start_centres
-    centres_out[name] = centres
-    first = switches[0].at if switches else len(x)
+    centres_out[f"{name}_start"] = plan.start_centres
+    centres_out[name] = plan.centres
+    first = plan.switches[0].at if plan.switches else len(x)
     code_bytes = FLOAT_BYTES * x.shape[1]
     migration = answers.migrated * (code_bytes + QUERY_HEADER_BYTES)
+    copies = answers.replicas if answers.replicas is not None else np.full((len(x), 1), -1)
     extra = {
-        "start_assignment": start.to_json(),
-        "rebalances": len(switches),
-        "period_queries": period,
-        "split_clusters": len(centres) - len(start_centres),
+        "start_assignment": plan.start.to_json(),
+        "rebalances": len(plan.switches),
+        "period_queries": plan.period,
+        "split_clusters": len(plan.centres) - len(plan.start_centres),
         "migrated_descriptors": answers.migrated,
-        "stored_twice_share": float((answers.replicas >= 0).mean()) if answers.replicas is not None else 0.0,
+        "stored_twice_share": float((copies >= 0).any(1).mean()),
+        "copies_per_query": float((copies >= 0).sum() / len(x)),
         "migration_bytes": migration,
         "migration_bytes_per_query": migration / len(x),
         "worst_balance_ratio_after_first_period": worst_balance_ratio(answers.owners[team.order[first:]], n),
     }
-    return _record(name, "balance", team, c, seed, answers, centralized, table, code_bytes, extra)
+    c = rule.clusters_per_robot
+    return _record(name, "balance", team, c, seed, answers, centralized, plan.table, code_bytes, extra)
 
 
 def _quantisation(
@@ -380,22 +387,22 @@ def main(settings: EvaluationSettings) -> EvaluationSummary:
     runs: list[RunResult] = []
     centres_out: dict[str, Any] = {}  # Any: np.savez's keyword parameters are typed too
     centralized: dict[int, float] = {}
-    teams: dict[int, _Team] = {}
+    teams: dict[int, Team] = {}
     for n in sorted({*s.robots, s.fig7_robots}):
-        team = teams[n] = _team(n, same)
+        team = teams[n] = make_team(n, same)
         answers = run_queries(x, team.robots, np.zeros(len(x), np.int64), team.order)
-        centralized[n] = _score(team, answers)
+        centralized[n] = team_auc(team, answers)
     total = (len(s.robots) + len(s.clusters_per_robot) + 1) * s.runs
     with tqdm(total=total, desc="runs", unit="run", disable=not s.progress, leave=False) as bar:
         for n in s.robots:
             for seed in range(s.runs):
-                runs.append(_random_run(f"fig6_n{n}_run{seed}", "fig6", teams[n], 1, seed, x, other,
+                runs.append(random_run(f"fig6_n{n}_run{seed}", "fig6", teams[n], 1, seed, x, other,
                                         centralized[n], centres_out))  # fmt: skip
                 bar.update()
         for c in s.clusters_per_robot:
             n = s.fig7_robots
             for seed in range(s.runs):
-                runs.append(_random_run(f"fig7_c{c}_run{seed}", "fig7", teams[n], c, seed, x, other,
+                runs.append(random_run(f"fig7_c{c}_run{seed}", "fig7", teams[n], c, seed, x, other,
                                         centralized[n], centres_out))  # fmt: skip
                 bar.update()
         n = s.fig7_robots
@@ -416,6 +423,7 @@ def main(settings: EvaluationSettings) -> EvaluationSummary:
         "rebalance_share": s.rebalance_share,
         "replica_share": s.replica_share,
         "slack": s.slack,
+        "copy_neighbours": s.copy_neighbours,
         **_aggregate(balanced, "n_robots")[0],
         "worst_balance_ratio_after_first_period_runs": [
             r.extra["worst_balance_ratio_after_first_period"] for r in balanced
@@ -423,6 +431,7 @@ def main(settings: EvaluationSettings) -> EvaluationSummary:
         "migration_bytes_per_query_mean": float(
             np.mean([r.extra["migration_bytes_per_query"] for r in balanced])
         ),
+        "copies_per_query_mean": float(np.mean([r.extra["copies_per_query"] for r in balanced])),
         "split_clusters_runs": [r.extra["split_clusters"] for r in balanced],
         "one_cluster_per_robot": one,
     }

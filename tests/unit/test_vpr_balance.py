@@ -8,11 +8,13 @@ import pytest
 from swarmrec.errors import ConfigError
 from swarmrec.vpr.balance import (
     LoadReport,
+    RebalanceRule,
     balanced_assignment,
     boundary_margin,
     observe,
     repair_assignment,
     replica_owners,
+    schedule,
     split_hot_clusters,
 )
 from swarmrec.vpr.clusters import Assignment
@@ -75,8 +77,23 @@ def test_a_descriptor_near_a_boundary_is_also_stored_at_the_neighbours_owner() -
     assert boundary_margin(centres, x, 0.0) < 0  # nothing is copied
     # Margin 3.6: 0.9 and 0.2 are copied to robot 1, 1.9 to robot 0; 6.5's neighbour (cell 1) has
     # the same owner as its own cell (robot 1), so no copy.
-    assert replica_owners(centres, table, x, 3.6).tolist() == [1, 1, 0, -1]
-    assert replica_owners(centres, table, x, 0.5).tolist() == [1, -1, -1, -1]
+    assert replica_owners(centres, table, x, 3.6).tolist() == [[1], [1], [0], [-1]]
+    assert replica_owners(centres, table, x, 0.5).tolist() == [[1], [-1], [-1], [-1]]
+    assert boundary_margin(centres, x, 1.0) == np.inf  # share 1: every descriptor
+
+
+def test_copies_go_to_the_owners_of_the_next_cells_each_robot_once() -> None:
+    # Cells at 0, 1, 2, 3 owned by robots 0, 1, 1, 2. A descriptor at 0.4: cells by distance
+    # 0 (0.16), 1 (0.36), 2 (2.56), 3 (6.76); gaps 0.2, 2.4, 6.6 after its own cell's.
+    centres = np.array([[0.0], [1.0], [2.0], [3.0]], np.float32)
+    table = Assignment((0, 1, 1, 2), 3)
+    x = np.array([[0.4]], np.float32)
+    # Two neighbours, no margin: robot 1 (cell 1), cell 2 is robot 1 again, so robot 2 (cell 3).
+    assert replica_owners(centres, table, x, np.inf, neighbours=2).tolist() == [[1, 2]]
+    # A margin of 3 stops before cell 3 (gap 6.6): one copy, the other slot empty.
+    assert replica_owners(centres, table, x, 3.0, neighbours=2).tolist() == [[1, -1]]
+    # A descriptor at 2.9 is robot 2's (cell 3); cells 2 and 1 are both robot 1's, then robot 0.
+    assert replica_owners(centres, table, np.array([[2.9]], np.float32), np.inf, 2).tolist() == [[1, 0]]
 
 
 def test_a_cluster_stays_with_its_previous_owner_when_that_is_as_good() -> None:
@@ -101,3 +118,28 @@ def test_a_repair_moves_only_what_overloads_a_robot() -> None:
     # nowhere, cluster 2 (1) moves to robot 1 (2); robot 0 is still at 4 but nothing else can move.
     table = repair_assignment(_report([4, 0, 1, 0, 1], {}), Assignment((0, 0, 0, 1), 2), slack=0.0)
     assert table.owners == (0, 0, 1, 1, 1)
+
+
+@pytest.mark.parametrize(
+    "knobs",
+    [{"clusters_per_robot": 0}, {"neighbours": 0}, {"period_share": 1.0}, {"replica_share": 1.5},
+     {"slack": -0.1}, {"slack": float("nan")}],
+)  # fmt: skip
+def test_a_rule_refuses_knobs_out_of_range(knobs: dict[str, float]) -> None:
+    with pytest.raises(ConfigError):
+        RebalanceRule(**knobs)  # type: ignore[arg-type]
+
+
+def test_a_schedule_switches_tables_after_every_period_and_never_copies_to_the_owner() -> None:
+    rng = np.random.default_rng(0)
+    other = rng.normal(size=(200, 4)).astype(np.float32)
+    x = rng.normal(size=(40, 4)).astype(np.float32)
+    rule = RebalanceRule(clusters_per_robot=2, period_share=0.25, neighbours=2)
+    plan = schedule(rule, x, np.arange(40, dtype=np.int64), other, n_robots=3, seed=0)
+    # 40 queries in periods of 10: new tables after the 10th, 20th and 30th query.
+    assert [s.at for s in plan.switches] == [10, 20, 30]
+    assert plan.start.clusters_per_robot().tolist() == [2, 2, 2] and plan.period == 10
+    for switch in plan.switches:
+        assert switch.replicas is not None and switch.replicas.shape == (40, 2)
+        assert not (switch.replicas == switch.owners[:, None]).any()
+        assert set(switch.owners.tolist()) <= {0, 1, 2}

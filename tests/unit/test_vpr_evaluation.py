@@ -81,6 +81,8 @@ def test_bad_settings_are_refused(tmp_path: Path) -> None:
         EvaluationSettings(out=tmp_path, rebalance_share=1.0)
     with pytest.raises(ConfigError, match="pq_bytes must divide 128"):
         EvaluationSettings(out=tmp_path, pq_bytes=(24,))
+    with pytest.raises(ConfigError, match="copy_neighbours"):
+        EvaluationSettings(out=tmp_path, copy_neighbours=0)
 
 
 def test_the_printed_summary_heads_each_table_and_shows_rebalancing_and_codes(
