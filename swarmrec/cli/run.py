@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from swarmrec.cli.common import (
     Subparsers,
@@ -16,14 +17,17 @@ from swarmrec.cli.common import (
     local_settings,
 )
 from swarmrec.cli.k8s import add_cluster_flags, kubectl_of
-from swarmrec.cli.vpr import add_method_flags, run_method
+from swarmrec.cli.vpr import add_method_flags, print_dvpr, run_method
 from swarmrec.deployments.attach import attach
-from swarmrec.deployments.base import Deployment
+from swarmrec.deployments.base import AttachFile, Deployment
 from swarmrec.deployments.kubernetes import DEFAULT_OVERLAY, KubernetesDeployment, KubernetesSettings
 from swarmrec.deployments.local import LocalDeployment
 from swarmrec.errors import ConfigError
 from swarmrec.experiments.places import PixelSettings, PlacesSettings, PlacesSummary, main
 from swarmrec.experiments.places.report import DetectorFigures, FunnelStats, IndexSummary
+from swarmrec.experiments.vpr import DvprSummary
+from swarmrec.experiments.vpr import main as vpr_main
+from swarmrec.experiments.vpr.keep import from_record as vpr_from_record
 from swarmrec.services.settings import IndexSettings
 
 __all__ = ["add", "print_summary", "run"]
@@ -131,7 +135,7 @@ def add(sub: Subparsers) -> None:
         metavar="DIR",
         help="start nothing: replay through the running swarm that `swarmrec compose up --out DIR` or "
         "`swarmrec k8s up --out DIR` started (its dataset, robots and preset; --pace, --out, --no-plots "
-        "still apply)",
+        "still apply; a swarm composed with --workload dvpr runs --method dvpr)",
     )
     p.add_argument(
         "--deployment",
@@ -148,6 +152,24 @@ def add(sub: Subparsers) -> None:
     )
     add_cluster_flags(k8s)
     p.set_defaults(handler=run)
+
+
+def _run_attached_dvpr(
+    method: str, deployment: Deployment, info: AttachFile, out: Path, common: dict[str, Any]
+) -> int:
+    """``--attach`` a swarm composed for the full-image method: its run, through it."""
+    if method == "both":
+        raise ConfigError("--method both runs each method on a swarm of its own: attach one at a time")
+    if info.workload != "dvpr":
+        raise ConfigError(
+            f"--method {method} needs a dvpr swarm (swarmrec compose up --workload dvpr); "
+            f"the swarm in {deployment.description} runs {info.workload}"
+        )
+    settings = vpr_from_record(info.experiment, out=out, **common)
+    summary = vpr_main(settings, lambda _folder: deployment, say=print)
+    assert isinstance(summary, DvprSummary)  # one method: dvpr
+    print_dvpr(summary, settings.out)
+    return 0
 
 
 def _kubernetes(args: argparse.Namespace, out: Path) -> KubernetesDeployment:
@@ -197,6 +219,8 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError("emulated links are set up by a local deployment the run starts itself")
         attached, info = attach(args.attach)
         out = args.out if args.out != DEFAULT_OUT else args.attach / "report"
+        if info.workload == "dvpr" or args.method != "constellations":
+            return _run_attached_dvpr(args.method, attached, info, out, common)
         settings = PlacesSettings.from_record(info.experiment, out=out, **common)
         summary = main(settings, attached)
         print_summary(summary, settings.out)

@@ -265,9 +265,10 @@ def run_method(
 
 def print_dvpr(s: DvprSummary, out: Path) -> None:
     sw, q, b, load = s.swarm, s.queries, s.bytes, s.load
+    where = f"{sw['processes']} processes" if sw["processes"] else sw["deployment"]  # attached: none
     print(
         f"swarm of {sw['robots']} robots on {s.dataset['name']} ({s.dataset['frames']} frames, "
-        f"{sw['processes']} processes), full-image descriptors, pace {sw['pace']}"
+        f"{where}), full-image descriptors, pace {sw['pace']}"
     )
     if s.detector is not None and s.detector.stage_ms_mean:
         stages = ", ".join(f"{k} {v:.1f} ms" for k, v in s.detector.stage_ms_mean.items())

@@ -8,7 +8,9 @@
               k-means centres (the shipped ones, or trained for this run's k when the
               shipped file lacks it) and the assignment table
     deploy    a router, and on each robot a verifier, a place-owner and a detector in rgbd
-              mode with place_method dvpr (workload ``dvpr``), as local processes
+              mode with place_method dvpr (workload ``dvpr``): local processes, or a compose
+              swarm composed for the run (:mod:`.keep`; the detectors' data folders are
+              bind mounts there, read back as a local run's)
     replay    one frame at a time in the simulation's arrival order (lock-step), or free
     collect   the services' counters, the loop closures, the detectors' descriptors
     report    :mod:`.report`
@@ -159,8 +161,9 @@ def _refuse(deployment: Deployment) -> Path:
     full-image run cannot read them from, or whose links it cannot drive."""
     if deployment.local_data_dir is None:
         raise ConfigError(
-            "a full-image run reads the detectors' descriptors from a local deployment, "
-            f"not {deployment.description}"
+            "a full-image run reads the detectors' descriptors from their data folders on this machine "
+            "(local processes, or a compose swarm of the dvpr workload: swarmrec compose up --workload "
+            f"dvpr), not {deployment.description}'s"
         )
     if deployment.emulated_links is not None:
         raise ConfigError("emulated links (--link-*) are not wired into --method dvpr yet")
