@@ -161,9 +161,9 @@ def _refuse(deployment: Deployment) -> Path:
     full-image run cannot read them from, or whose links it cannot drive."""
     if deployment.local_data_dir is None:
         raise ConfigError(
-            "a full-image run reads the detectors' descriptors from their data folders on this machine "
-            "(local processes, or a compose swarm of the dvpr workload: swarmrec compose up --workload "
-            f"dvpr), not {deployment.description}'s"
+            "a full-image run reads the detectors' descriptors from their data folders on this machine, "
+            f"which {deployment.description} does not give (local processes, a compose swarm of the dvpr "
+            "workload and a Kubernetes run do)"
         )
     if deployment.emulated_links is not None:
         raise ConfigError("emulated links (--link-*) are not wired into --method dvpr yet")
