@@ -252,6 +252,8 @@ struct GroupAsk<'a> {
 struct Store<'a> {
     group: usize,
     shard: u32,
+    /// The placement version the store was routed with.
+    version: u64,
     pending: Pending<'a>,
 }
 
@@ -365,8 +367,10 @@ impl Descriptor {
         self.metrics.registry.inc(self.ids.placement_refreshes, &[], 1.0);
     }
 
-    fn refresh(&self, from: &BTreeSet<u32>) -> Placement {
-        self.routing.refresh(&self.caller, from, &|| self.refreshed())
+    /// The placement to route with after a request routed with version `routed` was refused
+    /// by `from` (see `Routing::refresh`).
+    fn refresh(&self, from: &BTreeSet<u32>, routed: u64) -> Placement {
+        self.routing.refresh(&self.caller, from, routed, &|| self.refreshed())
     }
 
     fn publish<M: Message>(&self, name: &str, schema: &'static str, msg: &M) {
@@ -699,7 +703,7 @@ impl Descriptor {
             let mut moved = false;
             if !stale.is_empty() {
                 let before = placement.version;
-                placement = self.refresh(&stale);
+                placement = self.refresh(&stale, before);
                 moved = placement.version != before;
             }
             for i in retry {
@@ -739,6 +743,7 @@ impl Descriptor {
         Store {
             group,
             shard,
+            version: msg.placement_version,
             pending: self
                 .caller
                 .start(&key, "ShardStore", msg, Some(shard), "shard_store", false),
@@ -806,12 +811,14 @@ impl Descriptor {
         for attempt in 0..ROUTE_ATTEMPTS {
             let mut stale: BTreeSet<usize> = BTreeSet::new();
             let mut refused_by: BTreeSet<u32> = BTreeSet::new();
+            let mut routed = u64::MAX;
             for st in stores.drain(..) {
                 match st.pending.result::<pb::StoreReply>("StoreReply") {
                     Ok(_) => {}
                     Err(CallError::Remote { code, .. }) if code == pb::ErrorCode::FailedPrecondition as i32 => {
                         stale.insert(st.group);
                         refused_by.insert(st.shard);
+                        routed = routed.min(st.version);
                     }
                     // Stored there with other content: not ours to fix.
                     Err(CallError::Remote { code, .. }) if code == pb::ErrorCode::AlreadyExists as i32 => {}
@@ -828,7 +835,7 @@ impl Descriptor {
                 missed.extend(stale);
                 break;
             }
-            let placement = self.refresh(&refused_by);
+            let placement = self.refresh(&refused_by, routed);
             for g in stale {
                 self.store_group(&mut stores, &placement, g, desc, frame, None);
             }
@@ -1024,6 +1031,7 @@ impl Descriptor {
             sent.push((d, asked));
         }
         let mut stale = BTreeSet::new();
+        let routed = placement.version;
         for (d, asked) in sent {
             let mut acked = true;
             for st in asked {
@@ -1046,7 +1054,7 @@ impl Descriptor {
             }
         }
         if !stale.is_empty() {
-            self.refresh(&stale);
+            self.refresh(&stale, routed);
         }
         let n = lock(&self.pending).len();
         self.metrics.registry.set(self.ids.pending_stores, &[], n as f64);
@@ -1096,7 +1104,7 @@ impl Service for Descriptor {
     fn serving(self: Arc<Self>) {
         // Learn the swarm's placement (a descriptor joining a running swarm starts at 0),
         // then retry the pending stores until stopped.
-        self.refresh(&BTreeSet::new());
+        self.refresh(&BTreeSet::new(), self.routing.placement().version);
         let me = self.clone();
         let interval = Duration::from_secs_f64(self.spec.retry_interval_s.max(0.01));
         let handle = std::thread::Builder::new()

@@ -120,16 +120,36 @@ impl Routing {
         true
     }
 
-    /// Routes with the newest placement a confirmed shard follows: `from_shards` (those
-    /// that just refused as routed with another placement) asked first, alone; every
-    /// shard when they give nothing newer. `on_refresh` is called once per refresh.
-    pub fn refresh(&self, caller: &Caller, from_shards: &BTreeSet<u32>, on_refresh: &dyn Fn()) -> Placement {
+    /// Routes with the newest placement a confirmed shard follows, after a request routed
+    /// with version `routed` was refused: nothing to ask when this querier has moved past
+    /// `routed` already (another refresh did). Else one of `from_shards` (those that just
+    /// refused as routed with another placement: each usually follows the newer one), then
+    /// the lowest live shard, the coordinator, which follows the newest placement (it
+    /// publishes them); every shard only when neither gives anything newer. Every refusing
+    /// shard, or every shard, answering each querier of a hundred after each placement change
+    /// was more bytes than the queries themselves. `on_refresh` is called once per refresh.
+    pub fn refresh(
+        &self,
+        caller: &Caller,
+        from_shards: &BTreeSet<u32>,
+        routed: u64,
+        on_refresh: &dyn Fn(),
+    ) -> Placement {
         let before = self.placement().version;
+        if before > routed {
+            return self.placement();
+        }
         let req = pb::PlacementRequest {
             known_version: Some(before),
         };
-        if !from_shards.is_empty() {
-            let pendings: Vec<_> = from_shards
+        let coordinator = lock(&self.live).iter().next().copied();
+        let first = from_shards.iter().next().copied();
+        let rounds: [Vec<u32>; 2] = [
+            first.into_iter().collect(),
+            coordinator.filter(|c| Some(*c) != first).into_iter().collect(),
+        ];
+        for asked in rounds.iter().filter(|r| !r.is_empty()) {
+            let pendings: Vec<_> = asked
                 .iter()
                 .map(|&shard| {
                     let key = endpoint_key(&self.swarm, "index-shard", shard, "placement");

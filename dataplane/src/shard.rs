@@ -261,8 +261,9 @@ fn register(metrics: &ServiceMetrics) -> ShardMetricIds {
         ),
         placements_published: r.counter(
             "swarmrec_shard_placements_published",
-            "Placements this shard published as the coordinator",
-            &[],
+            "Placements this shard published as the coordinator, by why (members: a shard came, \
+             went or drains; rebalance: the observed load; handoff_done: the learners own)",
+            &["reason"],
         ),
     }
 }
@@ -434,9 +435,10 @@ impl IndexShard {
         let (query_calls, query_cpu_s) = self.metrics.cost("query");
         let (store_calls, store_cpu_s) = self.metrics.cost("store");
         let st = lock(&self.state);
-        // Left out when the asker has it, confirmed or not (no one follows an unconfirmed
-        // shard's placement): as a swarm starts, every shard asks every other.
-        let known = known_version == Some(st.placement.version);
+        // Left out when the asker has it or a newer one (only a newer placement is news to
+        // it), confirmed or not (no one follows an unconfirmed shard's placement): as a swarm
+        // starts every shard asks every other, and after a placement change every querier asks.
+        let known = known_version.is_some_and(|k| st.placement.version <= k);
         pb::ShardState {
             placement: if known { None } else { Some(st.placement.to_proto()) },
             placement_version: st.placement.version,
@@ -913,7 +915,8 @@ impl IndexShard {
             )));
         }
         if req.publish && caller == Some(self.shard) {
-            self.metrics.registry.inc(self.ids.placements_published, &[], 1.0);
+            let reason = reason_name(req.reason);
+            self.metrics.registry.inc(self.ids.placements_published, &[reason], 1.0);
         }
         Ok(self.state_msg(Some(version))) // the coordinator sent it: not back
     }
@@ -1219,5 +1222,15 @@ mod tests {
         let d = to_proto(&[0.0, 2.0, 0.0, 1.0], 40, 44, 3, 7);
         assert_eq!((d.label_offsets.clone(), d.counts.clone()), (vec![1, 3], vec![2, 1]));
         assert_eq!(slice_of(&d, &places()).unwrap(), vec![0.0, 2.0, 0.0, 1.0]);
+    }
+}
+
+/// A `PlacementReason` as the metrics name it (as `reason_name` in swarmrec/services/coordinator.py).
+fn reason_name(reason: i32) -> &'static str {
+    match pb::PlacementReason::try_from(reason) {
+        Ok(pb::PlacementReason::Members) => "members",
+        Ok(pb::PlacementReason::Rebalance) => "rebalance",
+        Ok(pb::PlacementReason::HandoffDone) => "handoff_done",
+        _ => "unspecified",
     }
 }

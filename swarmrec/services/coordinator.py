@@ -190,7 +190,7 @@ class Shard(Protocol):
 
     def follow(self, placement: Placement, *, confirm: bool = True) -> bool: ...
 
-    def follow_own(self, placement: Placement) -> None: ...
+    def follow_own(self, placement: Placement, reason: int) -> None: ...
 
 
 __all__ = [
@@ -203,6 +203,7 @@ __all__ = [
     "group_changes",
     "must_look",
     "present_members",
+    "reason_name",
     "served_load",
 ]
 
@@ -258,6 +259,15 @@ def present_members(
         elif now - last < grace_s:
             present.add(m)
     return present
+
+
+def reason_name(reason: int) -> str:
+    """A ``PlacementReason`` as the metrics, logs and reports name it (``handoff_done``)."""
+    try:
+        name = str(pb.PlacementReason.Name(pb.PlacementReason.ValueType(reason)))
+    except ValueError:  # a value this schema does not know
+        return "unspecified"
+    return name.removeprefix("PLACEMENT_REASON_").lower()
 
 
 def group_changes(before: Placement, after: Placement) -> list[pb.GroupChange]:
@@ -507,7 +517,7 @@ class Coordinator:
         it was planned on), the placement's history as a run's report and any watcher read it."""
         s = self.shard
         before = s.placement
-        s.follow_own(placement)
+        s.follow_own(placement, reason)
         change = pb.PlacementChange()
         if plan is not None:
             change.CopyFrom(plan)
@@ -517,7 +527,7 @@ class Coordinator:
         change.unix_time_ns = time.time_ns()
         fields = {
             "version": placement.version,
-            "reason": pb.PlacementReason.Name(reason).removeprefix("PLACEMENT_REASON_").lower(),
+            "reason": reason_name(reason),
             "owners": [list(o) for o in placement.owners],
             "learners": [list(x) for x in placement.learners],
         }

@@ -163,7 +163,7 @@ class Descriptor(ServiceBase):
             if acked:
                 self.pending.done(desc)
         if stale:
-            self.routing.refresh(caller, from_shards=stale)
+            self.routing.refresh(caller, from_shards=stale, routed=placement.version)
         self.metrics.pending_stores.set(len(self.pending))
 
     def process(self, msg: pb.Constellation, _ctx: RequestContext) -> pb.QueryReport:

@@ -64,7 +64,7 @@ from swarmrec.errors import (
 )
 from swarmrec.runtime import Endpoint, RequestContext, ServiceBase, ServiceContext, keys
 from swarmrec.runtime.settings import StorageSettings
-from swarmrec.services.coordinator import Coordinator, ShardSettings
+from swarmrec.services.coordinator import Coordinator, ShardSettings, reason_name
 from swarmrec.services.limits import MAX_FRAME_GAP, MAX_FRAME_INDEX, MAX_N_RET
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import (
@@ -195,14 +195,15 @@ class IndexShard(ServiceBase, ShardSettings):
 
     def state(self, known_version: int | None = None) -> pb.ShardState:
         """What this shard follows and holds; the placement itself is left out when it is
-        ``known_version`` (the asker has it: a hundred shards' placements at every
-        coordinator tick, or from every shard to every other as a swarm starts, would be
-        most of the index's traffic). Confirmed or not: no one follows the placement of a
-        shard that is not confirmed, and ``confirmed`` says which it is."""
+        ``known_version`` or older (the asker has it, or a newer one: only a newer placement
+        is news to it, and a hundred shards' placements at every coordinator tick, from every
+        shard to every other as a swarm starts, or to every querier after a placement change,
+        were most of the index's traffic). Confirmed or not: no one follows the placement of
+        a shard that is not confirmed, and ``confirmed`` says which it is."""
         query_calls, query_cpu_s = self.ctx.metrics.cost("query").snapshot()
         store_calls, store_cpu_s = self.ctx.metrics.cost("store").snapshot()
         with self.lock:
-            known = known_version == self.placement.version
+            known = known_version is not None and self.placement.version <= known_version
             return pb.ShardState(
                 placement=None if known else placement_to_proto(self.placement),
                 placement_version=self.placement.version,
@@ -254,10 +255,11 @@ class IndexShard(ServiceBase, ShardSettings):
             threading.Thread(target=self._copy_group, args=(g,), name=f"copy-group-{g}", daemon=True).start()
         return True
 
-    def follow_own(self, placement: Placement) -> None:
-        """Follow a placement this shard's coordinator computed, counted as published."""
+    def follow_own(self, placement: Placement, reason: int) -> None:
+        """Follow a placement this shard's coordinator computed, counted as published (by
+        ``reason``, a ``PlacementReason``)."""
         self.follow(placement)
-        self.metrics.placements_published.inc()
+        self.metrics.placements_published.labels(reason=reason_name(reason)).inc()
 
     # --- copying a group (a learner) ----------------------------------------------------
 

@@ -125,7 +125,9 @@ class ShardMetrics(MetricSet):
             ),
             placements_published=Counter(
                 "swarmrec_shard_placements_published",
-                "Placements this shard published as the coordinator",
+                "Placements this shard published as the coordinator, by why (members: a shard came, "
+                "went or drains; rebalance: the observed load; handoff_done: the learners own)",
+                ["reason"],
                 registry=registry,
             ),
         )

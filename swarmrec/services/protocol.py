@@ -157,7 +157,7 @@ def ask_shards(
         moved = False
         if stale:
             before = placement.version
-            placement = routing.refresh(caller, from_shards=stale)
+            placement = routing.refresh(caller, from_shards=stale, routed=before)
             moved = placement.version != before
         for ask in retry:
             owners = routing.owners_in_order(placement, ask.group, wire.robot_id, wire.frame_index)
@@ -302,6 +302,8 @@ class _Store:
     group: int
     shard: int
     pending: Pending
+    #: The placement version it was routed with.
+    version: int
 
 
 def start_replica_stores(
@@ -327,7 +329,12 @@ def start_replica_stores(
                 continue
             key = keys.endpoint(plan.swarm, "index-shard", shard, "store")
             stores.append(
-                _Store(g, shard, caller.start(key, msg, target_robot=shard, endpoint="shard_store"))
+                _Store(
+                    g,
+                    shard,
+                    caller.start(key, msg, target_robot=shard, endpoint="shard_store"),
+                    placement.version,
+                )
             )
     return stores
 
@@ -351,6 +358,7 @@ def finish_replica_stores(
     for attempt in range(ROUTE_ATTEMPTS):
         stale: set[int] = set()
         refused_by: set[int] = set()
+        routed: int | None = None
         for st in stores:
             try:
                 st.pending.result(pb.StoreReply)
@@ -358,6 +366,7 @@ def finish_replica_stores(
                 if e.code == ErrorCode.FAILED_PRECONDITION:
                     stale.add(st.group)
                     refused_by.add(st.shard)
+                    routed = st.version if routed is None else min(routed, st.version)
                 elif e.code != ErrorCode.ALREADY_EXISTS:  # stored there with other content: not ours to fix
                     missed.add(st.group)
             except CallError:
@@ -368,7 +377,7 @@ def finish_replica_stores(
         if attempt == ROUTE_ATTEMPTS - 1:
             missed |= stale
             break
-        placement = plan.routing.refresh(caller, from_shards=refused_by)
+        placement = plan.routing.refresh(caller, from_shards=refused_by, routed=routed)
         stores = []
         for g in sorted(stale):
             lo, hi = groups[g]
@@ -381,7 +390,12 @@ def finish_replica_stores(
             for shard in placement.store_targets(g):
                 key = keys.endpoint(plan.swarm, "index-shard", shard, "store")
                 stores.append(
-                    _Store(g, shard, caller.start(key, msg, target_robot=shard, endpoint="shard_store"))
+                    _Store(
+                        g,
+                        shard,
+                        caller.start(key, msg, target_robot=shard, endpoint="shard_store"),
+                        placement.version,
+                    )
                 )
     if on_unstored is None:
         return

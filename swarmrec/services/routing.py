@@ -211,17 +211,31 @@ class Routing:
             return True
 
     def refresh(
-        self, caller: Caller, timeout_s: float | None = None, *, from_shards: Iterable[int] = ()
+        self,
+        caller: Caller,
+        timeout_s: float | None = None,
+        *,
+        from_shards: Iterable[int] = (),
+        routed: int | None = None,
     ) -> Placement:
-        """Route with the newest placement a confirmed shard follows. ``from_shards`` (the
-        shards that just refused a request as routed with another placement) are asked
-        first, alone: a refusal usually means the refusing shard follows a newer one, and
-        asking every shard of a large swarm each time a placement changes costs each querier
-        a request per shard. Every shard is asked when they give nothing newer. The shards
-        still on this querier's version answer without the placement."""
+        """Route with the newest placement a confirmed shard follows, after a request routed
+        with version ``routed`` was refused: nothing to ask when this querier has moved past
+        it already (another refresh did). Else one of ``from_shards`` (the shards that just
+        refused a request as routed with another placement: each usually follows the newer
+        one), then the lowest live shard, the coordinator, which follows the newest placement
+        (it publishes them). Every shard is asked only when neither gives anything newer:
+        every refusing shard, or every shard, answering each querier of a hundred after each
+        placement change was more bytes than the queries themselves. The shards on this
+        querier's version, or an older one, answer without the placement."""
         before = self.placement.version
-        asked = sorted(set(from_shards))
-        if asked:
+        if routed is not None and before > routed:
+            return self.placement
+        refusing = sorted(set(from_shards))[:1]
+        live = self.live.ids() if self.live is not None else set()
+        coordinator = [min(live)] if live and min(live) not in refusing else []
+        for shards in (refusing, coordinator):
+            if not shards:
+                continue
             pendings = [
                 caller.start(
                     keys.endpoint(self.swarm, "index-shard", shard, "placement"),
@@ -230,7 +244,7 @@ class Routing:
                     endpoint="placement",
                     timeout_s=timeout_s,
                 )
-                for shard in asked
+                for shard in shards
             ]
             states = [o.reply for p in pendings for o in p.gather(pb.ShardState) if o.reply is not None]
             newest = newest_placement(states, self.groups)

@@ -87,11 +87,15 @@ class CompiledShard(ShardSettings):
         self._take(st)
         return st
 
-    def _adopt(self, placement: Placement, *, publish: bool) -> bool:
+    def _adopt(self, placement: Placement, *, publish: bool, reason: int = 0) -> bool:
         try:
             st = self.ctx.caller.call(
                 self._key("adopt"),
-                pb.AdoptRequest(placement=placement_to_proto(placement), publish=publish),
+                pb.AdoptRequest(
+                    placement=placement_to_proto(placement),
+                    publish=publish,
+                    reason=pb.PlacementReason.ValueType(reason),
+                ),
                 pb.ShardState,
                 target_robot=self.shard,
                 endpoint="adopt",
@@ -109,8 +113,8 @@ class CompiledShard(ShardSettings):
         del confirm
         return self._adopt(placement, publish=False)
 
-    def follow_own(self, placement: Placement) -> None:
-        self._adopt(placement, publish=True)
+    def follow_own(self, placement: Placement, reason: int) -> None:
+        self._adopt(placement, publish=True, reason=reason)
 
 
 class CompiledShardCoordinator(Coordinator):

@@ -25,8 +25,10 @@ from swarmrec.services.coordinator import (
     Coordinator,
     View,
     cost_totals,
+    group_changes,
     must_look,
     present_members,
+    reason_name,
     served_load,
     store_weight,
 )
@@ -280,3 +282,24 @@ def test_the_store_weight_is_read_over_the_window_since_the_last_look_when_it_ha
     # Too few new samples, or a shard restarted (sums went down): since the start instead.
     assert store_weight([costed(250, 0.25, 250, 0.125)], cost_totals(start)) == pytest.approx(0.5)
     assert store_weight(start, cost_totals(later)) == pytest.approx(0.5)
+
+
+def test_a_placement_reason_is_named_as_the_metrics_name_it() -> None:
+    assert reason_name(pb.PlacementReason.PLACEMENT_REASON_HANDOFF_DONE) == "handoff_done"
+    assert reason_name(pb.PlacementReason.PLACEMENT_REASON_REBALANCE) == "rebalance"
+    assert reason_name(99) == "unspecified"  # a value from a newer schema
+
+
+def test_group_changes_name_the_holders_each_step_of_a_handoff_adds_and_removes() -> None:
+    groups = ((0, 1), (1, 2))
+    settled = Placement(4, groups, ((0, 1), (2,)), (0, 1, 2, 3), replicas=1)
+    # Group 0 moves from shard 0 to 3: 3 learns and 0 leaves, then 3 owns and 0 has let go.
+    moving = Placement(
+        5, groups, ((0, 1), (2,)), (0, 1, 2, 3), replicas=1, learners=((3,), ()), leaving=((0,), ())
+    )
+    done = Placement(6, groups, ((1, 3), (2,)), (0, 1, 2, 3), replicas=1)
+    first = group_changes(settled, moving)
+    assert [(c.group, list(c.gained), list(c.lost)) for c in first] == [(0, [3], [0])]
+    second = group_changes(moving, done)
+    assert [(c.group, list(c.gained), list(c.lost)) for c in second] == [(0, [], [0])]
+    assert group_changes(done, done) == []

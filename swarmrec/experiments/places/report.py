@@ -48,6 +48,7 @@ from swarmrec.evaluation.pr import PRCurve, precision_recall
 from swarmrec.evaluation.scoring import ScoreMatrix, decentralized_marks, same_objects, score_decentralized
 from swarmrec.experiments.places.replay import Replay
 from swarmrec.experiments.places.settings import ReportSettings
+from swarmrec.services.coordinator import reason_name
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import outcomes_from_proto
 
@@ -593,7 +594,7 @@ def placement_history(changes: Iterable[pb.PlacementChange]) -> list[dict[str, A
         c = by_version[v]
         entry: dict[str, Any] = {
             "version": v,
-            "reason": pb.PlacementReason.Name(c.reason).removeprefix("PLACEMENT_REASON_").lower(),
+            "reason": reason_name(c.reason),
             "coordinator": c.coordinator,
             "unix_time_ns": c.unix_time_ns,
             "groups": {str(g.group): {"gained": list(g.gained), "lost": list(g.lost)} for g in c.changes},

@@ -23,29 +23,30 @@ _sym_db = _symbol_database.Default()
 
 
 from . import descriptor_pb2 as swarmrec_dot_v1_dot_descriptor__pb2
+from . import events_pb2 as swarmrec_dot_v1_dot_events__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x1bswarmrec/v1/placement.proto\x12\x0bswarmrec.v1\x1a\x1cswarmrec/v1/descriptor.proto\"\x7f\n\tPlacement\x12\x0f\n\x07version\x18\x01 \x01(\x04\x12\x14\n\x0cgroup_bounds\x18\x02 \x03(\r\x12(\n\x06groups\x18\x03 \x03(\x0b\x32\x18.swarmrec.v1.GroupOwners\x12\x0f\n\x07members\x18\x04 \x03(\r\x12\x10\n\x08replicas\x18\x05 \x01(\r\"@\n\x0bGroupOwners\x12\x0e\n\x06owners\x18\x01 \x03(\r\x12\x10\n\x08learners\x18\x02 \x03(\r\x12\x0f\n\x07leaving\x18\x03 \x03(\r\"@\n\x10PlacementRequest\x12\x1a\n\rknown_version\x18\x01 \x01(\x04H\x00\x88\x01\x01\x42\x10\n\x0e_known_version\"\xb7\x02\n\nShardState\x12)\n\tplacement\x18\x01 \x01(\x0b\x32\x16.swarmrec.v1.Placement\x12\x10\n\x08shard_id\x18\x02 \x01(\r\x12\x14\n\x0cready_groups\x18\x03 \x03(\r\x12\x11\n\tconfirmed\x18\x06 \x01(\x08\x12\x10\n\x08\x64raining\x18\x07 \x01(\x08\x12\x13\n\x0bquery_calls\x18\x08 \x01(\x04\x12\x13\n\x0bquery_cpu_s\x18\t \x01(\x02\x12\x13\n\x0bstore_calls\x18\n \x01(\x04\x12\x13\n\x0bstore_cpu_s\x18\x0b \x01(\x02\x12\x19\n\x11placement_version\x18\x0c \x01(\x04\x12\x15\n\rserved_groups\x18\r \x03(\r\x12\x16\n\x0eserved_queries\x18\x0e \x03(\x04J\x04\x08\x04\x10\x05R\rgroup_queries\"J\n\x0c\x41\x64optRequest\x12)\n\tplacement\x18\x01 \x01(\x0b\x32\x16.swarmrec.v1.Placement\x12\x0f\n\x07publish\x18\x02 \x01(\x08\"[\n\nShardStore\x12\x32\n\ndescriptor\x18\x01 \x01(\x0b\x32\x1e.swarmrec.v1.PartialDescriptor\x12\x19\n\x11placement_version\x18\x02 \x01(\x04\"c\n\x0fTransferRequest\x12\r\n\x05group\x18\x01 \x01(\r\x12\x19\n\x11placement_version\x18\x02 \x01(\x04\x12\x11\n\tstart_row\x18\x03 \x01(\x04\x12\x13\n\x0bmax_records\x18\x04 \x01(\r\"o\n\rTransferReply\x12\r\n\x05group\x18\x01 \x01(\r\x12/\n\x07records\x18\x02 \x03(\x0b\x32\x1e.swarmrec.v1.PartialDescriptor\x12\x10\n\x08next_row\x18\x03 \x01(\x04\x12\x0c\n\x04\x64one\x18\x04 \x01(\x08\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x1bswarmrec/v1/placement.proto\x12\x0bswarmrec.v1\x1a\x1cswarmrec/v1/descriptor.proto\x1a\x18swarmrec/v1/events.proto\"\x7f\n\tPlacement\x12\x0f\n\x07version\x18\x01 \x01(\x04\x12\x14\n\x0cgroup_bounds\x18\x02 \x03(\r\x12(\n\x06groups\x18\x03 \x03(\x0b\x32\x18.swarmrec.v1.GroupOwners\x12\x0f\n\x07members\x18\x04 \x03(\r\x12\x10\n\x08replicas\x18\x05 \x01(\r\"@\n\x0bGroupOwners\x12\x0e\n\x06owners\x18\x01 \x03(\r\x12\x10\n\x08learners\x18\x02 \x03(\r\x12\x0f\n\x07leaving\x18\x03 \x03(\r\"@\n\x10PlacementRequest\x12\x1a\n\rknown_version\x18\x01 \x01(\x04H\x00\x88\x01\x01\x42\x10\n\x0e_known_version\"\xb7\x02\n\nShardState\x12)\n\tplacement\x18\x01 \x01(\x0b\x32\x16.swarmrec.v1.Placement\x12\x10\n\x08shard_id\x18\x02 \x01(\r\x12\x14\n\x0cready_groups\x18\x03 \x03(\r\x12\x11\n\tconfirmed\x18\x06 \x01(\x08\x12\x10\n\x08\x64raining\x18\x07 \x01(\x08\x12\x13\n\x0bquery_calls\x18\x08 \x01(\x04\x12\x13\n\x0bquery_cpu_s\x18\t \x01(\x02\x12\x13\n\x0bstore_calls\x18\n \x01(\x04\x12\x13\n\x0bstore_cpu_s\x18\x0b \x01(\x02\x12\x19\n\x11placement_version\x18\x0c \x01(\x04\x12\x15\n\rserved_groups\x18\r \x03(\r\x12\x16\n\x0eserved_queries\x18\x0e \x03(\x04J\x04\x08\x04\x10\x05R\rgroup_queries\"x\n\x0c\x41\x64optRequest\x12)\n\tplacement\x18\x01 \x01(\x0b\x32\x16.swarmrec.v1.Placement\x12\x0f\n\x07publish\x18\x02 \x01(\x08\x12,\n\x06reason\x18\x03 \x01(\x0e\x32\x1c.swarmrec.v1.PlacementReason\"[\n\nShardStore\x12\x32\n\ndescriptor\x18\x01 \x01(\x0b\x32\x1e.swarmrec.v1.PartialDescriptor\x12\x19\n\x11placement_version\x18\x02 \x01(\x04\"c\n\x0fTransferRequest\x12\r\n\x05group\x18\x01 \x01(\r\x12\x19\n\x11placement_version\x18\x02 \x01(\x04\x12\x11\n\tstart_row\x18\x03 \x01(\x04\x12\x13\n\x0bmax_records\x18\x04 \x01(\r\"o\n\rTransferReply\x12\r\n\x05group\x18\x01 \x01(\r\x12/\n\x07records\x18\x02 \x03(\x0b\x32\x1e.swarmrec.v1.PartialDescriptor\x12\x10\n\x08next_row\x18\x03 \x01(\x04\x12\x0c\n\x04\x64one\x18\x04 \x01(\x08\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, __name__, _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_PLACEMENT']._serialized_start=74
-  _globals['_PLACEMENT']._serialized_end=201
-  _globals['_GROUPOWNERS']._serialized_start=203
-  _globals['_GROUPOWNERS']._serialized_end=267
-  _globals['_PLACEMENTREQUEST']._serialized_start=269
-  _globals['_PLACEMENTREQUEST']._serialized_end=333
-  _globals['_SHARDSTATE']._serialized_start=336
-  _globals['_SHARDSTATE']._serialized_end=647
-  _globals['_ADOPTREQUEST']._serialized_start=649
-  _globals['_ADOPTREQUEST']._serialized_end=723
-  _globals['_SHARDSTORE']._serialized_start=725
-  _globals['_SHARDSTORE']._serialized_end=816
-  _globals['_TRANSFERREQUEST']._serialized_start=818
-  _globals['_TRANSFERREQUEST']._serialized_end=917
-  _globals['_TRANSFERREPLY']._serialized_start=919
-  _globals['_TRANSFERREPLY']._serialized_end=1030
+  _globals['_PLACEMENT']._serialized_start=100
+  _globals['_PLACEMENT']._serialized_end=227
+  _globals['_GROUPOWNERS']._serialized_start=229
+  _globals['_GROUPOWNERS']._serialized_end=293
+  _globals['_PLACEMENTREQUEST']._serialized_start=295
+  _globals['_PLACEMENTREQUEST']._serialized_end=359
+  _globals['_SHARDSTATE']._serialized_start=362
+  _globals['_SHARDSTATE']._serialized_end=673
+  _globals['_ADOPTREQUEST']._serialized_start=675
+  _globals['_ADOPTREQUEST']._serialized_end=795
+  _globals['_SHARDSTORE']._serialized_start=797
+  _globals['_SHARDSTORE']._serialized_end=888
+  _globals['_TRANSFERREQUEST']._serialized_start=890
+  _globals['_TRANSFERREQUEST']._serialized_end=989
+  _globals['_TRANSFERREPLY']._serialized_start=991
+  _globals['_TRANSFERREPLY']._serialized_end=1102
 # @@protoc_insertion_point(module_scope)

@@ -1,4 +1,5 @@
 from . import descriptor_pb2 as _descriptor_pb2
+from . import events_pb2 as _events_pb2
 from google.protobuf.internal import containers as _containers
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
@@ -66,12 +67,14 @@ class ShardState(_message.Message):
     def __init__(self, placement: _Optional[_Union[Placement, _Mapping]] = ..., shard_id: _Optional[int] = ..., ready_groups: _Optional[_Iterable[int]] = ..., confirmed: _Optional[bool] = ..., draining: _Optional[bool] = ..., query_calls: _Optional[int] = ..., query_cpu_s: _Optional[float] = ..., store_calls: _Optional[int] = ..., store_cpu_s: _Optional[float] = ..., placement_version: _Optional[int] = ..., served_groups: _Optional[_Iterable[int]] = ..., served_queries: _Optional[_Iterable[int]] = ...) -> None: ...
 
 class AdoptRequest(_message.Message):
-    __slots__ = ("placement", "publish")
+    __slots__ = ("placement", "publish", "reason")
     PLACEMENT_FIELD_NUMBER: _ClassVar[int]
     PUBLISH_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
     placement: Placement
     publish: bool
-    def __init__(self, placement: _Optional[_Union[Placement, _Mapping]] = ..., publish: _Optional[bool] = ...) -> None: ...
+    reason: _events_pb2.PlacementReason
+    def __init__(self, placement: _Optional[_Union[Placement, _Mapping]] = ..., publish: _Optional[bool] = ..., reason: _Optional[_Union[_events_pb2.PlacementReason, str]] = ...) -> None: ...
 
 class ShardStore(_message.Message):
     __slots__ = ("descriptor", "placement_version")
