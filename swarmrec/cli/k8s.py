@@ -117,6 +117,7 @@ def identity(args: argparse.Namespace) -> int:
     """The pod's own pair out of its kind's Secret; robot and swarm from its SWARMREC_* variables."""
     from swarmrec.errors import ConfigError
     from swarmrec.runtime.settings import BusSettings, load_config
+    from swarmrec.runtime.tls import ACL_FILE
     from swarmrec.security.install import install_identity
     from swarmrec.services import registry
     from swarmrec.services.settings import IndexSettings
@@ -129,7 +130,12 @@ def identity(args: argparse.Namespace) -> int:
     bound = [c for c in entry.all_components if c is IndexSettings]
     bus = load_config([BusSettings, *bound]).bus
     cn = entry.common_name(bus.swarm, bus.robot)
-    written = install_identity(args.source, args.target, cn)
+    extra = [ACL_FILE]
+    if entry.kind == "fusion":
+        # The other robots' fusion certificates (public; the Secret holds every robot's): a
+        # relayed output's origin signature is checked against its origin's (docs/security.md).
+        extra += [f"{entry.common_name(bus.swarm, r)}.pem" for r in range(bus.n_robots) if r != bus.robot]
+    written = install_identity(args.source, args.target, cn, extra=extra)
     print(f"identity {cn}: {', '.join(p.name for p in written)} in {args.target}")
     return 0
 

@@ -442,6 +442,14 @@ def shared_env(spec: SwarmSpec) -> dict[str, str]:
     return {k: v for k, v in sorted(out.items()) if k not in PER_POD}
 
 
+def numerics_env() -> dict[str, str]:
+    """This machine's OpenBLAS settings (``OPENBLAS_CORETYPE`` ...), for every pod: OpenBLAS picks
+    its kernels by them, and with them the last bits of a solve (a SLAM team's estimates differed
+    from run_dgs's here by 1e-14 without them), so the pods compute as the run's offline check on
+    this machine does. None set: each pod detects its CPU, as this machine does."""
+    return {k: v for k, v in sorted(os.environ.items()) if k.startswith("OPENBLAS_")}
+
+
 def dataset_files(spec: SwarmSpec, folder: Path) -> dict[str, str]:
     """The detectors' dataset (and label list) written into ``folder`` for a ConfigMap:
     ``{file name: the path the detectors read it at}``. A dataset folder is zipped; a zip is
@@ -519,12 +527,9 @@ def overlay_document(spec: SwarmSpec, namespace: str, base: str, files: dict[str
     """The kustomization of one run on top of the overlay at the relative path ``base``
     (``files``: the replaying detectors' dataset; none for a spec whose robot StatefulSets
     are made after rendering, :mod:`swarmrec.deployments.k8s_workloads`)."""
+    literals = {**shared_env(spec), **numerics_env()}
     generators: list[Obj] = [
-        {
-            "name": "swarm",
-            "behavior": "merge",
-            "literals": [f"{k}={v}" for k, v in shared_env(spec).items()],
-        }
+        {"name": "swarm", "behavior": "merge", "literals": [f"{k}={v}" for k, v in literals.items()]}
     ]
     patches = [{"path": "index-shard.json", "target": {"kind": "StatefulSet", "name": "index-shard"}}]
     if files:
