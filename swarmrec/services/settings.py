@@ -180,7 +180,9 @@ class IndexSettings(Component):
 
     replicas: int = setting(2, "index shards that hold each label group (1: the paper's one range a shard)")
     placement_tick_s: float = setting(
-        1.0, "how often the coordinator (the lowest live shard) checks members, handoffs and load"
+        0.25,
+        "how often the coordinator (the lowest live shard) checks members, handoffs and load (it asks "
+        "every shard only when something calls for it: state_interval_s)",
     )
     state_interval_s: float = setting(
         10.0,
