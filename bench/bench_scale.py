@@ -245,7 +245,43 @@ STEP_S = 0.2
 RULES = {"off": (1000.0, "pack"), "greedy": (1.5, "greedy"), "pack": (IndexSettings.rebalance_target, "pack")}
 
 
-def compare_rules(sizes: list[int], rules: list[str], processes: int, out: Path) -> None:
+def plot_rules(result: dict[str, Any], path: Path) -> None:
+    """Busiest / mean and the index's bytes a query against the swarm's size, a line a rule."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.8))
+    names = {"off": "no rebalancing", "greedy": "the rule before (greedy)", "pack": "the plan (default)"}
+    for rule in ("off", "greedy", "pack"):
+        runs = sorted((r for r in result["runs"] if r["rule"] == rule), key=lambda r: r["robots"])
+        if not runs:
+            continue
+        n = [r["robots"] for r in runs]
+        left.plot(n, [r["balance_ratio"] for r in runs], "o-", label=names[rule])
+        right.plot(
+            n,
+            [r["replication_bytes_per_query"] + r["index_control_bytes_per_query"] for r in runs],
+            "o-",
+            label=names[rule],
+        )
+    left.axhline(1.5, color="k", ls="--", lw=0.8)
+    left.set(xlabel="robots", ylabel="busiest shard / mean (partial queries)", xscale="log")
+    right.set(xlabel="robots", ylabel="bytes a query: replica stores + index control", xscale="log")
+    for ax in (left, right):
+        ax.set_xticks([10, 25, 50, 100], ["10", "25", "50", "100"])
+        ax.legend(fontsize=8)
+    fig.suptitle("synthetic world, 50 frames a robot, lock-step (a step at least 0.2 s)", fontsize=10)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def compare_rules(
+    sizes: list[int], rules: list[str], processes: int, out: Path, plot_path: Path | None = None
+) -> None:
     """Each size under each rule, one after the other in the same run (the same machine, the
     same hour): the balance, its bytes and the placements each rule published."""
     unknown = [r for r in rules if r not in RULES]
@@ -273,6 +309,8 @@ def compare_rules(sizes: list[int], rules: list[str], processes: int, out: Path)
                     f"identical {r['identical_to_offline']}",
                     flush=True,
                 )
+    if plot_path is not None:
+        plot_rules(result, plot_path)
 
 
 def main_bench() -> None:
@@ -300,7 +338,7 @@ def main_bench() -> None:
     target = args.rebalance_target or IndexSettings.rebalance_target
     sizes = [int(x) for x in args.robots.split(",")]
     if args.rules:
-        compare_rules(sizes, args.rules.split(","), args.processes, args.out)
+        compare_rules(sizes, args.rules.split(","), args.processes, args.out, args.plot)
         return
     result: dict[str, Any] = {"machine": {"python": platform.python_version(), "cpus": os.cpu_count()}}
     with tempfile.TemporaryDirectory() as tmp:
