@@ -131,9 +131,9 @@ def identity(args: argparse.Namespace) -> int:
     bus = load_config([BusSettings, *bound]).bus
     cn = entry.common_name(bus.swarm, bus.robot)
     extra = [ACL_FILE]
-    if entry.kind == "fusion":
-        # The other robots' fusion certificates (public; the Secret holds every robot's): a
-        # relayed output's origin signature is checked against its origin's (docs/security.md).
+    if entry.peer_certificates:
+        # The other robots' certificates of its kind (public; the Secret holds every robot's): a
+        # relayed message's origin signature is checked against its origin's (docs/security.md).
         extra += [f"{entry.common_name(bus.swarm, r)}.pem" for r in range(bus.n_robots) if r != bus.robot]
     written = install_identity(args.source, args.target, cn, extra=extra)
     print(f"identity {cn}: {', '.join(p.name for p in written)} in {args.target}")

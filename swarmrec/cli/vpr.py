@@ -265,7 +265,8 @@ def run_method(
 
 def print_dvpr(s: DvprSummary, out: Path) -> None:
     sw, q, b, load = s.swarm, s.queries, s.bytes, s.load
-    where = f"{sw['processes']} processes" if sw["processes"] else sw["deployment"]  # attached: none
+    # Compose and Kubernetes start no process of this run's (their stop reports none): their description.
+    where = f"{sw['processes']} processes" if sw["processes"] else sw["deployment"]
     print(
         f"swarm of {sw['robots']} robots on {s.dataset['name']} ({s.dataset['frames']} frames, "
         f"{where}), full-image descriptors, pace {sw['pace']}"

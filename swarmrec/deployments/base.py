@@ -24,6 +24,7 @@ never ask which kind it is.
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from collections.abc import Iterator
@@ -55,6 +56,7 @@ __all__ = [
     "check_running",
     "config_env",
     "config_flags",
+    "numerics_env",
     "read_attach_json",
     "running",
     "shared_env",
@@ -150,6 +152,15 @@ def config_env(config: Config) -> dict[str, str]:
     for part in config.parts:
         out.update(to_env(part, only_changed=True))
     return out
+
+
+def numerics_env() -> dict[str, str]:
+    """This machine's OpenBLAS settings (``OPENBLAS_CORETYPE`` ...), for every container and pod:
+    OpenBLAS picks its kernels by them, and with them the last bits of a solve or a decomposition
+    (a SLAM team's estimates differed from run_dgs's by 1e-14 without them), so the services
+    compute as the run's offline check on this machine does (lock-step identity is bit for bit).
+    None set: each container or pod detects its CPU, as this machine does."""
+    return {k: v for k, v in sorted(os.environ.items()) if k.startswith("OPENBLAS_")}
 
 
 @dataclass(frozen=True, kw_only=True)

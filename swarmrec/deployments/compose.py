@@ -49,6 +49,7 @@ from swarmrec.deployments.base import (
     SwarmSpec,
     check_running,
     config_env,
+    numerics_env,
     shared_env,
 )
 from swarmrec.deployments.identities import Security, security_for, swarm_pki
@@ -258,15 +259,7 @@ def _environment(spec: SwarmSpec, kind: str, robot: int, security: Security = "m
         config = config.replace(
             config.get(GatewaySettings).with_(grpc_host="0.0.0.0", grpc_port=GATEWAY_PORT)
         )
-    return config_env(config) | _numerics_env()
-
-
-def _numerics_env() -> dict[str, str]:
-    """This host's OpenBLAS settings (``OPENBLAS_CORETYPE`` ...), for every container: OpenBLAS
-    picks its kernels by them, and with them the last bits of a solve or a decomposition, so a
-    container computes as the run's offline check on this host does (lock-step identity is bit
-    for bit). None set here: each container detects its CPU, as the host does."""
-    return {k: v for k, v in sorted(os.environ.items()) if k.startswith("OPENBLAS_")}
+    return config_env(config) | numerics_env()
 
 
 def _swarm_service_name(kind: str) -> str:
@@ -482,8 +475,9 @@ def write_compose(
 
 def _write_secrets(spec: SwarmSpec, out: Path) -> Path:
     """The run's PKI in ``out/pki`` and, per container, ``out/secrets/<service>/`` with the CA
-    certificate and that container's own pair only (the router: and the access control; a
-    fusion service: and the other robots' fusion certificates, public, to check origins)."""
+    certificate and that container's own pair only (the router: and the access control; a kind
+    that checks its peers' signatures, fusion: and the other robots' certificates of its kind,
+    public, to check origins)."""
     pki = swarm_pki(out / "pki", spec.swarm, spec.robots, router_names=("router",))
     secrets = out / "secrets"
     shutil.rmtree(secrets, ignore_errors=True)
@@ -496,8 +490,8 @@ def _write_secrets(spec: SwarmSpec, out: Path) -> Path:
         files = [("ca.pem", "ca.pem"), (f"{cn}.pem", f"{cn}.pem"), (f"{cn}.key", f"{cn}.key")]
         if kind == "router":
             files.append((ACL_FILE, ACL_FILE))
-        if kind == "fusion":
-            # The other robots' fusion certificates (public): a relayed output's origin
+        if registry.spec(kind).peer_certificates:
+            # The other robots' certificates of its kind (public): a relayed message's origin
             # signature is checked against its origin's (docs/security.md).
             peers = (registry.spec(kind).common_name(spec.swarm, r) for r in range(spec.robots) if r != robot)
             files += [(f"{peer}.pem", f"{peer}.pem") for peer in peers]

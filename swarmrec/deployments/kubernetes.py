@@ -55,7 +55,7 @@ from typing import Any
 
 import swarmrec
 from swarmrec.client import GatewayClient, ZenohClient
-from swarmrec.deployments.base import AttachFile, DeploymentError, SwarmSpec
+from swarmrec.deployments.base import AttachFile, DeploymentError, SwarmSpec, numerics_env
 from swarmrec.deployments.identities import client_tls, swarm_pki
 from swarmrec.deployments.k8s_workloads import (
     detections_of,
@@ -440,14 +440,6 @@ def shared_env(spec: SwarmSpec) -> dict[str, str]:
         for part in spec.config_for(kind, 0).parts:
             out.update(to_env(part))
     return {k: v for k, v in sorted(out.items()) if k not in PER_POD}
-
-
-def numerics_env() -> dict[str, str]:
-    """This machine's OpenBLAS settings (``OPENBLAS_CORETYPE`` ...), for every pod: OpenBLAS picks
-    its kernels by them, and with them the last bits of a solve (a SLAM team's estimates differed
-    from run_dgs's here by 1e-14 without them), so the pods compute as the run's offline check on
-    this machine does. None set: each pod detects its CPU, as this machine does."""
-    return {k: v for k, v in sorted(os.environ.items()) if k.startswith("OPENBLAS_")}
 
 
 def dataset_files(spec: SwarmSpec, folder: Path) -> dict[str, str]:

@@ -147,6 +147,10 @@ class ServiceSpec:
     #: It says it is stopping with a liveliness token of its own (``draining``), and
     #: follows its peers' (who stays to take over what it holds).
     drains: bool = False
+    #: It checks its peers' signatures: its container or pod also gets the public certificates
+    #: of its kind on every other robot (a relayed message's origin signature is checked
+    #: against its origin's, docs/security.md).
+    peer_certificates: bool = False
     #: Also implemented in the compiled host (swarmrec-dataplane, docs/dataplane.md), which
     #: serves it when the ``data_plane`` setting says ``compiled``.
     compiled: bool = False
@@ -307,6 +311,8 @@ for _entry in (
         client_endpoints=("posterior",),
         # Flooding: who is a neighbour changes with the radio graph, so every other robot.
         mailboxes=("inbox",),
+        # A relayed output carries its origin's signature.
+        peer_certificates=True,
     ),
     ServiceSpec(
         "slam",

@@ -10,6 +10,7 @@ containers see them, whatever the host paths.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -22,9 +23,12 @@ from swarmrec.deployments.compose import (
     write_compose,
 )
 from swarmrec.errors import ConfigError
+from swarmrec.experiments.landmarks.simulation import LandmarkSettings
+from swarmrec.experiments.landmarks.simulation import swarm_spec as landmarks_spec
 from swarmrec.experiments.slam.keep import from_record as slam_from_record
 from swarmrec.experiments.vpr.keep import from_record as vpr_from_record
 from swarmrec.runtime.settings import BusSettings
+from swarmrec.services import registry
 from swarmrec.services.registry import WORKLOADS
 from swarmrec.services.settings import (
     DetectorSettings,
@@ -163,3 +167,32 @@ def test_a_solve_through_a_running_team_cannot_change_what_the_team_runs(tmp_pat
     assert (settings.robots, settings.swarm, settings.folder) == (3, "team", None)
     with pytest.raises(ConfigError, match="fixes robots"):
         slam_from_record(record, out=tmp_path / "run", robots=4)
+
+
+def _secret_files(out: Path, service: str) -> list[str]:
+    return sorted(p.name for p in (out / "secrets" / service).iterdir())
+
+
+def _peer_certificates(monkeypatch: pytest.MonkeyPatch, kind: str, value: bool) -> None:
+    monkeypatch.setitem(registry.REGISTRY, kind, replace(registry.spec(kind), peer_certificates=value))
+
+
+def test_a_kind_that_checks_its_peers_signatures_gets_their_public_certificates_as_the_registry_says(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    spec = landmarks_spec(LandmarkSettings(out=tmp_path / "unused", robots=3, swarm="lab"))
+    write_compose(spec, ComposeSettings(out=tmp_path / "a"))
+    # The fusion entry says so: robot 1's fusion container has the other robots' certificates,
+    # never their keys; its detector (which checks no peer) has its own pair only.
+    fusion = ["ca.pem", "r1.fusion.lab.key", "r1.fusion.lab.pem"]
+    detector = ["ca.pem", "r1.detector.lab.key", "r1.detector.lab.pem"]
+    peers = ["r0.fusion.lab.pem", "r2.fusion.lab.pem"]
+    assert _secret_files(tmp_path / "a", "r1-fusion") == sorted([*fusion, *peers])
+    assert _secret_files(tmp_path / "a", "r1-detector") == detector
+    # The field decides, not the kind's name.
+    _peer_certificates(monkeypatch, "fusion", False)
+    _peer_certificates(monkeypatch, "detector", True)
+    write_compose(spec, ComposeSettings(out=tmp_path / "b"))
+    assert _secret_files(tmp_path / "b", "r1-fusion") == fusion
+    peers = ["r0.detector.lab.pem", "r2.detector.lab.pem"]
+    assert _secret_files(tmp_path / "b", "r1-detector") == sorted([*detector, *peers])

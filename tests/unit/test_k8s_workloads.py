@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import base64
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +42,7 @@ from swarmrec.services.settings import (
     VprSettings,
 )
 from tests.unit.test_k8s_manifests import (
+    _as_mounted,
     ensure_kubectl,
     find,
     kubectl_run,
@@ -244,3 +246,51 @@ def test_files_too_large_for_a_configmap_are_refused(tmp_path: Path) -> None:
     (tmp_path / "input" / "3.g2o").write_bytes(json.dumps(["x" * 1000] * 1100).encode())
     with pytest.raises(ConfigError, match="holds 1 MiB"):
         pod_inputs(spec)
+
+
+def test_the_machines_openblas_settings_reach_every_robots_pod(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("OPENBLAS_CORETYPE", "Haswell")
+    spec = _slam(tmp_path)
+    objs = _objects(spec, tmp_path)
+    for kind in spec.kinds:
+        for robot in range(ROBOTS):
+            assert robot_environment(objs, kind, robot)["OPENBLAS_CORETYPE"] == "Haswell", (kind, robot)
+
+
+@pytest.fixture(scope="module")
+def pki(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from swarmrec.deployments.kubernetes import kubernetes_pki
+
+    return kubernetes_pki(tmp_path_factory.mktemp("k8s-pki") / "pki", "lab", ROBOTS, NAMESPACE)
+
+
+def _identity(pki: Path, kind: str, tmp: Path, monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """What robot 1's ``kind`` pod's init container copies out of its kind's Secret."""
+    from swarmrec.cli import main
+    from swarmrec.deployments.kubernetes import secret_objects
+
+    objs = secret_objects(pki, "lab", ROBOTS, NAMESPACE, registry.WORKLOADS["landmarks"])
+    secrets = {o["metadata"]["name"]: o for o in objs}
+    mounted = _as_mounted(secrets[secret_name(kind)], tmp / "secrets")
+    for name, value in {"SWARMREC_ROBOT": "1", "SWARMREC_SWARM": "lab", "SWARMREC_N_ROBOTS": "3"}.items():
+        monkeypatch.setenv(name, value)
+    assert main(["k8s", "identity", "--kind", kind, "--from", str(mounted), "--to", str(tmp / "pki")]) == 0
+    return sorted(p.name for p in (tmp / "pki").iterdir())
+
+
+def test_a_pod_that_checks_its_peers_signatures_gets_their_public_certificates_as_the_registry_says(
+    pki: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    fusion = ["ca.pem", "r1.fusion.lab.key", "r1.fusion.lab.pem"]
+    detector = ["ca.pem", "r1.detector.lab.key", "r1.detector.lab.pem"]
+    peers = ["r0.fusion.lab.pem", "r2.fusion.lab.pem"]  # never their keys
+    assert _identity(pki, "fusion", tmp_path / "a", monkeypatch) == sorted([*fusion, *peers])
+    assert _identity(pki, "detector", tmp_path / "b", monkeypatch) == detector
+    # The field decides, not the kind's name.
+    for kind, value in (("fusion", False), ("detector", True)):
+        monkeypatch.setitem(registry.REGISTRY, kind, replace(registry.spec(kind), peer_certificates=value))
+    assert _identity(pki, "fusion", tmp_path / "c", monkeypatch) == fusion
+    peers = ["r0.detector.lab.pem", "r2.detector.lab.pem"]
+    assert _identity(pki, "detector", tmp_path / "d", monkeypatch) == sorted([*detector, *peers])
