@@ -15,7 +15,6 @@ now holds the first one's frames, is refused; ``compose down`` leaves nothing.
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 import urllib.request
@@ -25,24 +24,23 @@ import docker
 import numpy as np
 import pytest
 
-from swarmrec.core.presets import get_preset
-from swarmrec.core.split import split_frames
-from swarmrec.core.verification import verify
-from swarmrec.datasets.constellations import read_constellations
-from swarmrec.datasets.labels import COCO_NAMES
-from swarmrec.datasets.tum_rgbd import frame_id_of, read_tum_rgbd
 from swarmrec.deployments.compose import ComposeDeployment, ComposeSettings, down, up
 from swarmrec.deployments.local import free_port
 from swarmrec.errors import ConfigError
 from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.places import PixelSettings, PlacesSettings
-from swarmrec.experiments.places.pipeline import as_on_the_wire
 from swarmrec.experiments.vpr import DvprSettings, DvprSummary, VprRunSettings, main
 from swarmrec.experiments.vpr.keep import compose, from_record
 from swarmrec.models import DESCRIPTOR_CENTRES, shipped_model
-from swarmrec.vpr.clusters import ASSIGNMENT_FORMAT, load_centres, nearest_centre
-from swarmrec.vpr.quantize import Int8Quantizer
-from swarmrec.vpr.simulation import arrival_order, robot_of_frames, run_queries
+from swarmrec.vpr.clusters import ASSIGNMENT_FORMAT, load_centres
+from tests.dvpr_checks import (
+    assert_answers_are,
+    closures_of,
+    detector_frames,
+    offline_answers,
+    read_closures,
+    verified_matches,
+)
 from tests.e2e.conftest import project_leftovers
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
@@ -51,11 +49,6 @@ ROBOTS, FRAMES = 3, 240
 KINDS = ("verifier", "place-owner", "detector")
 #: The shipped centres hold k = 10 (not 3 x c): a table gives the 10 clusters to 3 robots.
 OWNERS = (0, 1, 2, 0, 1, 2, 0, 1, 2, 0)
-
-
-def _answers(path: Path) -> dict[int, dict[str, str]]:
-    with path.open(encoding="utf-8") as f:
-        return {int(row["frame"]): row for row in csv.DictReader(f)}
 
 
 def _targets(prometheus_url: str) -> dict[tuple[str, str], str]:
@@ -115,68 +108,20 @@ def test_a_compose_dvpr_swarm_answers_every_frame_as_the_offline_simulation_of_i
     }
     assert targets == dict.fromkeys(expected_targets, "up")
 
-    # The descriptors the containers' detectors produced, in frame order, on the host.
-    frames = read_tum_rgbd(folder / "dataset").frames
-    ids = [frame_id_of(f) for f in frames]
-    assert len(ids) == FRAMES
-    blocks = split_frames(FRAMES, ROBOTS)
-    robots = robot_of_frames(FRAMES, ROBOTS)
+    # The descriptors the containers' detectors produced, on the host, and their offline simulation.
     data = folder / "data"
-    x = np.stack(
-        [
-            np.load(data / f"robot{r}" / "detector" / "descriptors" / f"{ids[g]}.npy")
-            for r, block in enumerate(blocks)
-            for g in block
-        ]
-    )
-    assert x.shape == (FRAMES, 128) and x.dtype == np.float32
-
-    # The offline simulation of those descriptors.
+    frames = detector_frames(folder / "dataset", data, ROBOTS)
+    assert len(frames.robots) == FRAMES
     centres = load_centres(shipped_model(DESCRIPTOR_CENTRES), len(OWNERS))
-    owners = np.asarray(OWNERS, np.int64)[nearest_centre(centres, x)]
-    int8 = Int8Quantizer(128)
-    expected = run_queries(int8.decode(int8.encode(x)), robots, owners, arrival_order(robots))
-
-    got = _answers(out / "answers.csv")
-    assert sorted(got) == list(range(FRAMES))
-    np.testing.assert_array_equal([int(got[g]["owner"]) for g in range(FRAMES)], expected.owners)
-    np.testing.assert_array_equal([int(got[g]["match_frame"]) for g in range(FRAMES)], expected.matches)
-    live_distances = np.array(
-        [float(got[g]["distance"]) if got[g]["distance"] else np.inf for g in range(FRAMES)]
-    )
-    np.testing.assert_array_equal(live_distances.astype(np.float32), expected.distances.astype(np.float32))
-    # The comparison is about something: most frames matched, queries crossed robots.
-    assert np.count_nonzero(expected.matches >= 0) > 0.8 * FRAMES
-    assert 0.3 < np.mean(expected.owners != robots) < 1.0
+    expected = offline_answers(frames, centres, OWNERS)
+    assert_answers_are(out / "answers.csv", expected, frames, matched=0.8)
     assert summary.offline_check is not None and summary.offline_check.identical
     # The load each owner counted, read through Prometheus, is the simulation's.
     assert summary.load.queries == np.bincount(expected.owners, minlength=ROBOTS).tolist()
-
     # Loop closures: every answered frame of >= 3 objects whose match verifies at >= 0.3.
-    seqs = [
-        as_on_the_wire(read_constellations(data / f"robot{r}" / "detector" / "constellations", COCO_NAMES))
-        for r in range(ROBOTS)
-    ]
-    preset = get_preset("paper")
-    closures_expected = {}
-    for g in range(FRAMES):
-        h = int(expected.matches[g])
-        r, t = int(robots[g]), g - blocks[int(robots[g])].start
-        query = seqs[r].constellations[t]
-        if h < 0 or len(query) < preset.min_objects:
-            continue
-        mr, mt = int(robots[h]), h - blocks[int(robots[h])].start
-        (scored,) = verify(query, (r, t), mr, [(mt, seqs[mr].constellations[mt])], len(COCO_NAMES), preset)
-        if scored.score > 0 and scored.score >= 0.3:
-            closures_expected[(r, t)] = (mr, mt)
-    with (out / "loop_closures.csv").open(encoding="utf-8") as f:
-        rows = list(csv.DictReader(f))
-    live_closures = {
-        (int(c["query_robot"]), int(c["query_frame"])): (int(c["match_robot"]), int(c["match_frame"]))
-        for c in rows
-    }
-    assert len(closures_expected) >= 5
-    assert live_closures == closures_expected
+    closures = closures_of(verified_matches(data, frames, expected))
+    assert len(closures) >= 5
+    assert read_closures(out / "loop_closures.csv") == {k: v[:2] for k, v in closures.items()}
     # Bytes were measured on the wire (Prometheus' counters of this run).
     assert set(summary.bytes.per_query_by_message) == {
         "PlaceQuery",

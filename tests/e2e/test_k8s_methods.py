@@ -16,7 +16,6 @@ pod mounted only its own kind's Secret, and nothing is left on the cluster or th
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 import urllib.parse
@@ -27,18 +26,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from swarmrec.core.presets import get_preset
-from swarmrec.core.split import split_frames
-from swarmrec.core.verification import verify
-from swarmrec.datasets.constellations import read_constellations
-from swarmrec.datasets.labels import COCO_NAMES
-from swarmrec.datasets.tum_rgbd import frame_id_of, read_tum_rgbd
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.kubernetes import KubernetesDeployment, KubernetesSettings, secret_name
 from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.landmarks.simulation import LandmarkSettings, parse_law, run_simulation
 from swarmrec.experiments.places import PixelSettings, PlacesSettings
-from swarmrec.experiments.places.pipeline import as_on_the_wire
 from swarmrec.experiments.slam import LiveSlamSettings
 from swarmrec.experiments.slam import main as slam_main
 from swarmrec.experiments.vpr import DvprSettings, DvprSummary, VprRunSettings
@@ -46,9 +38,15 @@ from swarmrec.experiments.vpr import main as vpr_main
 from swarmrec.models import DESCRIPTOR_CENTRES, shipped_model
 from swarmrec.slam.dgs import DgsSettings, run_dgs
 from swarmrec.slam.g2o import read_robot_folder, write_g2o
-from swarmrec.vpr.clusters import ASSIGNMENT_FORMAT, load_centres, nearest_centre
-from swarmrec.vpr.quantize import Int8Quantizer
-from swarmrec.vpr.simulation import arrival_order, robot_of_frames, run_queries
+from swarmrec.vpr.clusters import ASSIGNMENT_FORMAT, load_centres
+from tests.dvpr_checks import (
+    assert_answers_are,
+    closures_of,
+    detector_frames,
+    offline_answers,
+    read_closures,
+    verified_matches,
+)
 from tests.e2e import test_k8s_cluster
 from tests.e2e.test_k8s_cluster import _kubectl
 
@@ -95,11 +93,6 @@ def _mounted_secrets(deployment: KubernetesDeployment) -> dict[str, set[str]]:
 def _robot_pods_use_their_own_kinds_secret(mounted: dict[str, set[str]], kinds: tuple[str, ...]) -> None:
     expected = {f"{k}-{r}": {secret_name(k)} for k in kinds for r in range(ROBOTS)}
     assert {p: s for p, s in mounted.items() if p.rsplit("-", 1)[0] in kinds} == expected
-
-
-def _answers(path: Path) -> dict[int, dict[str, str]]:
-    with path.open(encoding="utf-8") as f:
-        return {int(row["frame"]): row for row in csv.DictReader(f)}
 
 
 def _node_folders_gone(deployment: KubernetesDeployment) -> bool:
@@ -150,68 +143,21 @@ def test_a_dvpr_swarm_on_kubernetes_answers_every_frame_as_the_offline_simulatio
     assert seen["targets"] == dict.fromkeys(expected_targets, "up")
     _robot_pods_use_their_own_kinds_secret(seen["secrets"], DVPR_KINDS)
 
-    # The descriptors the pods' detectors produced (copied from their node folders), in frame order.
-    frames = read_tum_rgbd(out / "rgbd").frames
-    ids = [frame_id_of(f) for f in frames]
-    assert len(ids) == FRAMES
-    blocks = split_frames(FRAMES, ROBOTS)
-    robots = robot_of_frames(FRAMES, ROBOTS)
+    # The descriptors the pods' detectors produced (copied from their node folders), and their
+    # offline simulation.
     data = out / "k8s" / "data"
-    x = np.stack(
-        [
-            np.load(data / f"robot{r}" / "detector" / "descriptors" / f"{ids[g]}.npy")
-            for r, block in enumerate(blocks)
-            for g in block
-        ]
-    )
-    assert x.shape == (FRAMES, 128) and x.dtype == np.float32
-
-    # The offline simulation of those descriptors.
+    frames = detector_frames(out / "rgbd", data, ROBOTS)
+    assert len(frames.robots) == FRAMES
     centres = load_centres(shipped_model(DESCRIPTOR_CENTRES), len(OWNERS))
-    owners = np.asarray(OWNERS, np.int64)[nearest_centre(centres, x)]
-    int8 = Int8Quantizer(128)
-    expected = run_queries(int8.decode(int8.encode(x)), robots, owners, arrival_order(robots))
-
-    got = _answers(out / "answers.csv")
-    assert sorted(got) == list(range(FRAMES))
-    np.testing.assert_array_equal([int(got[g]["owner"]) for g in range(FRAMES)], expected.owners)
-    np.testing.assert_array_equal([int(got[g]["match_frame"]) for g in range(FRAMES)], expected.matches)
-    live_distances = np.array(
-        [float(got[g]["distance"]) if got[g]["distance"] else np.inf for g in range(FRAMES)]
-    )
-    np.testing.assert_array_equal(live_distances.astype(np.float32), expected.distances.astype(np.float32))
-    # The comparison is about something: most frames matched, queries crossed robots.
-    assert np.count_nonzero(expected.matches >= 0) > 0.8 * FRAMES
-    assert 0.3 < np.mean(expected.owners != robots) < 1.0
+    expected = offline_answers(frames, centres, OWNERS)
+    assert_answers_are(out / "answers.csv", expected, frames, matched=0.8)
     assert summary.offline_check is not None and summary.offline_check.identical
     # The load each owner counted, read through the cluster's Prometheus, is the simulation's.
     assert summary.load.queries == np.bincount(expected.owners, minlength=ROBOTS).tolist()
-
     # Loop closures: every answered frame of >= 3 objects whose match verifies at >= 0.3.
-    seqs = [
-        as_on_the_wire(read_constellations(data / f"robot{r}" / "detector" / "constellations", COCO_NAMES))
-        for r in range(ROBOTS)
-    ]
-    preset = get_preset("paper")
-    closures_expected = {}
-    for g in range(FRAMES):
-        h = int(expected.matches[g])
-        r, t = int(robots[g]), g - blocks[int(robots[g])].start
-        query = seqs[r].constellations[t]
-        if h < 0 or len(query) < preset.min_objects:
-            continue
-        mr, mt = int(robots[h]), h - blocks[int(robots[h])].start
-        (scored,) = verify(query, (r, t), mr, [(mt, seqs[mr].constellations[mt])], len(COCO_NAMES), preset)
-        if scored.score > 0 and scored.score >= 0.3:
-            closures_expected[(r, t)] = (mr, mt)
-    with (out / "loop_closures.csv").open(encoding="utf-8") as f:
-        rows = list(csv.DictReader(f))
-    live_closures = {
-        (int(c["query_robot"]), int(c["query_frame"])): (int(c["match_robot"]), int(c["match_frame"]))
-        for c in rows
-    }
-    assert len(closures_expected) >= 2  # 2 on these 90 frames
-    assert live_closures == closures_expected
+    closures = closures_of(verified_matches(data, frames, expected))
+    assert len(closures) >= 2  # 2 on these 90 frames
+    assert read_closures(out / "loop_closures.csv") == {k: v[:2] for k, v in closures.items()}
     assert set(summary.bytes.per_query_by_message) == {
         "PlaceQuery",
         "PlaceMatch",
