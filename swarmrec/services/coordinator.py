@@ -235,10 +235,10 @@ def must_look(
     second were most of a large swarm's index traffic (194 B a query at 100 robots), and in
     a settled swarm nothing in them changes: so they are asked for on taking over, during a
     handoff (the learners' progress), when a shard came, went, or began draining (the view),
-    after an adoption a shard did not confirm (``dirty``), while the coordinator has not yet
-    looked at a whole window of load (``learning``: the first rebalancing comes as early as the
-    load allows), and otherwise every ``interval_s`` (a shard on another placement, the load
-    for the next rebalancing look)."""
+    after an adoption a shard did not confirm (``dirty``), for the coordinator's first
+    ``LEARNING_LOOKS`` windows of load (``learning``: the first rebalancing comes as early as
+    the load allows, and the next ones plan on loads that have settled), and otherwise every
+    ``interval_s`` (a shard on another placement, the load for the next rebalancing look)."""
     if not acting or not settled or not confirmed or dirty or learning or view != last_view:
         return True
     return since_look_s >= interval_s
