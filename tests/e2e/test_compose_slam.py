@@ -11,10 +11,8 @@ nothing.
 
 from __future__ import annotations
 
-import json
 import os
-import urllib.parse
-import urllib.request
+import time
 from pathlib import Path
 
 import docker
@@ -22,6 +20,7 @@ import pytest
 
 from swarmrec.deployments.compose import ComposeDeployment, ComposeSettings, SwarmFile, down, up
 from swarmrec.deployments.local import free_port
+from swarmrec.deployments.metrics import scrape_prometheus
 from swarmrec.experiments.slam import LiveSlamSettings, main
 from swarmrec.experiments.slam.keep import compose, from_record
 from swarmrec.slam.dgs import DgsSettings, run_dgs
@@ -34,13 +33,11 @@ ROBOTS = 3
 
 
 def _sent_messages(info: SwarmFile) -> float:
-    """The estimates every slam service says it sent, summed, as Prometheus holds them now."""
-    query = 'sum(swarmrec_slam_sent_messages_total{carries="estimates"})'
-    url = f"{info.prometheus_url}/api/v1/query?{urllib.parse.urlencode({'query': query})}"
-    with urllib.request.urlopen(url, timeout=10) as resp:
-        body = json.loads(resp.read())
-    (sample,) = body["data"]["result"]
-    return float(sample["value"][1])
+    """The estimates every slam service says it sent, summed, once Prometheus has scraped every
+    service after now (a read right after the solve could precede the scrape of its counters)."""
+    fresh = scrape_prometheus(info.prometheus_url, fresh_after=time.time())
+    assert not fresh.failed, fresh.failed
+    return fresh.total("swarmrec_slam_sent_messages_total", carries="estimates")
 
 
 def test_a_compose_slam_team_solves_as_run_dgs_in_one_process(

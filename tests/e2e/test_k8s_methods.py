@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 import urllib.parse
 import urllib.request
 from pathlib import Path
@@ -28,6 +29,7 @@ import pytest
 
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.kubernetes import KubernetesDeployment, KubernetesSettings, secret_name
+from swarmrec.deployments.metrics import scrape_prometheus
 from swarmrec.evaluation.source import DatasetSource
 from swarmrec.experiments.landmarks.simulation import LandmarkSettings, parse_law, run_simulation
 from swarmrec.experiments.places import PixelSettings, PlacesSettings
@@ -167,11 +169,11 @@ def test_a_dvpr_swarm_on_kubernetes_answers_every_frame_as_the_offline_simulatio
 
 
 def _sent_messages(prometheus_url: str) -> float:
-    """The estimates every slam service says it sent, summed, as Prometheus holds them now."""
-    query = 'sum(swarmrec_slam_sent_messages_total{carries="estimates"})'
-    body = _prometheus(prometheus_url, f"/api/v1/query?{urllib.parse.urlencode({'query': query})}")
-    (sample,) = body["data"]["result"]
-    return float(sample["value"][1])
+    """The estimates every slam service says it sent, summed, once Prometheus has scraped every
+    service after now (a read right after the solve could precede the scrape of its counters)."""
+    fresh = scrape_prometheus(prometheus_url, fresh_after=time.time())
+    assert not fresh.failed, fresh.failed
+    return fresh.total("swarmrec_slam_sent_messages_total", carries="estimates")
 
 
 def test_a_slam_team_on_kubernetes_solves_as_run_dgs_in_one_process(tmp_path: Path) -> None:
