@@ -22,17 +22,18 @@ they do not depend on a shard's counter surviving to the end.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import platform
 import signal
 import tempfile
 import time
-from collections import Counter
 from pathlib import Path
 from typing import Any
 
+from lockstep_load import Pacer, shard_loads
+
+from swarmrec.core.placement import balance_ratio
 from swarmrec.core.split import split_frames
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.local import LocalDeployment
@@ -52,25 +53,6 @@ TICK_S = 0.25
 STEP_S = 0.05
 
 
-def _loads(run: Path, robots: int, first_step: int = 0) -> list[int]:
-    """Partial queries each shard answered, from the run's funnel_queries.csv (frames from
-    ``first_step`` on)."""
-    counts: Counter[int] = Counter()
-    with (run / "funnel_queries.csv").open(encoding="utf-8") as f:
-        for row in csv.DictReader(f):
-            if int(row["frame"]) < first_step:
-                continue
-            for item in row["shard_candidates"].split():
-                shard = int(item.partition(":")[0].partition("/")[2])
-                counts[shard] += 1
-    return [counts.get(r, 0) for r in range(robots)]
-
-
-def _ratio(loads: list[int]) -> float:
-    mean = sum(loads) / len(loads)
-    return max(loads) / mean if mean else 0.0
-
-
 def balance(name: str, index: IndexSettings, work: Path) -> dict[str, Any]:
     out = work / name
     settings = PlacesSettings(
@@ -83,21 +65,17 @@ def balance(name: str, index: IndexSettings, work: Path) -> dict[str, Any]:
         plots=False,
         index=index,
     )
-    paced = [time.perf_counter()]
+    pace = Pacer(STEP_S)
 
     def on_step(t: int) -> None:
-        # Each lock-step step lasts at least STEP_S: robots whose frames come at a rate.
-        wait = paced[0] + STEP_S - time.perf_counter()
-        if wait > 0:
-            time.sleep(wait)
-        paced[0] = time.perf_counter()
+        pace()
 
     t0 = time.perf_counter()
     s = main(settings, LocalDeployment.for_run(settings.out), on_step=on_step)
     wall = time.perf_counter() - t0
     steps = max(len(b) for b in split_frames(s.dataset.frames, ROBOTS))
-    whole = _loads(out, ROBOTS)
-    second = _loads(out, ROBOTS, first_step=steps // 2)
+    whole = shard_loads(out, ROBOTS)
+    second = shard_loads(out, ROBOTS, first_step=steps // 2)
     assert s.index is not None
     return {
         "name": name,
@@ -107,9 +85,9 @@ def balance(name: str, index: IndexSettings, work: Path) -> dict[str, Any]:
         "step_s": STEP_S,
         "placement_tick_s": index.placement_tick_s,
         "loads": whole,
-        "balance_ratio": _ratio(whole),
+        "balance_ratio": balance_ratio(whole),
         "loads_second_half": second,
-        "balance_ratio_second_half": _ratio(second),
+        "balance_ratio_second_half": balance_ratio(second),
         "bytes_per_query": s.bytes.per_query,
         "replication_per_query": s.bytes.replication_per_query,
         "index_control_per_query": s.bytes.index_control_per_query,

@@ -26,16 +26,17 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import csv
 import json
 import os
 import platform
 import tempfile
 import time
-from collections import Counter
 from pathlib import Path
 from typing import Any
 
+from lockstep_load import Pacer, shard_loads
+
+from swarmrec.core.placement import balance_ratio
 from swarmrec.deployments.base import Deployment
 from swarmrec.deployments.local import LocalDeployment, LocalSettings
 from swarmrec.evaluation.source import DatasetSource
@@ -73,24 +74,6 @@ def tree_rss_mb(pid: int) -> float:
     return sum(rss_mb(p) for p in tree(pid))
 
 
-def _shard_loads(run_dir: Path, robots: int, first_step: int = 0) -> list[int]:
-    """Partial queries each shard answered, from the run's funnel_queries.csv (frames from
-    ``first_step`` on): the second half of a run shows the placement the coordinator chose."""
-    counts: Counter[int] = Counter()
-    with (run_dir / "funnel_queries.csv").open(encoding="utf-8") as f:
-        for row in csv.DictReader(f):
-            if int(row["frame"]) < first_step:
-                continue
-            for item in row["shard_candidates"].split():
-                counts[int(item.partition(":")[0].partition("/")[2])] += 1
-    return [counts.get(r, 0) for r in range(robots)]
-
-
-def _ratio(loads: list[int]) -> float:
-    mean = sum(loads) / len(loads) if loads else 0.0
-    return max(loads) / mean if mean else 0.0
-
-
 def _versions_after_first_rebalance(history: list[dict[str, Any]]) -> int | None:
     """Placements published after the first rebalancing's (None: it never rebalanced)."""
     first = next((h["version"] for h in history if h["reason"] == "rebalance"), None)
@@ -108,15 +91,10 @@ def run(
         assert isinstance(d, LocalDeployment)
         held.append(d)
 
-    paced = [time.perf_counter()]
+    pace = Pacer(step_s)
 
     def on_step(t: int) -> None:
-        # Each lock-step step lasts at least step_s: robots whose frames come at a rate, as
-        # real ones do, while the swarm still answers every step before the next.
-        wait = paced[0] + step_s - time.perf_counter()
-        if wait > 0:
-            time.sleep(wait)
-        paced[0] = time.perf_counter()
+        pace()
         if t == steps - 1:  # the last step: every process holds all it will hold
             d = held[0]
             procs = [sp for sp in d.procs if sp.proc.poll() is None]
@@ -151,7 +129,7 @@ def run(
     wall = time.perf_counter() - t0
     total = memory.get("services_mb", 0.0) + memory.get("router_mb", 0.0)
     history = s.index.history if s.index else []
-    second = _shard_loads(settings.out, robots, first_step=steps // 2)
+    second = shard_loads(settings.out, robots, first_step=steps // 2)
     return {
         "robots": robots,
         "hosting": hosting,
@@ -174,7 +152,7 @@ def run(
         "balance_ratio": s.shard_load.balance_ratio,
         "loads": s.shard_load.partial_queries,
         # The second half of the run: the placement the coordinator settled on.
-        "balance_ratio_second_half": _ratio(second),
+        "balance_ratio_second_half": balance_ratio(second),
         "loads_second_half": second,
         "group_queries": s.index.group_queries if s.index else [],
         "history": history,
