@@ -37,11 +37,14 @@ pub fn endpoint_key(swarm: &str, kind: &str, robot: u32, name: &str) -> String {
 /// request to one goes to `<endpoint key>/<caller's robot>`, which the router's access
 /// control lets each certificate use with its own robot(s) only, and the service takes
 /// the caller from the key, not from the attachment.
-pub const CALLER_BOUND: [(&str, &str); 4] = [
+pub const CALLER_BOUND: [(&str, &str); 7] = [
     ("index-shard", "query"),
     ("index-shard", "store"),
     ("index-shard", "adopt"),
     ("place-owner", "query"),
+    ("place-owner", "store_copy"),
+    ("place-owner", "adopt_table"),
+    ("place-owner", "store_entries"),
 ];
 
 /// Whether `kind`'s endpoint `name` takes its caller from the key.

@@ -65,12 +65,22 @@ def endpoint(swarm: str, kind: str, robot: int | str, name: str) -> str:
 
 #: Endpoints that act for the robot that calls them: a shard stores the querying robot's
 #: slices (``query``, ``store``) and takes a placement from the coordinator (``adopt``), a
-#: place owner stores the querying robot's descriptor. A request to one goes to
+#: place owner stores the querying robot's descriptor (``query``, ``store_copy``), takes a
+#: table from the coordinator (``adopt_table``) and entries from their holder
+#: (``store_entries``). A request to one goes to
 #: ``<endpoint key>/<caller's robot>``, and the router's access control lets each
 #: certificate send them under its own robot(s) only; the service takes the caller from
 #: the key, not from what the message or its attachment claims (docs/security.md).
 CALLER_BOUND: frozenset[tuple[str, str]] = frozenset(
-    {("index-shard", "query"), ("index-shard", "store"), ("index-shard", "adopt"), ("place-owner", "query")}
+    {
+        ("index-shard", "query"),
+        ("index-shard", "store"),
+        ("index-shard", "adopt"),
+        ("place-owner", "query"),
+        ("place-owner", "store_copy"),
+        ("place-owner", "adopt_table"),
+        ("place-owner", "store_entries"),
+    }
 )
 
 

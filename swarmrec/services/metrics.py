@@ -226,6 +226,12 @@ class PlaceOwnerMetrics(MetricSet):
     snapshots: Counter
     loop_closures: Counter
     query_seconds: Histogram
+    table_version: Gauge
+    tables_adopted: Counter
+    moved: Counter
+    copies_stored: Counter
+    copies_failed: Counter
+    rerouted: Counter
 
     @classmethod
     def create(cls, registry: CollectorRegistry) -> PlaceOwnerMetrics:
@@ -258,6 +264,37 @@ class PlaceOwnerMetrics(MetricSet):
                 "swarmrec_place_query_duration_seconds",
                 "Time of one full-image query of this robot's, frame in to the verifier's reply",
                 buckets=LATENCY_BUCKETS,
+                registry=registry,
+            ),
+            table_version=Gauge(
+                "swarmrec_place_owner_table_version",
+                "Version of the cluster table this owner routes and owns by (0: the settings')",
+                registry=registry,
+            ),
+            tables_adopted=Counter(
+                "swarmrec_place_owner_tables_adopted",
+                "Cluster tables this owner adopted after a re-balancing",
+                registry=registry,
+            ),
+            moved=Counter(
+                "swarmrec_place_owner_moved_descriptors",
+                "Stored descriptors moved by new tables: sent to their new holders, received, removed here",
+                ["direction"],
+                registry=registry,
+            ),
+            copies_stored=Counter(
+                "swarmrec_place_owner_copies_stored",
+                "Queries of other cells stored here as boundary copies (never searched for their querier)",
+                registry=registry,
+            ),
+            copies_failed=Counter(
+                "swarmrec_place_owner_copies_failed",
+                "Boundary copies of this robot's queries that their holder did not store",
+                registry=registry,
+            ),
+            rerouted=Counter(
+                "swarmrec_place_owner_rerouted_queries",
+                "This robot's queries sent again: refused for their table's version, or unanswered",
                 registry=registry,
             ),
         )

@@ -33,6 +33,24 @@ swarm's length, finite and of unit norm in its encoding (:func:`swarmrec.wire.vp
 Stores are idempotent: the same (robot, frame) with the same descriptor again is answered
 (a fresh search) and stored once; other content is ALREADY_EXISTS.
 
+**Re-balancing** (docs/vpr.md, "Re-balancing a live swarm"; :mod:`swarmrec.vpr.live`). The
+table is versioned and can change while the swarm runs. ``rebalance`` (an operator's, or
+every ``vpr_rebalance_every_s`` on its own) asks the coordinator, the lowest live
+place-owner, to plan the next table: it gathers every owner's ``cluster_load`` (queries per
+cluster since the table began, how they lie between cells, the splits of its hot clusters),
+plans with the offline rules and sends it to every owner (``adopt_table``). An owner that
+adopts a table refuses queries routed with another version from then on (a querier then
+fetches the coordinator's table and routes again: a query is refused, never lost), and moves
+what it stores to where the new table puts each descriptor (its owner, and after the first
+re-balancing copies at the owners of its next-nearest cells): ``store_entries`` at each new
+holder (idempotent, logged there), then the entries it no longer holds are removed (logged
+as removals). A holder that cannot reach a new holder keeps those entries and tries again
+every second, so nothing stored is lost when an owner is down. A querier also stores a copy
+of each of its queries at the copy holders the table names (``store_copy``), and retries an
+owner that does not answer. The table is saved in the data folder (``cluster-table.pb``), so
+a restarted owner follows the version it followed; one that missed a table (it was down)
+fetches the coordinator's when it starts.
+
 **State.** Each accepted descriptor is appended to the record log (``place-owner.log``)
 before the answer; the faiss index is saved to ``<data_dir>/owner-index.npz`` every
 ``vpr_snapshot_every`` new descriptors and when the service stops. A restart loads the
@@ -42,11 +60,16 @@ after a SIGKILL.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import os
 import threading
 import time
+from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -54,10 +77,13 @@ from swarmrec.core.presets import get_preset
 from swarmrec.errors import (
     AlreadyExists,
     CallError,
+    ConfigError,
     ErrorCode,
     FailedPrecondition,
     InvalidArgument,
+    PermissionDenied,
     RemoteError,
+    SwarmrecError,
     Unavailable,
     WireError,
 )
@@ -66,17 +92,39 @@ from swarmrec.runtime.settings import StorageSettings
 from swarmrec.services.limits import MAX_FRAME_INDEX
 from swarmrec.services.metrics import PlaceOwnerMetrics
 from swarmrec.services.settings import PlaceSettings, VprSettings
+from swarmrec.vpr.balance import RebalanceRule
 from swarmrec.vpr.errors import StateFileError
 from swarmrec.vpr.index import OwnerIndex, set_faiss_threads
-from swarmrec.vpr.table import swarm_table
+from swarmrec.vpr.live import LiveTable, Window, merge_loads, next_table, owner_load
+from swarmrec.vpr.table import centres_digest, swarm_table
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import check_fields, constellation_from_proto, encode, match_scores
-from swarmrec.wire.vpr import descriptor_from_wire, descriptor_to_wire, encoding_of
+from swarmrec.wire.vpr import (
+    descriptor_from_wire,
+    descriptor_to_wire,
+    encoding_of,
+    load_from_proto,
+    load_to_proto,
+    table_from_proto,
+    table_to_proto,
+)
 
-__all__ = ["SNAPSHOT_NAME", "PlaceOwner"]
+__all__ = ["SNAPSHOT_NAME", "TABLE_NAME", "PlaceOwner"]
 
 #: The faiss snapshot in the service's data folder.
 SNAPSHOT_NAME = "owner-index.npz"
+#: The table the owner follows (a ClusterTable), in the service's data folder.
+TABLE_NAME = "cluster-table.pb"
+#: Descriptors a move sends in one request (~0.5 kB each as float32).
+MOVE_BATCH = 512
+#: A store_entries request with more entries is refused (TOO_LARGE would need the limit; FAILED
+#: is clearer to a holder that sent a bigger batch than any version of this service does).
+MAX_MOVE_ENTRIES = 4096
+#: How often a querier routes a query again when it was refused for its table's version, or
+#: its owner did not answer.
+ROUTE_ATTEMPTS = 4
+#: Seconds between a holder's tries to deliver entries a move could not deliver.
+PENDING_RETRY_S = 1.0
 
 
 class PlaceOwner(ServiceBase):
@@ -96,10 +144,7 @@ class PlaceOwner(ServiceBase):
             centres=self.vpr.vpr_centres,
             assignment=self.vpr.vpr_assignment,
         )
-        self.router = self.table.router
-        self.assignment = self.table.assignment
-        self.dimension = self.router.dimension
-        self.owned = frozenset(self.assignment.clusters_of(self.bus.robot))
+        self.dimension = self.table.router.dimension
         self.wire_encoding = encoding_of(self.vpr.vpr_wire_code)
         # OpenMP's waiting threads made single searches 5-20x slower on shared cores.
         set_faiss_threads(1)
@@ -107,6 +152,21 @@ class PlaceOwner(ServiceBase):
         self.entries = ctx.open_log("place-owner")
         storage = ctx.settings(StorageSettings)
         self.snapshot: Path | None = storage.data_dir / SNAPSHOT_NAME if storage.data_dir else None
+        self.table_path: Path | None = storage.data_dir / TABLE_NAME if storage.data_dir else None
+        # The table followed now (version 0: the settings'); a saved later one replaces it.
+        self.live = self._restore_table(LiveTable(self.table.router))
+        self.window = Window(self.live.version)
+        self.rule = RebalanceRule(
+            clusters_per_robot=max(1, self.vpr.vpr_clusters_per_robot),
+            slack=self.vpr.vpr_rebalance_slack,
+            replica_share=self.vpr.vpr_copy_share,
+            neighbours=self.vpr.vpr_copy_neighbours,
+        )
+        # Entries a move could not deliver yet: target robot -> (robot, frame) entries.
+        self.pending: dict[int, set[tuple[int, int]]] = {}
+        # One re-balancing or move at a time.
+        self.moving = threading.RLock()
+        self._looked = -1.0
         self.index = self._restore()
         self.unsaved = 0
         self.metrics.stored_descriptors.set(len(self.index))
@@ -116,12 +176,19 @@ class PlaceOwner(ServiceBase):
         fields = {
             "stored": len(self.index),
             "owned_clusters": sorted(self.owned),
-            "clusters": self.assignment.n_clusters,
-            "assignment_version": self.assignment.version,
+            "clusters": self.live.assignment.n_clusters,
+            "assignment_version": self.live.version,
             "centres": str(self.table.centres_path),
-            "centres_sha256": self.table.digest,
+            "centres_sha256": centres_digest(self.live.centres),
         }
         ctx.log.info("owner index ready", extra={"fields": fields})
+        self.metrics.table_version.set(self.live.version)
+        self._thread = threading.Thread(target=self._background, name="place-owner-table", daemon=True)
+        self._thread.start()
+
+    @property
+    def owned(self) -> frozenset[int]:
+        return frozenset(self.live.assignment.clusters_of(self.bus.robot))
 
     # --- state ----------------------------------------------------------------
 
@@ -141,7 +208,7 @@ class PlaceOwner(ServiceBase):
                 index = None
         from_snapshot = len(index) if index is not None else 0
         index = index if index is not None else OwnerIndex(self.dimension)
-        added = skipped = 0
+        added = skipped = removed = 0
         for record in self.entries.records():
             entry = pb.PlaceEntry.FromString(record)
             try:
@@ -150,12 +217,34 @@ class PlaceOwner(ServiceBase):
                 skipped += 1
                 self.ctx.log.warning("logged descriptor skipped", extra={"fields": {"reason": str(e)}})
                 continue
-            if index.get(entry.robot_id, entry.frame_index) is None:
+            if entry.removed:
+                removed += index.remove([entry.robot_id], [entry.frame_index])
+            elif index.get(entry.robot_id, entry.frame_index) is None:
                 index.store(x, entry.robot_id, entry.frame_index)
                 added += 1
         counts = {"from_snapshot": from_snapshot, "from_log": added, "skipped": skipped}
+        if removed:
+            counts["removed_by_log"] = removed
         self.ctx.log.info("owner index restored", extra={"fields": counts})
         return index
+
+    def _restore_table(self, start: LiveTable) -> LiveTable:
+        """The table saved in the data folder when it is a later one of this swarm's, else ``start``."""
+        if self.table_path is None or not self.table_path.is_file():
+            return start
+        try:
+            msg = pb.ClusterTable.FromString(self.table_path.read_bytes())
+            saved = table_from_proto(msg, self.dimension, self.bus.n_robots)
+        except Exception as e:  # protobuf's DecodeError or a WireError: not usable
+            raise StateFileError(self.table_path, f"not a table of this swarm: {e}") from None
+        return saved if saved.version > start.version else start
+
+    def _save_table(self, table: LiveTable) -> None:
+        if self.table_path is None:
+            return
+        tmp = self.table_path.with_name(self.table_path.name + ".tmp")
+        tmp.write_bytes(encode(table_to_proto(table)))
+        os.replace(tmp, self.table_path)
 
     def _save(self) -> None:
         """Save the faiss index (called under the lock)."""
@@ -166,6 +255,7 @@ class PlaceOwner(ServiceBase):
         self.metrics.snapshots.inc()
 
     def close(self) -> None:
+        self._thread.join(timeout=2 * PENDING_RETRY_S)
         with self.lock:
             if self.unsaved:
                 self._save()
@@ -179,13 +269,14 @@ class PlaceOwner(ServiceBase):
         check_fields(req, "robot_id", "frame_index", "cluster")
         robot, frame, cluster = req.robot_id, req.frame_index, req.cluster
         ctx.require_own(robot, frame)  # the caller is the robot the key names (keys.CALLER_BOUND)
-        if robot >= self.bus.n_robots:
-            raise InvalidArgument(f"robot {robot} is not in this swarm of {self.bus.n_robots} robots")
-        if frame >= MAX_FRAME_INDEX:
-            raise InvalidArgument(f"frame index must be below {MAX_FRAME_INDEX}, got {frame}")
-        self._check_route(cluster, req.assignment_version)
+        self._check_entry(robot, frame)
         x = descriptor_from_wire(req.descriptor, req.encoding, self.dimension)
+        if req.assignment_version > self.live.version:
+            self._catch_up()  # the querier knows a newer table: this owner missed it
         with self.lock:
+            # Checked under the lock: a table adopted meanwhile is seen here or the query is
+            # stored before it (and then moved with the rest).
+            self._check_route(self.live, cluster, req.assignment_version)
             stored = self.index.get(robot, frame)
             if stored is not None and not np.array_equal(stored, x):
                 raise AlreadyExists(
@@ -194,63 +285,391 @@ class PlaceOwner(ServiceBase):
                 )
             match = self.index.search(x, robot)
             if stored is None:
-                entry = pb.PlaceEntry(robot_id=robot, frame_index=frame, descriptor=req.descriptor,
-                                      encoding=req.encoding)  # fmt: skip
-                self.entries.append(encode(entry))
-                self.index.store(x, robot, frame)
-                self.unsaved += 1
-                if self.unsaved >= self.vpr.vpr_snapshot_every:
-                    self._save()
+                self._store(x, robot, frame, req.descriptor, req.encoding)
+                self.window.add(x)
             n = len(self.index)
         self.metrics.owner_queries.inc()
         self.metrics.cluster_queries.labels(str(cluster)).inc()
         self.metrics.stored_descriptors.set(n)
-        if match is None:
-            return pb.PlaceMatch(found=False)
-        return pb.PlaceMatch(
-            found=True, distance=match.distance, robot_id=match.robot, frame_index=match.frame
-        )
+        return _match(match)
+
+    def _check_entry(self, robot: int, frame: int) -> None:
+        if robot >= self.bus.n_robots:
+            raise InvalidArgument(f"robot {robot} is not in this swarm of {self.bus.n_robots} robots")
+        if frame >= MAX_FRAME_INDEX:
+            raise InvalidArgument(f"frame index must be below {MAX_FRAME_INDEX}, got {frame}")
+
+    def _store(self, x: np.ndarray, robot: int, frame: int, data: bytes, encoding: int) -> bool:
+        """Log and store one descriptor (under the lock); False when it was stored already."""
+        if self.index.get(robot, frame) is not None:
+            return False
+        entry = pb.PlaceEntry(robot_id=robot, frame_index=frame, descriptor=data, encoding=encoding)  # type: ignore[arg-type]
+        self.entries.append(encode(entry))
+        self.index.store(x, robot, frame)
+        self.unsaved += 1
+        if self.unsaved >= self.vpr.vpr_snapshot_every:
+            self._save()
+        return True
 
     def lookup(self, req: pb.PlaceQuery, _ctx: RequestContext) -> pb.PlaceMatch:
         # Read-only, so not caller-bound: any client may search; robot and frame are optional.
         check_fields(req, "cluster")
         if req.HasField("robot_id") and req.robot_id >= self.bus.n_robots:
             raise InvalidArgument(f"robot {req.robot_id} is not in this swarm of {self.bus.n_robots} robots")
-        self._check_route(req.cluster, req.assignment_version)
+        self._check_route(self.live, req.cluster, req.assignment_version)
         x = descriptor_from_wire(req.descriptor, req.encoding, self.dimension)
         # No robot named: exclude a robot id no frame has (the swarm's are 0 .. n_robots - 1).
         excluded = req.robot_id if req.HasField("robot_id") else self.bus.n_robots
-        match = self.index.search(x, excluded)
-        if match is None:
-            return pb.PlaceMatch(found=False)
-        return pb.PlaceMatch(
-            found=True, distance=match.distance, robot_id=match.robot, frame_index=match.frame
-        )
+        return _match(self.index.search(x, excluded))
 
-    def _check_route(self, cluster: int, version: int) -> None:
+    def _check_route(self, table: LiveTable, cluster: int, version: int) -> None:
         """Refuse a query for a cluster unknown, routed with another table, or not owned here."""
-        k = self.assignment.n_clusters
+        if version != table.version:
+            raise FailedPrecondition(
+                f"routed with assignment version {version}; this owner follows version {table.version}"
+            )
+        k = table.assignment.n_clusters
         if cluster >= k:
             raise InvalidArgument(f"cluster {cluster} is not one of the swarm's {k} clusters")
-        if version != self.assignment.version:
-            raise FailedPrecondition(
-                f"routed with assignment version {version}; this owner follows "
-                f"version {self.assignment.version}"
-            )
-        if cluster not in self.owned:
-            owner = self.assignment.owners[cluster]
+        owner = table.assignment.owners[cluster]
+        if owner != self.bus.robot:
             raise FailedPrecondition(f"cluster {cluster} is robot {owner}'s, not robot {self.bus.robot}'s")
 
+    def store_copy(self, req: pb.PlaceQuery, ctx: RequestContext) -> pb.StoreReply:
+        """A querier's copy of its query for a cell next to its nearest (stored, never searched)."""
+        check_fields(req, "robot_id", "frame_index")
+        robot, frame = req.robot_id, req.frame_index
+        ctx.require_own(robot, frame)
+        self._check_entry(robot, frame)
+        x = descriptor_from_wire(req.descriptor, req.encoding, self.dimension)
+        with self.lock:
+            table = self.live
+            if req.assignment_version != table.version:
+                raise FailedPrecondition(
+                    f"routed with assignment version {req.assignment_version}; this owner follows "
+                    f"version {table.version}"
+                )
+            if self.bus.robot not in table.copy_holders(x)[0]:
+                raise FailedPrecondition(
+                    f"table version {table.version} puts no copy of this descriptor at robot {self.bus.robot}"
+                )
+            stored = self.index.get(robot, frame)
+            if stored is not None and not np.array_equal(stored, x):
+                raise AlreadyExists(
+                    f"frame {frame} of robot {robot} is already stored here with another descriptor"
+                )
+            new = self._store(x, robot, frame, req.descriptor, req.encoding)
+            n = len(self.index)
+        if new:
+            self.metrics.copies_stored.inc()
+        self.metrics.stored_descriptors.set(n)
+        return pb.StoreReply()
+
     def assignment_table(self, _req: pb.AssignmentRequest, _ctx: RequestContext) -> pb.AssignmentReply:
+        table = self.live
         return pb.AssignmentReply(
             robot_id=self.bus.robot,
-            version=self.assignment.version,
-            table_json=json.dumps(self.assignment.to_json()),
-            owned_clusters=sorted(self.owned),
-            centres_sha256=self.table.digest,
+            version=table.version,
+            table_json=json.dumps(table.assignment.to_json()),
+            owned_clusters=table.assignment.clusters_of(self.bus.robot),
+            centres_sha256=centres_digest(table.centres),
             dimension=self.dimension,
             wire_encoding=self.wire_encoding,  # type: ignore[arg-type]  # an enum value
         )
+
+    def cluster_table(self, _req: pb.TableRequest, _ctx: RequestContext) -> pb.ClusterTable:
+        return table_to_proto(self.live)
+
+    # --- re-balancing -----------------------------------------------------------
+
+    def cluster_load(self, req: pb.ClusterLoadRequest, _ctx: RequestContext) -> pb.ClusterLoad:
+        check_fields(req)
+        if math.isnan(req.split_above) or req.split_above < 0:
+            raise InvalidArgument(f"split_above must be a number >= 0 (inf: no split), got {req.split_above}")
+        with self.lock:
+            table, window = self.live, self.window
+            if req.version != table.version:
+                raise FailedPrecondition(
+                    f"load asked for table version {req.version}; this owner follows {table.version}"
+                )
+            rows = list(window.rows)
+        snapshot = Window(window.version, window.queries, rows)
+        return load_to_proto(
+            owner_load(table, self.bus.robot, snapshot, req.split_above, int(req.seed) % 2**31)
+        )
+
+    def _lowest_live(self) -> int:
+        """The lowest place-owner this one sees alive (itself included): the coordinator."""
+        live = {self.bus.robot}
+        try:
+            for rep in self.ctx.session.liveliness().get(
+                keys.alive(self.bus.swarm, "place-owner", "*"), timeout=self.bus.request_timeout_s
+            ):
+                if rep.ok is not None and (parsed := keys.parse_alive(str(rep.ok.key_expr))) is not None:
+                    live.add(parsed[1])
+        except Exception as e:  # zenoh's errors while closing: itself alone
+            self.ctx.log.warning("liveliness query failed", extra={"fields": {"reason": str(e)}})
+        return min(live)
+
+    def rebalance(self, _req: pb.RebalanceRequest, _ctx: RequestContext) -> pb.RebalanceReply:
+        coordinator = self._lowest_live()
+        if coordinator != self.bus.robot:
+            raise FailedPrecondition(
+                f"re-balancing is the coordinator's, the lowest live place-owner (robot {coordinator})"
+            )
+        return self._rebalance()
+
+    def _rebalance(self) -> pb.RebalanceReply:
+        """Gather every owner's load, plan the next table, have every owner adopt it."""
+        with self.moving:
+            table = self.live
+            n = self.bus.n_robots
+            # Splits: a cluster busier than the capacity of the queries so far (every owner's).
+            counted = self._ask_all(
+                "cluster_load",
+                pb.ClusterLoadRequest(version=table.version, split_above=math.inf),
+                pb.ClusterLoad,
+            )
+            total = sum(sum(m.loads) for m in counted.values())
+            if total == 0:
+                return pb.RebalanceReply(changed=False, table=table_to_proto(table))
+            capacity = (1.0 + self.rule.slack) * total / n
+            request = pb.ClusterLoadRequest(version=table.version, split_above=capacity, seed=table.version)
+            try:
+                loads = [
+                    load_from_proto(m, self.dimension)
+                    for m in self._ask_all("cluster_load", request, pb.ClusterLoad).values()
+                ]
+                merged = merge_loads(table, loads)
+            except (ConfigError, WireError) as e:
+                raise Unavailable(f"the owners' loads do not fit together: {e}") from None
+            new = next_table(table, merged, self.rule)
+            adopt = pb.AdoptTableRequest(table=table_to_proto(new))
+            replies = self._ask_all(
+                "adopt_table", adopt, pb.AdoptTableReply, deadline_s=30 * self.bus.request_timeout_s
+            )
+        sent = sum(r.sent for r in replies.values())
+        pending = sum(r.pending for r in replies.values())
+        fields = {
+            "version": new.version,
+            "clusters": new.assignment.n_clusters,
+            "observed_queries": merged.queries,
+            "moved": sent,
+            "pending": pending,
+            "copy_margin": new.copy_margin,
+        }
+        self.ctx.log.info("cluster table rolled out", extra={"fields": fields})
+        return pb.RebalanceReply(
+            changed=True, table=adopt.table, observed_queries=merged.queries, moved=sent, pending=pending
+        )
+
+    def _ask_all(
+        self, endpoint: str, request: Any, reply_cls: type[Any], deadline_s: float | None = None
+    ) -> dict[int, Any]:
+        """Every owner's reply (this one's served here, not over the bus); Unavailable when one
+        does not answer within ``deadline_s`` (retried until then)."""
+        deadline = time.monotonic() + (deadline_s or 3 * self.bus.request_timeout_s)
+        handler: Callable[[Any, Any], Any] = {"cluster_load": self.cluster_load, "adopt_table": self._adopt}[
+            endpoint
+        ]
+        out: dict[int, Any] = {}
+        for r in range(self.bus.n_robots):
+            while True:
+                try:
+                    if r == self.bus.robot:
+                        out[r] = handler(request, None)
+                    else:
+                        key = keys.endpoint(self.bus.swarm, "place-owner", r, endpoint)
+                        out[r] = self.ctx.caller.call(
+                            key, request, reply_cls, target_robot=r, endpoint=endpoint
+                        )
+                    break
+                except CallError as e:
+                    if time.monotonic() > deadline or self.ctx.stop.is_set():
+                        raise Unavailable(f"place-owner {r} did not answer {endpoint}: {e}") from None
+                    time.sleep(0.2)
+        return out
+
+    def adopt_table(self, req: pb.AdoptTableRequest, ctx: RequestContext) -> pb.AdoptTableReply:
+        check_fields(req, "table")
+        coordinator = self._lowest_live()
+        if ctx.caller_robot is None or ctx.caller_robot > coordinator:
+            raise PermissionDenied(
+                f"tables come from the coordinator, the lowest live place-owner ({coordinator}), "
+                f"not from {ctx.caller_robot}"
+            )
+        return self._adopt(req, None)
+
+    def _adopt(self, req: pb.AdoptTableRequest, _ctx: RequestContext | None) -> pb.AdoptTableReply:
+        new = table_from_proto(req.table, self.dimension, self.bus.n_robots)
+        with self.lock:
+            current = self.live
+            if new.version < current.version:
+                raise FailedPrecondition(
+                    f"table version {new.version} is older than the {current.version} followed"
+                )
+            if new.version > current.version:
+                self._save_table(new)
+                self.live = new
+                self.window = Window(new.version)
+        if new.version > current.version:
+            self.metrics.table_version.set(new.version)
+            self.metrics.tables_adopted.inc()
+            fields = {
+                "version": new.version,
+                "owned_clusters": list(new.assignment.clusters_of(self.bus.robot)),
+            }
+            self.ctx.log.info("cluster table adopted", extra={"fields": fields})
+        sent, removed = self._move()
+        pending = sum(len(v) for v in self.pending.values())
+        return pb.AdoptTableReply(
+            robot_id=self.bus.robot, version=new.version, sent=sent, removed=removed, pending=pending
+        )
+
+    def _move(self) -> tuple[int, int]:
+        """Send every stored entry to the robots the table puts it at, then forget the ones it
+        no longer holds; entries a holder could not be reached for stay (retried later)."""
+        with self.moving:
+            table = self.live
+            robots, frames, vectors = self.index.export()
+            holders = table.holders(vectors)
+            me = self.bus.robot
+            by_target: dict[int, list[int]] = defaultdict(list)
+            for j, where in enumerate(holders):
+                for target in where - {me}:
+                    by_target[target].append(j)
+            failed: dict[int, set[tuple[int, int]]] = {}
+            sent = 0
+            for target, rows in sorted(by_target.items()):
+                try:
+                    for start in range(0, len(rows), MOVE_BATCH):
+                        part = rows[start : start + MOVE_BATCH]
+                        entries = [
+                            pb.PlaceEntry(robot_id=int(robots[j]), frame_index=int(frames[j]),
+                                          descriptor=vectors[j].astype("<f4").tobytes(),
+                                          encoding=pb.DescriptorEncoding.DESCRIPTOR_ENCODING_FLOAT32)
+                            for j in part
+                        ]  # fmt: skip
+                        key = keys.endpoint(self.bus.swarm, "place-owner", target, "store_entries")
+                        request = pb.StoreEntriesRequest(version=table.version, entries=entries)
+                        self.ctx.caller.call(
+                            key, request, pb.StoreEntriesReply, target_robot=target, endpoint="store_entries"
+                        )
+                        sent += len(part)
+                except CallError as e:
+                    failed[target] = {(int(robots[j]), int(frames[j])) for j in rows}
+                    fields = {"target": target, "entries": len(rows), "reason": str(e)}
+                    self.ctx.log.warning("move not delivered yet, kept and retried", extra={"fields": fields})
+            kept = {key for v in failed.values() for key in v}
+            leaving = [
+                j
+                for j, where in enumerate(holders)
+                if me not in where and (int(robots[j]), int(frames[j])) not in kept
+            ]
+            removed = 0
+            with self.lock:
+                if self.live is table:  # a newer table moves them again from scratch
+                    for j in leaving:
+                        removed += self.index.remove([robots[j]], [frames[j]])
+                        gone = pb.PlaceEntry(
+                            robot_id=int(robots[j]), frame_index=int(frames[j]), removed=True
+                        )
+                        self.entries.append(encode(gone))
+                    self.pending = failed
+                n = len(self.index)
+            self.metrics.moved.labels("sent").inc(sent)
+            self.metrics.moved.labels("removed").inc(removed)
+            self.metrics.stored_descriptors.set(n)
+            return sent, removed
+
+    def store_entries(self, req: pb.StoreEntriesRequest, ctx: RequestContext) -> pb.StoreEntriesReply:
+        """Entries a holder moved here (any robots' frames): checked whole, then stored once each."""
+        check_fields(req)
+        if ctx.caller_robot is None:
+            raise PermissionDenied("entries are moved by a place-owner of the swarm")
+        if len(req.entries) > MAX_MOVE_ENTRIES:
+            raise InvalidArgument(f"at most {MAX_MOVE_ENTRIES} entries a request, got {len(req.entries)}")
+        rows = []
+        for e in req.entries:
+            self._check_entry(e.robot_id, e.frame_index)
+            if e.removed:
+                raise InvalidArgument("a moved entry cannot be a removal")
+            rows.append(descriptor_from_wire(e.descriptor, e.encoding, self.dimension))
+        stored = 0
+        with self.lock:
+            if req.version < self.live.version:
+                raise FailedPrecondition(
+                    f"moved by table version {req.version}; this owner follows {self.live.version}"
+                )
+            for e, x in zip(req.entries, rows, strict=True):
+                held = self.index.get(e.robot_id, e.frame_index)
+                if held is not None and not np.array_equal(held, x):
+                    raise AlreadyExists(
+                        f"frame {e.frame_index} of robot {e.robot_id} is already stored here "
+                        "with another descriptor"
+                    )
+            for e, x in zip(req.entries, rows, strict=True):
+                stored += self._store(x, e.robot_id, e.frame_index, e.descriptor, e.encoding)
+            n = len(self.index)
+        self.metrics.moved.labels("received").inc(stored)
+        self.metrics.stored_descriptors.set(n)
+        return pb.StoreEntriesReply(stored=stored)
+
+    def _background(self) -> None:
+        """Deliver pending moves, catch up with the coordinator's table, re-balance on a timer."""
+        stop = self.ctx.stop
+        caught_up = False
+        last = time.monotonic()
+        every = self.vpr.vpr_rebalance_every_s
+        wait = 0.0  # the first look at once: an owner that was down may have missed a table
+        while not stop.wait(wait):
+            wait = PENDING_RETRY_S
+            try:
+                if not caught_up:
+                    caught_up = self._catch_up()
+                if self.pending:
+                    self._move()
+                if every > 0 and time.monotonic() - last >= every:
+                    last = time.monotonic()
+                    coordinating = self._lowest_live() == self.bus.robot
+                    if coordinating and self._swarm_queries() >= self.vpr.vpr_rebalance_min_queries:
+                        self._rebalance()
+            except SwarmrecError as e:
+                self.ctx.log.warning("table upkeep failed, tried again", extra={"fields": {"reason": str(e)}})
+
+    def _swarm_queries(self) -> int:
+        table = self.live
+        loads = self._ask_all(
+            "cluster_load", pb.ClusterLoadRequest(version=table.version, split_above=math.inf), pb.ClusterLoad
+        )
+        return sum(sum(m.loads) for m in loads.values())
+
+    def _catch_up(self) -> bool:
+        """Follow the coordinator's table when it is newer (this owner was down when it came).
+        At most one look every 0.2 s: a query claiming a newer version cannot make it ask
+        more often."""
+        now = time.monotonic()
+        if now - self._looked < 0.2:
+            return False
+        self._looked = now
+        coordinator = self._lowest_live()
+        if coordinator == self.bus.robot:
+            return True
+        fresh = self._fetch_table(coordinator)
+        if fresh is not None and fresh.version > self.live.version:
+            self._adopt(pb.AdoptTableRequest(table=table_to_proto(fresh)), None)
+        return fresh is not None
+
+    def _fetch_table(self, robot: int) -> LiveTable | None:
+        key = keys.endpoint(self.bus.swarm, "place-owner", robot, "table")
+        try:
+            msg = self.ctx.caller.call(
+                key, pb.TableRequest(), pb.ClusterTable, target_robot=robot, endpoint="table"
+            )
+            return table_from_proto(msg, self.dimension, self.bus.n_robots)
+        except (CallError, WireError) as e:
+            self.ctx.log.warning("table not fetched", extra={"fields": {"robot": robot, "reason": str(e)}})
+            return None
 
     # --- querier --------------------------------------------------------------
 
@@ -279,33 +698,8 @@ class PlaceOwner(ServiceBase):
             raise Unavailable(f"own verifier did not store the frame: {e}") from None
         except CallError as e:
             raise Unavailable(f"own verifier did not store the frame: {e}") from None
-        route = self.router.route(x)
-        report = pb.PlaceReport(
-            robot_id=own,
-            frame_index=frame,
-            cluster=route.cluster,
-            owner_robot_id=route.owner,
-            n_objects=len(c),
-        )
-        data, encoding = descriptor_to_wire(x, self.vpr.vpr_wire_code)
-        query = pb.PlaceQuery(
-            robot_id=own,
-            frame_index=frame,
-            descriptor=data,
-            encoding=encoding,  # type: ignore[arg-type]  # an enum value
-            cluster=route.cluster,
-            assignment_version=self.assignment.version,
-        )
-        try:
-            match = caller.call(keys.endpoint(self.bus.swarm, "place-owner", route.owner, "query"), query,
-                                pb.PlaceMatch, target_robot=route.owner, endpoint="owner_query")  # fmt: skip
-        except CallError as e:
-            report.failure = f"owner {route.owner}: {e}"
-        else:
-            report.answered = True
-            report.match.CopyFrom(match)
-            if match.found and len(c) >= self.preset.min_objects:
-                self._verify(report, wire)
+        report = pb.PlaceReport(robot_id=own, frame_index=frame, n_objects=len(c))
+        self._ask_owner(report, x, wire, len(c))
         report.duration_us = min(int((time.perf_counter() - t0) * 1e6), 2**32 - 1)
         self.metrics.query_seconds.observe(report.duration_us / 1e6)
         if report.verified and report.score > 0 and report.score >= self.places.loop_closure_min_score:
@@ -313,6 +707,79 @@ class PlaceOwner(ServiceBase):
             self._loop_closure(report)
         self.ctx.publish(keys.event(self.bus.swarm, "place_query", own), report)
         return report
+
+    def _ask_owner(
+        self, report: pb.PlaceReport, x: np.ndarray, wire: pb.Constellation, n_objects: int
+    ) -> None:
+        """Route ``x`` with the table followed now, ask its owner, store the copies, verify the
+        match. Refused for its table's version, the query is routed again with the newer one
+        (fetched from the coordinator when this robot is behind); an owner that does not
+        answer is asked again (its store is idempotent)."""
+        data, encoding = descriptor_to_wire(x, self.vpr.vpr_wire_code)
+        own = self.bus.robot
+        caller = self.ctx.caller
+        failure = ""
+        for attempt in range(ROUTE_ATTEMPTS):
+            table = self.live
+            route = table.router.route(x)
+            report.cluster, report.owner_robot_id = route.cluster, route.owner
+            query = pb.PlaceQuery(robot_id=own, frame_index=report.frame_index, descriptor=data,
+                                  encoding=encoding, cluster=route.cluster,  # type: ignore[arg-type]
+                                  assignment_version=table.version)  # fmt: skip
+            key = keys.endpoint(self.bus.swarm, "place-owner", route.owner, "query")
+            try:
+                match = caller.call(
+                    key, query, pb.PlaceMatch, target_robot=route.owner, endpoint="owner_query"
+                )
+            except RemoteError as e:
+                failure = f"owner {route.owner}: {e}"
+                if e.code != ErrorCode.FAILED_PRECONDITION or "version" not in e.message:
+                    break
+                self.metrics.rerouted.inc()
+                self._newer_table(table)
+                continue
+            except CallError as e:
+                failure = f"owner {route.owner}: {e}"
+                if attempt + 1 < ROUTE_ATTEMPTS:
+                    self.metrics.rerouted.inc()
+                continue
+            report.answered = True
+            report.match.CopyFrom(match)
+            self._store_copies(table, query, x)
+            if match.found and n_objects >= self.preset.min_objects:
+                self._verify(report, wire)
+            return
+        report.failure = failure
+
+    def _newer_table(self, seen: LiveTable) -> None:
+        """After a refusal for ``seen``'s version: follow the coordinator's table when it is
+        newer, else wait a moment (the owner has not adopted this robot's yet)."""
+        coordinator = self._lowest_live()
+        if coordinator != self.bus.robot and self.live is seen:
+            fresh = self._fetch_table(coordinator)
+            if fresh is not None and fresh.version > seen.version:
+                with contextlib.suppress(FailedPrecondition):  # a newer one came meanwhile
+                    self._adopt(pb.AdoptTableRequest(table=table_to_proto(fresh)), None)
+                return
+        time.sleep(0.05)
+
+    def _store_copies(self, table: LiveTable, query: pb.PlaceQuery, x: np.ndarray) -> None:
+        """The query, stored (not searched) at the table's copy holders of its descriptor as
+        the owners store it (the wire's code, decoded)."""
+        if not table.copies:
+            return
+        stored = descriptor_from_wire(query.descriptor, query.encoding, self.dimension)
+        owner = table.assignment.owners[query.cluster]
+        for robot in table.copy_holders(stored)[0].tolist():
+            if robot < 0 or robot == owner:
+                continue
+            key = keys.endpoint(self.bus.swarm, "place-owner", robot, "store_copy")
+            try:
+                self.ctx.caller.call(key, query, pb.StoreReply, target_robot=robot, endpoint="store_copy")
+            except CallError as e:
+                self.metrics.copies_failed.inc()
+                fields = {"robot": robot, "frame": query.frame_index, "owner": owner, "reason": str(e)}
+                self.ctx.log.warning("copy not stored", extra={"fields": fields})
 
     def _verify(self, report: pb.PlaceReport, wire: pb.Constellation) -> None:
         """The match's robot scores the pair geometrically (its verifier's ``verify``)."""
@@ -406,4 +873,52 @@ class PlaceOwner(ServiceBase):
             loop_closures,
             "the loop closures found so far",
         ),
+        Endpoint(
+            "table",
+            pb.TableRequest,
+            pb.ClusterTable,
+            cluster_table,
+            "the versioned table this robot routes and owns by, centres and copy rule included",
+        ),
+        Endpoint(
+            "store_copy",
+            pb.PlaceQuery,
+            pb.StoreReply,
+            store_copy,
+            "copy holder: a querier's descriptor for a cell next to its nearest, stored and never searched",
+        ),
+        Endpoint(
+            "cluster_load",
+            pb.ClusterLoadRequest,
+            pb.ClusterLoad,
+            cluster_load,
+            "owner: queries per cluster since the table began, their cell pairs and gaps, hot clusters split",
+        ),
+        Endpoint(
+            "adopt_table",
+            pb.AdoptTableRequest,
+            pb.AdoptTableReply,
+            adopt_table,
+            "owner: follow the coordinator's new table and move stored descriptors to where it puts them",
+        ),
+        Endpoint(
+            "store_entries",
+            pb.StoreEntriesRequest,
+            pb.StoreEntriesReply,
+            store_entries,
+            "new holder: descriptors another owner moved here (idempotent)",
+        ),
+        Endpoint(
+            "rebalance",
+            pb.RebalanceRequest,
+            pb.RebalanceReply,
+            rebalance,
+            "coordinator (lowest live place-owner): plan the next table from the owners' loads, roll it out",
+        ),
     )
+
+
+def _match(match: object) -> pb.PlaceMatch:
+    if match is None:
+        return pb.PlaceMatch(found=False)
+    return pb.PlaceMatch(found=True, distance=match.distance, robot_id=match.robot, frame_index=match.frame)  # type: ignore[attr-defined]

@@ -296,10 +296,23 @@ for _entry in (
         stateful=True,
         components=(PlaceSettings, VprSettings),
         metrics=PlaceOwnerMetrics,
-        # The owner of a query's cluster, the verifier of its match.
-        calls=(Call("place-owner", "query"), Call("verifier", "verify"), Call("verifier", "store", own=True)),
+        # The owner of a query's cluster, the verifier of its match; the copy holders; and the
+        # re-balancing (docs/vpr.md): the coordinator reads loads and sends tables, holders
+        # move entries, a robot behind reads the coordinator's table.
+        calls=(
+            Call("place-owner", "query"),
+            Call("verifier", "verify"),
+            Call("verifier", "store", own=True),
+            Call("place-owner", "store_copy"),
+            Call("place-owner", "cluster_load"),
+            Call("place-owner", "adopt_table"),
+            Call("place-owner", "store_entries"),
+            Call("place-owner", "table"),
+        ),
         # `lookup`: the owner's search without the store (the gateway's PlaceQuery).
-        client_endpoints=("assignment", "loop_closures", "lookup"),
+        client_endpoints=("assignment", "loop_closures", "lookup", "table"),
+        operator_endpoints=("rebalance",),
+        watches=("place-owner",),  # the coordinator is the lowest live one
     ),
     ServiceSpec(
         "fusion",

@@ -398,6 +398,24 @@ class VprSettings(Component):
     vpr_snapshot_every: int = setting(
         1000, "an owner saves its faiss index after this many new descriptors (and when it stops)"
     )
+    vpr_rebalance_every_s: float = setting(
+        0.0,
+        "the coordinator (lowest live place-owner) re-balances the cluster owners this often, seconds, "
+        "when at least vpr_rebalance_min_queries arrived since the last table (0: only when asked, "
+        "the rebalance endpoint; docs/vpr.md)",
+    )
+    vpr_rebalance_min_queries: int = setting(
+        100, "queries since the last table a timed re-balancing needs (fewer: the table stays)"
+    )
+    vpr_rebalance_slack: float = setting(
+        0.25, "re-balancing capacity: (1 + slack) x an even share of the queries; busier clusters split"
+    )
+    vpr_copy_share: float = setting(
+        1.0,
+        "after a re-balancing, this share of descriptors nearest a cell boundary is also stored at the "
+        "next cells' owners (1: every descriptor, 0: none)",
+    )
+    vpr_copy_neighbours: int = setting(1, "after a re-balancing, copies go to at most this many other robots")
 
     def problems(self) -> list[str]:
         problems = []
@@ -411,6 +429,18 @@ class VprSettings(Component):
             problems.append(f"vpr_clusters_per_robot must be >= 1, got {self.vpr_clusters_per_robot}")
         if self.vpr_snapshot_every < 1:
             problems.append(f"vpr_snapshot_every must be >= 1, got {self.vpr_snapshot_every}")
+        if not (math.isfinite(self.vpr_rebalance_every_s) and self.vpr_rebalance_every_s >= 0):
+            problems.append(
+                f"vpr_rebalance_every_s must be >= 0 (0: only when asked), got {self.vpr_rebalance_every_s}"
+            )
+        if self.vpr_rebalance_min_queries < 1:
+            problems.append(f"vpr_rebalance_min_queries must be >= 1, got {self.vpr_rebalance_min_queries}")
+        if not (math.isfinite(self.vpr_rebalance_slack) and self.vpr_rebalance_slack >= 0):
+            problems.append(f"vpr_rebalance_slack must be >= 0, got {self.vpr_rebalance_slack}")
+        if not 0.0 <= self.vpr_copy_share <= 1.0:
+            problems.append(f"vpr_copy_share must be in [0, 1], got {self.vpr_copy_share}")
+        if self.vpr_copy_neighbours < 1:
+            problems.append(f"vpr_copy_neighbours must be >= 1, got {self.vpr_copy_neighbours}")
         return problems
 
 

@@ -13,13 +13,16 @@ within 0.045 of unit length, so a zero vector or a scaled one is not a descripto
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
 
 from swarmrec.errors import ConfigError, WireError
+from swarmrec.vpr.clusters import Assignment, Router
 from swarmrec.vpr.errors import DescriptorError
+from swarmrec.vpr.live import MAX_CLUSTERS, LiveTable, OwnerLoad
 from swarmrec.vpr.quantize import Int8Quantizer
 from swarmrec.vpr.vectors import as_descriptor
 from swarmrec.wire import messages as pb
@@ -32,6 +35,10 @@ __all__ = [
     "descriptor_to_wire",
     "encoding_name",
     "encoding_of",
+    "load_from_proto",
+    "load_to_proto",
+    "table_from_proto",
+    "table_to_proto",
 ]
 
 Float32Array = npt.NDArray[np.float32]
@@ -100,3 +107,86 @@ def descriptor_from_wire(data: bytes, encoding: int, dimension: int) -> Float32A
             f"descriptor has L2 norm {norm:.4g}; descriptors are unit vectors (within {NORM_TOLERANCE})"
         )
     return x
+
+
+# --- the live re-balancing's tables and loads (swarmrec.vpr.live) -----------------------
+
+
+def table_to_proto(table: LiveTable) -> pb.ClusterTable:
+    return pb.ClusterTable(
+        version=table.version,
+        dimension=table.router.dimension,
+        centres=np.ascontiguousarray(table.centres, "<f4").tobytes(),
+        owners=list(table.assignment.owners),
+        copy_margin=table.copy_margin,
+        copy_neighbours=table.copy_neighbours,
+    )
+
+
+def table_from_proto(msg: pb.ClusterTable, dimension: int, n_robots: int, method: str = "live") -> LiveTable:
+    """The table a message carries, checked (WireError naming the problem): the swarm's
+    dimension and robots, 1 .. :data:`MAX_CLUSTERS` clusters, finite unit-norm-ish centres,
+    a margin that is a number, 1 .. n_robots copy holders."""
+    k = len(msg.owners)
+    if msg.dimension != dimension:
+        raise WireError(f"a table of dimension {msg.dimension}, the swarm's is {dimension}")
+    if not 1 <= k <= MAX_CLUSTERS:
+        raise WireError(f"a table must have 1 to {MAX_CLUSTERS} clusters, got {k}")
+    if len(msg.centres) != 4 * k * dimension:
+        raise WireError(
+            f"{k} centres of length {dimension} are {4 * k * dimension} bytes, got {len(msg.centres)}"
+        )
+    bad = [o for o in msg.owners if o >= n_robots]
+    if bad:
+        raise WireError(f"owners must be robots below {n_robots}, got {bad[:3]}")
+    centres = np.frombuffer(msg.centres, "<f4").astype(np.float32).reshape(k, dimension)
+    if not np.isfinite(centres).all():
+        raise WireError("a table's centres must be finite")
+    if math.isnan(msg.copy_margin):
+        raise WireError("copy_margin must be a number (negative: no copies)")
+    if not 1 <= msg.copy_neighbours <= max(1, n_robots):
+        raise WireError(f"copy_neighbours must be in [1, {n_robots}], got {msg.copy_neighbours}")
+    if msg.version >= 2**63:
+        raise WireError(f"version must be below 2^63, got {msg.version}")
+    assignment = Assignment(
+        tuple(int(o) for o in msg.owners), n_robots, method, None, version=int(msg.version)
+    )
+    return LiveTable(Router(centres, assignment), float(msg.copy_margin), int(msg.copy_neighbours))
+
+
+def load_to_proto(load: OwnerLoad) -> pb.ClusterLoad:
+    return pb.ClusterLoad(
+        robot_id=load.robot,
+        version=load.version,
+        loads=load.loads.tolist(),
+        replaced=list(load.replaced),
+        replaced_centres=np.ascontiguousarray(load.replaced_centres, "<f4").tobytes(),
+        new_centres=np.ascontiguousarray(load.new_centres, "<f4").tobytes(),
+        pair_a=load.pair_a.tolist(),
+        pair_b=load.pair_b.tolist(),
+        pair_count=load.pair_count.tolist(),
+        gaps=load.gaps.tolist(),
+    )
+
+
+def load_from_proto(msg: pb.ClusterLoad, dimension: int) -> OwnerLoad:
+    """An owner's load as its message carries it; WireError when the centres are not whole
+    float32 rows (the rest is checked against the table when merged)."""
+
+    def rows(data: bytes, name: str) -> npt.NDArray[np.float32]:
+        if len(data) % (4 * dimension):
+            raise WireError(f"{name} is not whole rows of {dimension} float32")
+        return np.frombuffer(data, "<f4").astype(np.float32).reshape(-1, dimension)
+
+    return OwnerLoad(
+        int(msg.robot_id),
+        int(msg.version),
+        np.asarray(msg.loads, np.int64),
+        tuple(int(c) for c in msg.replaced),
+        rows(msg.replaced_centres, "replaced_centres"),
+        rows(msg.new_centres, "new_centres"),
+        np.asarray(msg.pair_a, np.int64),
+        np.asarray(msg.pair_b, np.int64),
+        np.asarray(msg.pair_count, np.int64),
+        np.asarray(msg.gaps, np.float32),
+    )

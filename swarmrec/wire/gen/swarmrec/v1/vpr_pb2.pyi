@@ -116,13 +116,121 @@ class AssignmentReply(_message.Message):
     def __init__(self, robot_id: _Optional[int] = ..., version: _Optional[int] = ..., table_json: _Optional[str] = ..., owned_clusters: _Optional[_Iterable[int]] = ..., centres_sha256: _Optional[str] = ..., dimension: _Optional[int] = ..., wire_encoding: _Optional[_Union[DescriptorEncoding, str]] = ...) -> None: ...
 
 class PlaceEntry(_message.Message):
-    __slots__ = ("robot_id", "frame_index", "descriptor", "encoding")
+    __slots__ = ("robot_id", "frame_index", "descriptor", "encoding", "removed")
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     FRAME_INDEX_FIELD_NUMBER: _ClassVar[int]
     DESCRIPTOR_FIELD_NUMBER: _ClassVar[int]
     ENCODING_FIELD_NUMBER: _ClassVar[int]
+    REMOVED_FIELD_NUMBER: _ClassVar[int]
     robot_id: int
     frame_index: int
     descriptor: bytes
     encoding: DescriptorEncoding
-    def __init__(self, robot_id: _Optional[int] = ..., frame_index: _Optional[int] = ..., descriptor: _Optional[bytes] = ..., encoding: _Optional[_Union[DescriptorEncoding, str]] = ...) -> None: ...
+    removed: bool
+    def __init__(self, robot_id: _Optional[int] = ..., frame_index: _Optional[int] = ..., descriptor: _Optional[bytes] = ..., encoding: _Optional[_Union[DescriptorEncoding, str]] = ..., removed: _Optional[bool] = ...) -> None: ...
+
+class ClusterTable(_message.Message):
+    __slots__ = ("version", "dimension", "centres", "owners", "copy_margin", "copy_neighbours")
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    DIMENSION_FIELD_NUMBER: _ClassVar[int]
+    CENTRES_FIELD_NUMBER: _ClassVar[int]
+    OWNERS_FIELD_NUMBER: _ClassVar[int]
+    COPY_MARGIN_FIELD_NUMBER: _ClassVar[int]
+    COPY_NEIGHBOURS_FIELD_NUMBER: _ClassVar[int]
+    version: int
+    dimension: int
+    centres: bytes
+    owners: _containers.RepeatedScalarFieldContainer[int]
+    copy_margin: float
+    copy_neighbours: int
+    def __init__(self, version: _Optional[int] = ..., dimension: _Optional[int] = ..., centres: _Optional[bytes] = ..., owners: _Optional[_Iterable[int]] = ..., copy_margin: _Optional[float] = ..., copy_neighbours: _Optional[int] = ...) -> None: ...
+
+class TableRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class ClusterLoadRequest(_message.Message):
+    __slots__ = ("version", "split_above", "seed")
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    SPLIT_ABOVE_FIELD_NUMBER: _ClassVar[int]
+    SEED_FIELD_NUMBER: _ClassVar[int]
+    version: int
+    split_above: float
+    seed: int
+    def __init__(self, version: _Optional[int] = ..., split_above: _Optional[float] = ..., seed: _Optional[int] = ...) -> None: ...
+
+class ClusterLoad(_message.Message):
+    __slots__ = ("robot_id", "version", "loads", "replaced", "replaced_centres", "new_centres", "pair_a", "pair_b", "pair_count", "gaps")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    LOADS_FIELD_NUMBER: _ClassVar[int]
+    REPLACED_FIELD_NUMBER: _ClassVar[int]
+    REPLACED_CENTRES_FIELD_NUMBER: _ClassVar[int]
+    NEW_CENTRES_FIELD_NUMBER: _ClassVar[int]
+    PAIR_A_FIELD_NUMBER: _ClassVar[int]
+    PAIR_B_FIELD_NUMBER: _ClassVar[int]
+    PAIR_COUNT_FIELD_NUMBER: _ClassVar[int]
+    GAPS_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    version: int
+    loads: _containers.RepeatedScalarFieldContainer[int]
+    replaced: _containers.RepeatedScalarFieldContainer[int]
+    replaced_centres: bytes
+    new_centres: bytes
+    pair_a: _containers.RepeatedScalarFieldContainer[int]
+    pair_b: _containers.RepeatedScalarFieldContainer[int]
+    pair_count: _containers.RepeatedScalarFieldContainer[int]
+    gaps: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, robot_id: _Optional[int] = ..., version: _Optional[int] = ..., loads: _Optional[_Iterable[int]] = ..., replaced: _Optional[_Iterable[int]] = ..., replaced_centres: _Optional[bytes] = ..., new_centres: _Optional[bytes] = ..., pair_a: _Optional[_Iterable[int]] = ..., pair_b: _Optional[_Iterable[int]] = ..., pair_count: _Optional[_Iterable[int]] = ..., gaps: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class RebalanceRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class RebalanceReply(_message.Message):
+    __slots__ = ("changed", "table", "observed_queries", "moved", "pending")
+    CHANGED_FIELD_NUMBER: _ClassVar[int]
+    TABLE_FIELD_NUMBER: _ClassVar[int]
+    OBSERVED_QUERIES_FIELD_NUMBER: _ClassVar[int]
+    MOVED_FIELD_NUMBER: _ClassVar[int]
+    PENDING_FIELD_NUMBER: _ClassVar[int]
+    changed: bool
+    table: ClusterTable
+    observed_queries: int
+    moved: int
+    pending: int
+    def __init__(self, changed: _Optional[bool] = ..., table: _Optional[_Union[ClusterTable, _Mapping]] = ..., observed_queries: _Optional[int] = ..., moved: _Optional[int] = ..., pending: _Optional[int] = ...) -> None: ...
+
+class AdoptTableRequest(_message.Message):
+    __slots__ = ("table",)
+    TABLE_FIELD_NUMBER: _ClassVar[int]
+    table: ClusterTable
+    def __init__(self, table: _Optional[_Union[ClusterTable, _Mapping]] = ...) -> None: ...
+
+class AdoptTableReply(_message.Message):
+    __slots__ = ("robot_id", "version", "sent", "removed", "pending")
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    SENT_FIELD_NUMBER: _ClassVar[int]
+    REMOVED_FIELD_NUMBER: _ClassVar[int]
+    PENDING_FIELD_NUMBER: _ClassVar[int]
+    robot_id: int
+    version: int
+    sent: int
+    removed: int
+    pending: int
+    def __init__(self, robot_id: _Optional[int] = ..., version: _Optional[int] = ..., sent: _Optional[int] = ..., removed: _Optional[int] = ..., pending: _Optional[int] = ...) -> None: ...
+
+class StoreEntriesRequest(_message.Message):
+    __slots__ = ("version", "entries")
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    ENTRIES_FIELD_NUMBER: _ClassVar[int]
+    version: int
+    entries: _containers.RepeatedCompositeFieldContainer[PlaceEntry]
+    def __init__(self, version: _Optional[int] = ..., entries: _Optional[_Iterable[_Union[PlaceEntry, _Mapping]]] = ...) -> None: ...
+
+class StoreEntriesReply(_message.Message):
+    __slots__ = ("stored",)
+    STORED_FIELD_NUMBER: _ClassVar[int]
+    stored: int
+    def __init__(self, stored: _Optional[int] = ...) -> None: ...
