@@ -21,9 +21,11 @@ from swarmrec.datasets.constellations import read_constellations
 from swarmrec.datasets.labels import COCO_NAMES
 from swarmrec.datasets.tum_rgbd import frame_id_of, read_tum_rgbd
 from swarmrec.experiments.places.pipeline import as_on_the_wire
-from swarmrec.vpr.clusters import nearest_centre
+from swarmrec.vpr.balance import replica_owners
+from swarmrec.vpr.clusters import Assignment, nearest_centre
 from swarmrec.vpr.quantize import Int8Quantizer
-from swarmrec.vpr.simulation import Answers, arrival_order, robot_of_frames, run_queries
+from swarmrec.vpr.simulation import Answers, Reassignment, arrival_order, robot_of_frames, run_queries
+from swarmrec.wire import messages as pb
 
 #: The score a verified match needs to be a loop closure (the place owners' default).
 CLOSURE_MIN_SCORE = 0.3
@@ -63,6 +65,36 @@ def offline_answers(
     int8 = Int8Quantizer(128)
     codes = int8.decode(int8.encode(frames.descriptors))
     return run_queries(codes, frames.robots, owners, arrival_order(frames.robots))
+
+
+def offline_answers_with_tables(
+    frames: Frames,
+    centres: npt.NDArray[np.float32],
+    owner_of_cluster: npt.ArrayLike,
+    tables: list[tuple[int, pb.ClusterTable]],
+) -> Answers:
+    """:func:`offline_answers` with live re-balancings: from arrival position ``at`` on, each
+    table routes the queries by their float32 descriptors; what was stored before moves to
+    the owner and the copy holders (``replica_owners``) of its decoded int8 code, as its
+    holder computes them; later queries are also stored at their code's copy holders."""
+    n_robots = len(frames.blocks)
+    order = arrival_order(frames.robots)
+    arrival = np.empty(len(order), np.int64)
+    arrival[order] = np.arange(len(order))
+    int8 = Int8Quantizer(128)
+    codes = int8.decode(int8.encode(frames.descriptors))
+    switches = []
+    for at, t in tables:
+        c = np.frombuffer(t.centres, "<f4").reshape(len(t.owners), 128)
+        owners = np.asarray(t.owners, np.int64)
+        routed = np.where(
+            arrival < at, owners[nearest_centre(c, codes)], owners[nearest_centre(c, frames.descriptors)]
+        )
+        table = Assignment(tuple(int(o) for o in t.owners), n_robots)
+        copies = replica_owners(c, table, codes, t.copy_margin, t.copy_neighbours)
+        switches.append(Reassignment(at, routed, copies))
+    start = np.asarray(owner_of_cluster, np.int64)[nearest_centre(centres, frames.descriptors)]
+    return run_queries(codes, frames.robots, start, order, switches)
 
 
 def read_answers(path: Path) -> dict[int, dict[str, str]]:

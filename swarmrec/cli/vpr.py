@@ -220,6 +220,10 @@ def add_method_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--descriptor-model", default="", metavar="ONNX", help="the descriptor model (default: the project's)"
     )
+    g.add_argument("--rebalance-every", type=int, default=d.rebalance_every, metavar="STEPS",
+                   help="re-balance the cluster owners live after every STEPS lock-step steps (default 0: "
+                   "never); start with more clusters per robot, e.g. --clusters-per-robot 8 (docs/vpr.md, "
+                   '"Re-balancing a live swarm")')  # fmt: skip
 
 
 def run_method(
@@ -246,6 +250,7 @@ def run_method(
             centres=args.centres,
             assignment=args.assignment,
             descriptor_model=args.descriptor_model,
+            rebalance_every=args.rebalance_every,
         ),
         method=args.method,
     )
@@ -303,6 +308,19 @@ def print_dvpr(s: DvprSummary, out: Path) -> None:
         f"{100 * b.model_float32['remote_share']:.0f} % of queries went to another robot"
     )
     print(f"  queries per owner {load.queries}; busiest / mean = {load.balance_ratio:.2f}")
+    if s.rebalancing and s.load_before_rebalancing is not None:
+        before = s.load_before_rebalancing
+        print(f"  live re-balancing: busiest / mean {before.balance_ratio:.2f} before the first table")
+        for rb in s.rebalancing:
+            if rb.copy_margin is None:
+                margin = "every descriptor"
+            else:
+                margin = "none" if rb.copy_margin < 0 else f"descriptors with gap <= {rb.copy_margin:.3g}"
+            print(
+                f"    after step {rb.after_step}: table version {rb.version}, {rb.clusters} clusters, "
+                f"planned on {rb.observed_queries} queries, {rb.moved} descriptors moved, copies of "
+                f"{margin}; then busiest / mean {rb.balance_ratio:.2f}"
+            )
     if s.offline_check is not None:
         oc = s.offline_check
         verdict = "identical" if oc.identical else f"DIFFERENT ({oc})"

@@ -48,8 +48,9 @@ as removals). A holder that cannot reach a new holder keeps those entries and tr
 every second, so nothing stored is lost when an owner is down. A querier also stores a copy
 of each of its queries at the copy holders the table names (``store_copy``), and retries an
 owner that does not answer. The table is saved in the data folder (``cluster-table.pb``), so
-a restarted owner follows the version it followed; one that missed a table (it was down)
-fetches the coordinator's when it starts.
+a restarted owner follows the version it followed; one that missed a table (it was down, or
+lost the file) fetches the coordinator's when a request names a newer version, and a querier
+refused for its old version does the same: a swarm that never re-balances sends no table.
 
 **State.** Each accepted descriptor is appended to the record log (``place-owner.log``)
 before the answer; the faiss index is saved to ``<data_dir>/owner-index.npz`` every
@@ -123,6 +124,8 @@ MAX_MOVE_ENTRIES = 4096
 #: How often a querier routes a query again when it was refused for its table's version, or
 #: its owner did not answer.
 ROUTE_ATTEMPTS = 4
+#: Words of an owner's refusal of a table change that asks for the whole table.
+WHOLE_TABLE = "send the whole table"
 #: Seconds between a holder's tries to deliver entries a move could not deliver.
 PENDING_RETRY_S = 1.0
 
@@ -146,6 +149,7 @@ class PlaceOwner(ServiceBase):
         )
         self.dimension = self.table.router.dimension
         self.wire_encoding = encoding_of(self.vpr.vpr_wire_code)
+        self.float32 = encoding_of("float32")
         # OpenMP's waiting threads made single searches 5-20x slower on shared cores.
         set_faiss_threads(1)
         self.lock = threading.Lock()
@@ -316,6 +320,8 @@ class PlaceOwner(ServiceBase):
         check_fields(req, "cluster")
         if req.HasField("robot_id") and req.robot_id >= self.bus.n_robots:
             raise InvalidArgument(f"robot {req.robot_id} is not in this swarm of {self.bus.n_robots} robots")
+        if req.assignment_version > self.live.version:
+            self._catch_up()
         self._check_route(self.live, req.cluster, req.assignment_version)
         x = descriptor_from_wire(req.descriptor, req.encoding, self.dimension)
         # No robot named: exclude a robot id no frame has (the swarm's are 0 .. n_robots - 1).
@@ -342,6 +348,8 @@ class PlaceOwner(ServiceBase):
         ctx.require_own(robot, frame)
         self._check_entry(robot, frame)
         x = descriptor_from_wire(req.descriptor, req.encoding, self.dimension)
+        if req.assignment_version > self.live.version:
+            self._catch_up()
         with self.lock:
             table = self.live
             if req.assignment_version != table.version:
@@ -446,7 +454,11 @@ class PlaceOwner(ServiceBase):
             new = next_table(table, merged, self.rule)
             adopt = pb.AdoptTableRequest(table=table_to_proto(new))
             replies = self._ask_all(
-                "adopt_table", adopt, pb.AdoptTableReply, deadline_s=30 * self.bus.request_timeout_s
+                "adopt_table",
+                _delta(table, new),
+                pb.AdoptTableReply,
+                deadline_s=30 * self.bus.request_timeout_s,
+                whole=adopt,
             )
         sent = sum(r.sent for r in replies.values())
         pending = sum(r.pending for r in replies.values())
@@ -464,27 +476,35 @@ class PlaceOwner(ServiceBase):
         )
 
     def _ask_all(
-        self, endpoint: str, request: Any, reply_cls: type[Any], deadline_s: float | None = None
+        self,
+        endpoint: str,
+        request: Any,
+        reply_cls: type[Any],
+        deadline_s: float | None = None,
+        whole: Any = None,
     ) -> dict[int, Any]:
         """Every owner's reply (this one's served here, not over the bus); Unavailable when one
-        does not answer within ``deadline_s`` (retried until then)."""
+        does not answer within ``deadline_s`` (retried until then). ``whole``: the request
+        sent instead to an owner that refuses ``request`` as a change to a table it lacks."""
         deadline = time.monotonic() + (deadline_s or 3 * self.bus.request_timeout_s)
         handler: Callable[[Any, Any], Any] = {"cluster_load": self.cluster_load, "adopt_table": self._adopt}[
             endpoint
         ]
         out: dict[int, Any] = {}
         for r in range(self.bus.n_robots):
+            sent = request
             while True:
                 try:
                     if r == self.bus.robot:
-                        out[r] = handler(request, None)
+                        out[r] = handler(whole if whole is not None else request, None)
                     else:
                         key = keys.endpoint(self.bus.swarm, "place-owner", r, endpoint)
-                        out[r] = self.ctx.caller.call(
-                            key, request, reply_cls, target_robot=r, endpoint=endpoint
-                        )
+                        out[r] = self.ctx.caller.call(key, sent, reply_cls, target_robot=r, endpoint=endpoint)
                     break
                 except CallError as e:
+                    if isinstance(e, RemoteError) and whole is not None and WHOLE_TABLE in e.message:
+                        sent = whole
+                        continue
                     if time.monotonic() > deadline or self.ctx.stop.is_set():
                         raise Unavailable(f"place-owner {r} did not answer {endpoint}: {e}") from None
                     time.sleep(0.2)
@@ -501,7 +521,10 @@ class PlaceOwner(ServiceBase):
         return self._adopt(req, None)
 
     def _adopt(self, req: pb.AdoptTableRequest, _ctx: RequestContext | None) -> pb.AdoptTableReply:
-        new = table_from_proto(req.table, self.dimension, self.bus.n_robots)
+        msg = req.table
+        if req.HasField("base_version"):
+            msg = _applied(req, self.live, self.dimension)
+        new = table_from_proto(msg, self.dimension, self.bus.n_robots)
         with self.lock:
             current = self.live
             if new.version < current.version:
@@ -544,12 +567,7 @@ class PlaceOwner(ServiceBase):
                 try:
                     for start in range(0, len(rows), MOVE_BATCH):
                         part = rows[start : start + MOVE_BATCH]
-                        entries = [
-                            pb.PlaceEntry(robot_id=int(robots[j]), frame_index=int(frames[j]),
-                                          descriptor=vectors[j].astype("<f4").tobytes(),
-                                          encoding=pb.DescriptorEncoding.DESCRIPTOR_ENCODING_FLOAT32)
-                            for j in part
-                        ]  # fmt: skip
+                        entries = [self._entry(int(robots[j]), int(frames[j]), vectors[j]) for j in part]
                         key = keys.endpoint(self.bus.swarm, "place-owner", target, "store_entries")
                         request = pb.StoreEntriesRequest(version=table.version, entries=entries)
                         self.ctx.caller.call(
@@ -581,6 +599,17 @@ class PlaceOwner(ServiceBase):
             self.metrics.moved.labels("removed").inc(removed)
             self.metrics.stored_descriptors.set(n)
             return sent, removed
+
+    def _entry(self, robot: int, frame: int, vector: np.ndarray) -> pb.PlaceEntry:
+        """A stored descriptor as a move sends it: in the swarm's wire code when that decodes
+        to exactly the stored vector (an int8 code's decoded vector encodes to the same code),
+        else as float32, so the new holder stores the very same vector."""
+        data, encoding = descriptor_to_wire(vector, self.vpr.vpr_wire_code)
+        if encoding != self.float32 and not np.array_equal(
+            descriptor_from_wire(data, encoding, self.dimension), vector
+        ):
+            data, encoding = vector.astype("<f4").tobytes(), self.float32
+        return pb.PlaceEntry(robot_id=robot, frame_index=frame, descriptor=data, encoding=encoding)  # type: ignore[arg-type]
 
     def store_entries(self, req: pb.StoreEntriesRequest, ctx: RequestContext) -> pb.StoreEntriesReply:
         """Entries a holder moved here (any robots' frames): checked whole, then stored once each."""
@@ -616,17 +645,12 @@ class PlaceOwner(ServiceBase):
         return pb.StoreEntriesReply(stored=stored)
 
     def _background(self) -> None:
-        """Deliver pending moves, catch up with the coordinator's table, re-balance on a timer."""
+        """Deliver pending moves, re-balance on a timer (the coordinator)."""
         stop = self.ctx.stop
-        caught_up = False
         last = time.monotonic()
         every = self.vpr.vpr_rebalance_every_s
-        wait = 0.0  # the first look at once: an owner that was down may have missed a table
-        while not stop.wait(wait):
-            wait = PENDING_RETRY_S
+        while not stop.wait(PENDING_RETRY_S):
             try:
-                if not caught_up:
-                    caught_up = self._catch_up()
                 if self.pending:
                     self._move()
                 if every > 0 and time.monotonic() - last >= every:
@@ -646,10 +670,10 @@ class PlaceOwner(ServiceBase):
 
     def _catch_up(self) -> bool:
         """Follow the coordinator's table when it is newer (this owner was down when it came).
-        At most one look every 0.2 s: a query claiming a newer version cannot make it ask
+        At most one look every 0.1 s: a query claiming a newer version cannot make it ask
         more often."""
         now = time.monotonic()
-        if now - self._looked < 0.2:
+        if now - self._looked < 0.1:
             return False
         self._looked = now
         coordinator = self._lowest_live()
@@ -736,7 +760,7 @@ class PlaceOwner(ServiceBase):
                 if e.code != ErrorCode.FAILED_PRECONDITION or "version" not in e.message:
                     break
                 self.metrics.rerouted.inc()
-                self._newer_table(table)
+                self._newer_table(table, attempt)
                 continue
             except CallError as e:
                 failure = f"owner {route.owner}: {e}"
@@ -751,7 +775,7 @@ class PlaceOwner(ServiceBase):
             return
         report.failure = failure
 
-    def _newer_table(self, seen: LiveTable) -> None:
+    def _newer_table(self, seen: LiveTable, attempt: int) -> None:
         """After a refusal for ``seen``'s version: follow the coordinator's table when it is
         newer, else wait a moment (the owner has not adopted this robot's yet)."""
         coordinator = self._lowest_live()
@@ -761,7 +785,7 @@ class PlaceOwner(ServiceBase):
                 with contextlib.suppress(FailedPrecondition):  # a newer one came meanwhile
                     self._adopt(pb.AdoptTableRequest(table=table_to_proto(fresh)), None)
                 return
-        time.sleep(0.05)
+        time.sleep(0.05 * 2**attempt)  # 0.05, 0.1, 0.2 s
 
     def _store_copies(self, table: LiveTable, query: pb.PlaceQuery, x: np.ndarray) -> None:
         """The query, stored (not searched) at the table's copy holders of its descriptor as
@@ -916,6 +940,47 @@ class PlaceOwner(ServiceBase):
             "coordinator (lowest live place-owner): plan the next table from the owners' loads, roll it out",
         ),
     )
+
+
+def _delta(base: LiveTable, new: LiveTable) -> pb.AdoptTableRequest:
+    """``new`` as changes to ``base``'s centres: the rows that differ and those appended."""
+    msg = table_to_proto(new)
+    msg.centres = b""
+    k = base.assignment.n_clusters
+    replaced = [c for c in range(k) if not np.array_equal(new.centres[c], base.centres[c])]
+    return pb.AdoptTableRequest(
+        table=msg,
+        base_version=base.version,
+        replaced=replaced,
+        replaced_centres=np.ascontiguousarray(new.centres[replaced], "<f4").tobytes(),
+        appended_centres=np.ascontiguousarray(new.centres[k:], "<f4").tobytes(),
+    )
+
+
+def _applied(req: pb.AdoptTableRequest, base: LiveTable, d: int) -> pb.ClusterTable:
+    """The whole table a change to ``base`` gives (FAILED_PRECONDITION, naming
+    :data:`WHOLE_TABLE`, when this owner is not on the base version; InvalidArgument when the
+    change does not fit it)."""
+    if req.base_version != base.version:
+        raise FailedPrecondition(
+            f"a change to table version {req.base_version}; this owner follows {base.version}: {WHOLE_TABLE}"
+        )
+    k = base.assignment.n_clusters
+    row = 4 * d
+    if len(req.replaced_centres) != row * len(req.replaced) or len(req.appended_centres) % row:
+        raise InvalidArgument("the table's changed centres are not whole rows of float32")
+    if len(set(req.replaced)) != len(req.replaced) or any(c >= k for c in req.replaced):
+        raise InvalidArgument(f"changed clusters must be distinct and below the base's {k}")
+    centres = base.centres.copy()
+    centres[list(req.replaced)] = np.frombuffer(req.replaced_centres, "<f4").reshape(-1, d)
+    appended = np.frombuffer(req.appended_centres, "<f4").reshape(-1, d)
+    full = np.concatenate([centres, appended]).astype("<f4")
+    if len(full) != len(req.table.owners):
+        raise InvalidArgument(f"{len(full)} centres for a table of {len(req.table.owners)} owners")
+    msg = pb.ClusterTable()
+    msg.CopyFrom(req.table)
+    msg.centres = full.tobytes()
+    return msg
 
 
 def _match(match: object) -> pb.PlaceMatch:

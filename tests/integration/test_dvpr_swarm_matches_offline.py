@@ -34,6 +34,7 @@ from tests.dvpr_checks import (
     closures_of,
     detector_frames,
     offline_answers,
+    offline_answers_with_tables,
     read_answers,
     read_closures,
     verified_matches,
@@ -111,3 +112,49 @@ def test_a_lockstep_dvpr_swarm_answers_every_frame_as_the_offline_simulation_of_
         np.mean(expected.owners != frames.robots)
     )
     assert all(code == 0 for code in summary.exit_codes.values()), summary.exit_codes
+
+
+@pytest.mark.slow
+def test_a_lockstep_dvpr_run_rebalanced_live_answers_as_the_offline_simulation_of_its_tables(
+    tmp_path: Path,
+) -> None:
+    """``--rebalance-every``: the job asks the coordinator between steps; the report names
+    each table and the load it gave, writes the tables, and its answers are the offline
+    simulation of those tables on the detectors' descriptors (built here: tests/dvpr_checks)."""
+    out = tmp_path / "run"
+    c, every = 10, 10  # k = 40: shipped centres
+    settings = VprRunSettings(
+        run=PlacesSettings(
+            source=DatasetSource(frames=FRAMES),
+            robots=ROBOTS,
+            out=out,
+            progress=False,
+            plots=False,
+            pixels=PixelSettings(from_pixels=True),
+        ),
+        dvpr=DvprSettings(clusters_per_robot=c, rebalance_every=every),
+    )
+    summary = main(settings, LocalDeployment.for_run)
+    assert isinstance(summary, DvprSummary)
+    assert summary.queries.frames == FRAMES and summary.queries.missing_slots == 0, summary.queries.errors
+    steps = FRAMES // ROBOTS
+    assert summary.rebalancing is not None
+    assert [r.after_step for r in summary.rebalancing] == list(range(every, steps, every))
+    assert [r.version for r in summary.rebalancing] == list(range(1, len(summary.rebalancing) + 1))
+    tables = [
+        (r.at_frame, pb.ClusterTable.FromString((out / "tables" / f"v{r.version}.pb").read_bytes()))
+        for r in summary.rebalancing
+    ]
+    frames = detector_frames(out / "rgbd", out / "data", ROBOTS)
+    centres = load_centres(shipped_model(DESCRIPTOR_CENTRES), ROBOTS * c)
+    expected = offline_answers_with_tables(
+        frames, centres, random_assignment(ROBOTS, c, seed=0).owners, tables
+    )
+    assert_answers_are(out / "answers.csv", expected, frames, matched=0.9)
+    assert summary.offline_check is not None and summary.offline_check.identical
+    assert summary.load.queries == np.bincount(expected.owners, minlength=ROBOTS).tolist()
+    # The moves and copies travelled between robots, measured like the queries.
+    assert {"StoreEntriesRequest", "ClusterLoad", "AdoptTableRequest"} <= set(
+        summary.bytes.per_query_by_message
+    )
+    assert sum(r.moved for r in summary.rebalancing) > 0

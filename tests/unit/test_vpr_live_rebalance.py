@@ -172,3 +172,27 @@ def test_holders_are_the_owner_and_the_offline_copy_rule() -> None:
     for h, o, c in zip(holders, owners, copies, strict=True):
         assert h == {int(o)} | {int(r) for r in c if r >= 0}
         assert len(h) == 2  # every descriptor has one copy at another robot
+
+
+def test_a_table_change_rebuilds_the_whole_table_and_is_refused_off_its_base() -> None:
+    from swarmrec.errors import FailedPrecondition, InvalidArgument
+    from swarmrec.services.place_owner import WHOLE_TABLE, _applied, _delta
+
+    t = start_table()
+    w = Window(0)
+    hot = t.centres[t.assignment.clusters_of(0)[0]]
+    near = hot + np.random.default_rng(4).normal(scale=0.05, size=(40, D))
+    for row in (near / np.linalg.norm(near, axis=1, keepdims=True)).astype(np.float32):
+        w.add(row)
+    merged = merge_loads(t, [owner_load(t, r, w if r == 0 else Window(0), 10, 0) for r in range(N)])
+    new = next_table(t, merged, RebalanceRule(clusters_per_robot=C))
+    change = _delta(t, new)
+    assert change.table.centres == b"" and len(change.appended_centres) > 0  # a split: only its rows
+    rebuilt = table_from_proto(_applied(change, t, D), D, N)
+    assert np.array_equal(rebuilt.centres, new.centres) and rebuilt.assignment.owners == new.assignment.owners
+    with pytest.raises(FailedPrecondition, match=WHOLE_TABLE):
+        _applied(change, new, D)  # not on the base version
+    change.replaced.append(10**6)
+    change.replaced_centres += np.zeros(D, "<f4").tobytes()
+    with pytest.raises(InvalidArgument, match="below"):
+        _applied(change, t, D)

@@ -42,7 +42,14 @@ from swarmrec.errors import ConfigError
 from swarmrec.experiments.places import main as places_main
 from swarmrec.experiments.places.pixels import PixelSource, prepare_pixels, rgbd_settings
 from swarmrec.experiments.places.report import DetectorFigures, PlacesSummary
-from swarmrec.experiments.vpr.replay import PlaceReplay, collect_loop_closures, replay_free, replay_ordered
+from swarmrec.experiments.vpr.replay import (
+    PlaceReplay,
+    TableChange,
+    collect_loop_closures,
+    rebalance,
+    replay_free,
+    replay_ordered,
+)
 from swarmrec.experiments.vpr.report import (
     Comparison,
     DvprSummary,
@@ -206,8 +213,20 @@ def run_dvpr(
             swarm_hook(deployment)
         step_timeout = 6 * run.request_timeout_s
         result: PlaceReplay
+        tables: list[TableChange] = []
+        every = settings.dvpr.rebalance_every
+        last_step = max(len(b) for b in blocks) - 1
+
+        def after_step(t: int, sent: int) -> None:
+            # Between steps, no frame in flight: the swarm moves, then the next step routes by it.
+            if every and (t + 1) % every == 0 and t < last_step:
+                reply = rebalance(client, run.robots, 60 * run.request_timeout_s)
+                tables.append(TableChange(sent, t + 1, reply))
+
         if run.lockstep:
-            result = replay_ordered(client, blocks, step_timeout, progress=run.progress)
+            result = replay_ordered(
+                client, blocks, step_timeout, progress=run.progress, after_step=after_step
+            )
         else:
             rate = 0.0 if run.pace == "fast" else float(run.pace)
             result = replay_free(client, blocks, rate, step_timeout, progress=run.progress)
@@ -233,6 +252,7 @@ def run_dvpr(
         "loop_closure_min_score": PlaceSettings().loop_closure_min_score,
         "deployment": deployment.description,
         "processes": len(exit_codes),
+        "rebalance_every_steps": settings.dvpr.rebalance_every,
     }
     stamps = np.array([f.timestamp for f in px.frames], dtype=np.float64)
     data = RunData(
@@ -255,6 +275,7 @@ def run_dvpr(
         timings=timings,
         lockstep=run.lockstep,
         detector=_detector_figures(px, metrics),
+        tables=tables,
     )
     return write_report(out, data, plots=run.plots)
 

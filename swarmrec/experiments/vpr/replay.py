@@ -16,6 +16,7 @@ slot, not the end of the run.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import zenoh
@@ -26,7 +27,14 @@ from swarmrec.errors import SwarmrecError
 from swarmrec.runtime import keys
 from swarmrec.wire import messages as pb
 
-__all__ = ["PlaceReplay", "collect_loop_closures", "replay_free", "replay_ordered"]
+__all__ = [
+    "PlaceReplay",
+    "TableChange",
+    "collect_loop_closures",
+    "rebalance",
+    "replay_free",
+    "replay_ordered",
+]
 
 
 @dataclass
@@ -42,8 +50,15 @@ class PlaceReplay:
 
 
 def replay_ordered(
-    client: ZenohClient, blocks: list[range], timeout_s: float, *, progress: bool = False
+    client: ZenohClient,
+    blocks: list[range],
+    timeout_s: float,
+    *,
+    progress: bool = False,
+    after_step: Callable[[int, int], None] | None = None,
 ) -> PlaceReplay:
+    """Lock-step replay; ``after_step(t, sent)`` runs after step ``t``, ``sent`` frames in
+    (the live re-balancing asks the coordinator there, with no frame in flight)."""
     reports: dict[tuple[int, int], pb.PlaceReport] = {}
     missing: list[tuple[int, int]] = []
     errors: list[str] = []
@@ -79,7 +94,34 @@ def replay_ordered(
                     missing.append((r, t))
                     continue
                 reports[(r, t)] = reply.place
+            if after_step is not None:
+                after_step(t, sum(min(len(b), t + 1) for b in blocks))
     return PlaceReplay(reports, missing, errors, time.perf_counter() - t0, step_s)
+
+
+@dataclass(frozen=True)
+class TableChange:
+    """One live re-balancing of a lock-step run: the table from arrival position ``at`` on."""
+
+    at: int
+    step: int
+    reply: pb.RebalanceReply
+
+
+def rebalance(client: ZenohClient, robots: int, timeout_s: float) -> pb.RebalanceReply:
+    """Ask the coordinator, the lowest live place-owner, to re-balance now; the reply comes
+    once every owner moved. Robots are tried from 0 up: one that is down does not answer,
+    one above the coordinator refuses, the coordinator re-balances."""
+    errors = []
+    for robot in range(robots):
+        key = keys.endpoint(client.swarm, "place-owner", robot, "rebalance")
+        try:
+            return client.call(
+                key, pb.RebalanceRequest(), pb.RebalanceReply, target_robot=None, timeout_s=timeout_s
+            )
+        except SwarmrecError as e:
+            errors.append(f"robot {robot}: {e}")
+    raise SwarmrecError("no place-owner re-balanced: " + "; ".join(errors))
 
 
 def replay_free(

@@ -32,6 +32,8 @@ from __future__ import annotations
 
 import csv
 import json
+import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -45,12 +47,14 @@ from swarmrec.deployments.metrics import Scrape
 from swarmrec.evaluation.plots import plot_bytes, plot_pr
 from swarmrec.evaluation.pr import PRCurve
 from swarmrec.experiments.places.report import DetectorFigures, PlacesSummary
-from swarmrec.experiments.vpr.replay import PlaceReplay
-from swarmrec.vpr.clusters import Router
+from swarmrec.experiments.vpr.replay import PlaceReplay, TableChange
+from swarmrec.vpr.balance import replica_owners
+from swarmrec.vpr.clusters import Assignment, Router
 from swarmrec.vpr.places import PlaceThresholds, same_place, view_directions
 from swarmrec.vpr.quantize import Int8Quantizer
 from swarmrec.vpr.simulation import (
     Answers,
+    Reassignment,
     answers_curve,
     arrival_order,
     bytes_per_query,
@@ -145,6 +149,24 @@ class OwnerLoad:
 
 
 @dataclass
+class Rebalancing:
+    """One live re-balancing of the run (docs/vpr.md, "Re-balancing a live swarm")."""
+
+    after_step: int
+    at_frame: int
+    version: int
+    clusters: int
+    #: Copies of descriptors within this gap of a boundary; None: of every descriptor; < 0: none.
+    copy_margin: float | None
+    observed_queries: int
+    moved: int
+    pending: int
+    #: Queries each owner answered from this table on (until the next), and busiest / mean.
+    queries: list[int]
+    balance_ratio: float
+
+
+@dataclass
 class DvprQueries:
     frames: int
     answered: int
@@ -178,6 +200,9 @@ class DvprSummary:
     operating_point: OperatingPoint | None = None
     offline_check: OfflineAgreement | None = None
     detector: DetectorFigures | None = None
+    #: The live re-balancings, in order, and the load before the first (None: none asked).
+    rebalancing: list[Rebalancing] | None = None
+    load_before_rebalancing: OwnerLoad | None = None
 
     def to_dict(self) -> dict[str, Any]:
         out = asdict(self)
@@ -209,13 +234,38 @@ def ground_truth(trajectory: Trajectory, stamps: FloatArray, blocks: list[range]
 
 
 def offline_answers(
-    descriptors: npt.NDArray[np.float32], router: Router, blocks: list[range], code: str
+    descriptors: npt.NDArray[np.float32],
+    router: Router,
+    blocks: list[range],
+    code: str,
+    tables: Sequence[tuple[int, pb.ClusterTable]] = (),
 ) -> Answers:
     """What :func:`swarmrec.vpr.simulation.run_queries` answers for these descriptors: each
-    routed with its float values, stored and searched as the owner decodes it."""
+    routed with its float values, stored and searched as the owner decodes it. ``tables``:
+    the live re-balancings' tables and the arrival position each took effect at; a query
+    from then on is routed by its float values with that table, a descriptor stored before
+    moves to the owner and copy holders of its decoded value (as its holder computes them),
+    and every later query is also stored at the copy holders of its decoded value."""
     robots = np.concatenate([np.full(len(b), r, np.int64) for r, b in enumerate(blocks)])
     _clusters, owners = router.route_many(descriptors)
-    return run_queries(as_stored(descriptors, code), robots, owners.astype(np.int64), arrival_order(robots))
+    order = arrival_order(robots)
+    stored = as_stored(descriptors, code)
+    arrival = np.empty(len(order), np.int64)
+    arrival[order] = np.arange(len(order))
+    switches = []
+    for at, table in tables:
+        k, d = len(table.owners), table.dimension
+        centres = np.frombuffer(table.centres, "<f4").astype(np.float32).reshape(k, d)
+        assignment = Assignment(tuple(int(o) for o in table.owners), len(blocks), version=int(table.version))
+        routed = Router(centres, assignment)
+        moved = np.where(arrival < at, routed.route_many(stored)[1], routed.route_many(descriptors)[1])
+        copies = None
+        if table.copy_margin >= 0:
+            copies = replica_owners(
+                centres, assignment, stored, table.copy_margin, int(table.copy_neighbours)
+            )
+        switches.append(Reassignment(at, moved.astype(np.int64), copies))
+    return run_queries(stored, robots, owners.astype(np.int64), order, switches)
 
 
 def as_stored(descriptors: npt.NDArray[np.float32], code: str) -> npt.NDArray[np.float32]:
@@ -310,6 +360,8 @@ class RunData:
     lockstep: bool
     detector: DetectorFigures | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    #: The live re-balancings, in order.
+    tables: list[TableChange] = field(default_factory=list)
 
 
 def write_report(out: Path, run: RunData, *, plots: bool = True) -> DvprSummary:
@@ -370,9 +422,12 @@ def write_report(out: Path, run: RunData, *, plots: bool = True) -> DvprSummary:
         timings=run.timings,
         detector=run.detector,
     )
+    if run.tables:
+        _rebalancing(summary, run, live, robots)
     expected = None
     if run.descriptors is not None and run.lockstep and not replay.missing:
-        expected = offline_answers(run.descriptors, run.router, blocks, run.wire_code)
+        tables = [(c.at, c.reply.table) for c in run.tables]
+        expected = offline_answers(run.descriptors, run.router, blocks, run.wire_code, tables)
         summary.offline_check = _agreement(live, expected, replay.reports)
         summary.load.offline = np.bincount(expected.owners, minlength=n_robots).astype(int).tolist()
     truth = None
@@ -391,6 +446,12 @@ def write_report(out: Path, run: RunData, *, plots: bool = True) -> DvprSummary:
                 summary.relative_auc = summary.auc / summary.centralized_auc
         pairs = [_global(c, blocks) for c in run.closures]
         summary.operating_point = operating_point(pairs, truth)
+    if run.tables:
+        # Every rolled-out table, for re-checking the run offline (tables/v<version>.pb).
+        folder = out / "tables"
+        folder.mkdir(exist_ok=True)
+        for change in run.tables:
+            (folder / f"v{change.reply.table.version}.pb").write_bytes(change.reply.table.SerializeToString())
     _write_answers(out / "answers.csv", replay.reports, blocks, run.frame_ids, truth)
     _write_closures(out / "loop_closures.csv", run.closures, blocks, run.frame_ids, truth)
     if plots:
@@ -400,6 +461,41 @@ def write_report(out: Path, run: RunData, *, plots: bool = True) -> DvprSummary:
             plot_bytes(summary.bytes.per_query_by_message, out / "bytes_per_query.png")
     (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2) + "\n")
     return summary
+
+
+def _rebalancing(summary: DvprSummary, run: RunData, live: Answers, robots: IntArray) -> None:
+    """Each re-balancing's table and the load it gave until the next (live owners by arrival)."""
+    n_robots = len(run.blocks)
+    order = arrival_order(robots)
+    owners = live.owners[order]  # in arrival order
+    bounds = [c.at for c in run.tables] + [len(order)]
+
+    def load(lo: int, hi: int) -> tuple[list[int], float]:
+        part = owners[lo:hi]
+        counts = np.bincount(part[part >= 0], minlength=n_robots).astype(int).tolist()
+        mean = float(np.mean(counts)) if counts else 0.0
+        return counts, float(max(counts) / mean) if mean > 0 else 0.0
+
+    first, ratio = load(0, bounds[0])
+    summary.load_before_rebalancing = OwnerLoad(first, ratio, None)
+    summary.rebalancing = []
+    for i, c in enumerate(run.tables):
+        counts, ratio = load(bounds[i], bounds[i + 1])
+        t = c.reply.table
+        summary.rebalancing.append(
+            Rebalancing(
+                after_step=c.step,
+                at_frame=c.at,
+                version=int(t.version),
+                clusters=len(t.owners),
+                copy_margin=None if math.isinf(t.copy_margin) else float(t.copy_margin),
+                observed_queries=int(c.reply.observed_queries),
+                moved=int(c.reply.moved),
+                pending=int(c.reply.pending),
+                queries=counts,
+                balance_ratio=ratio,
+            )
+        )
 
 
 def _global(c: pb.LoopClosure, blocks: list[range]) -> tuple[int, int]:

@@ -34,8 +34,13 @@ class DvprSettings:
     descriptor_model: str = ""
     #: onnxruntime threads of each detector's descriptor.
     descriptor_threads: int = 1
+    #: Lock-step steps between live re-balancings of the cluster owners (0: none; docs/vpr.md,
+    #: "Re-balancing a live swarm"): the job asks the coordinator after every this many steps.
+    rebalance_every: int = 0
 
     def __post_init__(self) -> None:
+        if self.rebalance_every < 0:
+            raise ConfigError(f"rebalance_every must be >= 0 steps (0: none), got {self.rebalance_every}")
         self.component(None)
 
     def component(self, centres: Path | None) -> VprSettings:
@@ -72,6 +77,11 @@ class VprRunSettings:
             )
         if self.run.robots < 2:
             raise ConfigError("full-image place recognition matches other robots' frames: --robots 2 or more")
+        if self.dvpr.rebalance_every and not self.run.lockstep:
+            raise ConfigError(
+                "--rebalance-every counts lock-step steps: use it with --pace lockstep (a free-running "
+                "swarm re-balances on its own timer, the place-owners' vpr_rebalance_every_s)"
+            )
 
     @property
     def out(self) -> Path:
