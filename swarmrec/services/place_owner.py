@@ -65,6 +65,7 @@ import contextlib
 import json
 import math
 import os
+import re
 import threading
 import time
 from collections import defaultdict
@@ -171,6 +172,7 @@ class PlaceOwner(ServiceBase):
         # One re-balancing or move at a time.
         self.moving = threading.RLock()
         self._looked = -1.0
+        self.catching = threading.Lock()
         self.index = self._restore()
         self.unsaved = 0
         self.metrics.stored_descriptors.set(len(self.index))
@@ -276,7 +278,7 @@ class PlaceOwner(ServiceBase):
         self._check_entry(robot, frame)
         x = descriptor_from_wire(req.descriptor, req.encoding, self.dimension)
         if req.assignment_version > self.live.version:
-            self._catch_up()  # the querier knows a newer table: this owner missed it
+            self._catch_up(req.assignment_version)  # the querier knows a newer table: this owner missed it
         with self.lock:
             # Checked under the lock: a table adopted meanwhile is seen here or the query is
             # stored before it (and then moved with the rest).
@@ -321,7 +323,7 @@ class PlaceOwner(ServiceBase):
         if req.HasField("robot_id") and req.robot_id >= self.bus.n_robots:
             raise InvalidArgument(f"robot {req.robot_id} is not in this swarm of {self.bus.n_robots} robots")
         if req.assignment_version > self.live.version:
-            self._catch_up()
+            self._catch_up(req.assignment_version)
         self._check_route(self.live, req.cluster, req.assignment_version)
         x = descriptor_from_wire(req.descriptor, req.encoding, self.dimension)
         # No robot named: exclude a robot id no frame has (the swarm's are 0 .. n_robots - 1).
@@ -349,7 +351,7 @@ class PlaceOwner(ServiceBase):
         self._check_entry(robot, frame)
         x = descriptor_from_wire(req.descriptor, req.encoding, self.dimension)
         if req.assignment_version > self.live.version:
-            self._catch_up()
+            self._catch_up(req.assignment_version)
         with self.lock:
             table = self.live
             if req.assignment_version != table.version:
@@ -624,11 +626,22 @@ class PlaceOwner(ServiceBase):
             if e.removed:
                 raise InvalidArgument("a moved entry cannot be a removal")
             rows.append(descriptor_from_wire(e.descriptor, e.encoding, self.dimension))
+        if req.version > self.live.version:
+            self._catch_up(req.version)  # moved by a table this owner missed
         stored = 0
         with self.lock:
-            if req.version < self.live.version:
+            table = self.live
+            if req.version != table.version:
                 raise FailedPrecondition(
-                    f"moved by table version {req.version}; this owner follows {self.live.version}"
+                    f"moved by table version {req.version}; this owner follows {table.version}"
+                )
+            # Only what the table puts here: a holder cannot park entries at any owner.
+            here = [self.bus.robot in where for where in table.holders(np.stack(rows))] if rows else []
+            if not all(here):
+                e = req.entries[here.index(False)]
+                raise FailedPrecondition(
+                    f"table version {table.version} puts frame {e.frame_index} of robot {e.robot_id} "
+                    f"elsewhere, not at robot {self.bus.robot}"
                 )
             for e, x in zip(req.entries, rows, strict=True):
                 held = self.index.get(e.robot_id, e.frame_index)
@@ -668,21 +681,21 @@ class PlaceOwner(ServiceBase):
         )
         return sum(sum(m.loads) for m in loads.values())
 
-    def _catch_up(self) -> bool:
-        """Follow the coordinator's table when it is newer (this owner was down when it came).
-        At most one look every 0.1 s: a query claiming a newer version cannot make it ask
-        more often."""
-        now = time.monotonic()
-        if now - self._looked < 0.1:
-            return False
-        self._looked = now
-        coordinator = self._lowest_live()
-        if coordinator == self.bus.robot:
-            return True
-        fresh = self._fetch_table(coordinator)
-        if fresh is not None and fresh.version > self.live.version:
-            self._adopt(pb.AdoptTableRequest(table=table_to_proto(fresh)), None)
-        return fresh is not None
+    def _catch_up(self, wanted: int) -> None:
+        """Follow the coordinator's table when a request names a version ``wanted`` newer than
+        this owner's (it was down when the table came, or lost its file). One look at a time;
+        after a look that found nothing newer, none for 0.1 s: requests claiming versions that
+        do not exist cannot make it ask more often."""
+        with self.catching:
+            if self.live.version >= wanted or time.monotonic() - self._looked < 0.1:
+                return
+            coordinator = self._lowest_live()
+            fresh = self._fetch_table(coordinator) if coordinator != self.bus.robot else None
+            if fresh is not None and fresh.version > self.live.version:
+                with contextlib.suppress(FailedPrecondition):  # a newer one came meanwhile
+                    self._adopt(pb.AdoptTableRequest(table=table_to_proto(fresh)), None)
+            if self.live.version < wanted:
+                self._looked = time.monotonic()
 
     def _fetch_table(self, robot: int) -> LiveTable | None:
         key = keys.endpoint(self.bus.swarm, "place-owner", robot, "table")
@@ -760,7 +773,7 @@ class PlaceOwner(ServiceBase):
                 if e.code != ErrorCode.FAILED_PRECONDITION or "version" not in e.message:
                     break
                 self.metrics.rerouted.inc()
-                self._newer_table(table, attempt)
+                self._newer_table(table, e.message, attempt)
                 continue
             except CallError as e:
                 failure = f"owner {route.owner}: {e}"
@@ -775,15 +788,15 @@ class PlaceOwner(ServiceBase):
             return
         report.failure = failure
 
-    def _newer_table(self, seen: LiveTable, attempt: int) -> None:
-        """After a refusal for ``seen``'s version: follow the coordinator's table when it is
-        newer, else wait a moment (the owner has not adopted this robot's yet)."""
-        coordinator = self._lowest_live()
-        if coordinator != self.bus.robot and self.live is seen:
-            fresh = self._fetch_table(coordinator)
-            if fresh is not None and fresh.version > seen.version:
-                with contextlib.suppress(FailedPrecondition):  # a newer one came meanwhile
-                    self._adopt(pb.AdoptTableRequest(table=table_to_proto(fresh)), None)
+    def _newer_table(self, seen: LiveTable, refusal: str, attempt: int) -> None:
+        """After an owner refused a query routed with ``seen``: when the owner follows a newer
+        version (its refusal says which), catch up with the coordinator's table; when an older
+        one, wait a moment (it is adopting this robot's, or catches up itself)."""
+        found = re.search(r"this owner follows version (\d+)", refusal)
+        theirs = int(found.group(1)) if found else seen.version + 1
+        if theirs > seen.version:
+            self._catch_up(theirs)
+            if self.live is not seen:
                 return
         time.sleep(0.05 * 2**attempt)  # 0.05, 0.1, 0.2 s
 

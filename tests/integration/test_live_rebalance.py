@@ -301,6 +301,23 @@ def test_a_query_routed_with_an_old_table_is_refused_and_stores_nothing(
     forged.table.version = 9
     answer = request(client.session, key(local, 2, "adopt_table"), forged, caller=1)
     assert answer.code == "ERROR_CODE_PERMISSION_DENIED", answer
+    # A holder cannot park entries where the table does not put them, nor send removals.
+    live = Router(
+        np.frombuffer(table.centres, "<f4").reshape(len(table.owners), D),
+        Assignment(tuple(table.owners), ROBOTS, version=1),
+    )
+    target = int(live.route(y).owner)
+    copies = replica_owners(live.centres, live.assignment, y[None], table.copy_margin, 1)[0]
+    elsewhere = next(r for r in range(ROBOTS) if r != target and r not in copies)
+    entry = pb.PlaceEntry(robot_id=3, frame_index=901, descriptor=y.astype("<f4").tobytes(), encoding=FLOAT32)
+    parked = pb.StoreEntriesRequest(version=1, entries=[entry])
+    answer = request(client.session, key(local, elsewhere, "store_entries"), parked, caller=target)
+    assert answer.code == "ERROR_CODE_FAILED_PRECONDITION" and "elsewhere" in answer.error.message, answer
+    removal = pb.StoreEntriesRequest(
+        version=1, entries=[pb.PlaceEntry(robot_id=3, frame_index=901, removed=True)]
+    )
+    answer = request(client.session, key(local, target, "store_entries"), removal, caller=elsewhere)
+    assert answer.code == "ERROR_CODE_INVALID_ARGUMENT", answer
     assert held(local) == before
     assert {table_of(local, client, r).version for r in range(ROBOTS)} == {1}
 
