@@ -455,12 +455,21 @@ class PlaceOwner(ServiceBase):
                 raise Unavailable(f"the owners' loads do not fit together: {e}") from None
             new = next_table(table, merged, self.rule)
             adopt = pb.AdoptTableRequest(table=table_to_proto(new))
+            deadline_s = 30 * self.bus.request_timeout_s
+            # Every owner follows the table first (queries by the old one are refused from
+            # then on), then each moves what it holds: no move reaches an owner on the old one.
+            follow = _delta(table, new)
+            follow.hold_moves = True
+            held = pb.AdoptTableRequest()
+            held.CopyFrom(adopt)
+            held.hold_moves = True
+            self._ask_all("adopt_table", follow, pb.AdoptTableReply, deadline_s=deadline_s, whole=held)
+            # The second time the version alone: every owner has the table now.
+            move = pb.AdoptTableRequest(
+                table=pb.ClusterTable(version=new.version, dimension=self.dimension), base_version=new.version
+            )
             replies = self._ask_all(
-                "adopt_table",
-                _delta(table, new),
-                pb.AdoptTableReply,
-                deadline_s=30 * self.bus.request_timeout_s,
-                whole=adopt,
+                "adopt_table", move, pb.AdoptTableReply, deadline_s=deadline_s, whole=adopt
             )
         sent = sum(r.sent for r in replies.values())
         pending = sum(r.pending for r in replies.values())
@@ -524,7 +533,9 @@ class PlaceOwner(ServiceBase):
 
     def _adopt(self, req: pb.AdoptTableRequest, _ctx: RequestContext | None) -> pb.AdoptTableReply:
         msg = req.table
-        if req.HasField("base_version"):
+        if req.HasField("base_version") and req.table.version == self.live.version:
+            msg = table_to_proto(self.live)  # followed already (its moves asked now)
+        elif req.HasField("base_version"):
             msg = _applied(req, self.live, self.dimension)
         new = table_from_proto(msg, self.dimension, self.bus.n_robots)
         with self.lock:
@@ -545,7 +556,9 @@ class PlaceOwner(ServiceBase):
                 "owned_clusters": list(new.assignment.clusters_of(self.bus.robot)),
             }
             self.ctx.log.info("cluster table adopted", extra={"fields": fields})
-        sent, removed = self._move()
+        sent = removed = 0
+        if not req.hold_moves:
+            sent, removed = self._move()
         pending = sum(len(v) for v in self.pending.values())
         return pb.AdoptTableReply(
             robot_id=self.bus.robot, version=new.version, sent=sent, removed=removed, pending=pending
