@@ -47,6 +47,7 @@ from swarmrec.errors import (
     NotFound,
     RemoteError,
     RequestError,
+    WireError,
 )
 from swarmrec.runtime import keys
 from swarmrec.runtime.rpc import Caller, Outcome
@@ -55,7 +56,7 @@ from swarmrec.vpr.errors import StateFileError
 from swarmrec.vpr.table import centres_digest, default_centres_path
 from swarmrec.wire import messages as pb
 from swarmrec.wire.gen.swarmrec.v1 import gateway_pb2
-from swarmrec.wire.vpr import ENCODINGS, descriptor_from_wire
+from swarmrec.wire.vpr import ENCODINGS, descriptor_from_wire, table_from_proto
 
 __all__ = [
     "DEFAULT_WATCH_INTERVAL_MS",
@@ -184,12 +185,21 @@ def _centres(path: str, k: int) -> tuple[npt.NDArray[np.float32], str]:
     return c, centres_digest(c)
 
 
-def _router(table: gateway_pb2.ClusterTableReply, centres: str | Path | None) -> Router:
-    """The owners' routing: their table, with the centres read here (which must be theirs)."""
+#: Routers of re-balanced tables, by the centres' digest and the table's version (a few).
+_LIVE_ROUTERS: dict[tuple[str, int], Router] = {}
+
+
+def _router(
+    caller: Caller, swarm: str, table: gateway_pb2.ClusterTableReply, centres: str | Path | None
+) -> Router:
+    """The owners' routing: their table, with the centres read here (which must be theirs);
+    a table re-balanced live (docs/vpr.md) has centres of its own, fetched from an owner."""
     try:
         assignment = Assignment.from_json(json.loads(table.table_json))
     except (ValueError, TypeError) as e:
         raise FailedPrecondition(f"the place owners' cluster table does not read: {e}") from None
+    if table.version > 0:
+        return _live_router(caller, swarm, table)
     try:
         path = str(centres) if centres else str(default_centres_path())
         c, digest = _centres(path, assignment.n_clusters)
@@ -201,6 +211,36 @@ def _router(table: gateway_pb2.ClusterTableReply, centres: str | Path | None) ->
             f"({path}) are {digest[:12]}...: give the swarm's vpr_centres"
         )
     return Router(c, assignment)
+
+
+def _live_router(caller: Caller, swarm: str, table: gateway_pb2.ClusterTableReply) -> Router:
+    """The router of a re-balanced table: its centres as an owner serves them (``table``),
+    checked against the digest every owner reported."""
+    cached = _LIVE_ROUTERS.get((table.centres_sha256, table.version))
+    if cached is not None:
+        return cached
+    owner = table.owners[0].robot_id
+    key = keys.endpoint(swarm, "place-owner", owner, "table")
+    msg = _call(caller, key, pb.TableRequest(), pb.ClusterTable, f"robot {owner}'s place owner")
+    try:
+        live = table_from_proto(msg, table.owners[0].dimension, _table_robots(table))
+    except WireError as e:
+        raise FailedPrecondition(f"robot {owner}'s cluster table does not read: {e}") from None
+    if live.version != table.version or centres_digest(live.centres) != table.centres_sha256:
+        raise FailedPrecondition(
+            f"robot {owner} serves another table than version {table.version}: ask again"
+        )
+    if len(_LIVE_ROUTERS) >= 8:
+        _LIVE_ROUTERS.clear()
+    _LIVE_ROUTERS[(table.centres_sha256, table.version)] = live.router
+    return live.router
+
+
+def _table_robots(table: gateway_pb2.ClusterTableReply) -> int:
+    try:
+        return int(json.loads(table.table_json)["n_robots"])
+    except (ValueError, TypeError, KeyError) as e:
+        raise FailedPrecondition(f"the place owners' cluster table does not read: {e}") from None
 
 
 def descriptor_of_values(values: Sequence[float], dimension: int) -> npt.NDArray[np.float32]:
@@ -228,7 +268,7 @@ def place_query(
         raise FailedPrecondition(f"the place owners hold different cluster tables (versions {versions})")
     dimension = table.owners[0].dimension
     x = descriptor_of_values([float(v) for v in np.ravel(descriptor)], dimension)
-    route = _router(table, centres).route(x)
+    route = _router(caller, swarm, table, centres).route(x)
     query = pb.PlaceQuery(
         descriptor=x.astype("<f4").tobytes(),
         encoding=ENCODINGS["float32"],  # type: ignore[arg-type]  # an enum value

@@ -228,6 +228,18 @@ def test_moves_under_replay_answer_every_frame_as_the_offline_simulation_of_the_
         table = reply_of(request(client.session, key(local, r, "table"), pb.TableRequest()), pb.ClusterTable)
         assert table.version == 3
     assert sum(holdings) == 2 * len(x)  # every frame at its owner and one copy
+    # A client's place query (the gateway's code) routes by the re-balanced table, whose
+    # centres are no file's: it reads them from an owner, and finds a stored frame.
+    last = run.tables[-1][1]
+    router = Router(
+        np.frombuffer(last.centres, "<f4").reshape(len(last.owners), D),
+        Assignment(tuple(last.owners), ROBOTS),
+    )
+    reply = client.place_query(x[5])
+    assert reply.assignment_version == 3 and (reply.cluster, reply.owner_robot_id) == tuple(
+        int(v) for v in (router.route(x[5]).cluster, router.route(x[5]).owner)
+    )
+    assert reply.match.found and (reply.match.robot_id, reply.match.frame_index) == (5 % ROBOTS, 5 // ROBOTS)
 
 
 def table_of(local: LocalDeployment, client: ZenohClient, robot: int) -> pb.ClusterTable:
