@@ -95,9 +95,10 @@ from swarmrec.services.limits import MAX_FRAME_INDEX
 from swarmrec.services.metrics import PlaceOwnerMetrics
 from swarmrec.services.settings import PlaceSettings, VprSettings
 from swarmrec.vpr.balance import RebalanceRule
-from swarmrec.vpr.errors import StateFileError
+from swarmrec.vpr.errors import DescriptorError, StateFileError
 from swarmrec.vpr.index import OwnerIndex, set_faiss_threads
-from swarmrec.vpr.live import LiveTable, Window, merge_loads, next_table, owner_load
+from swarmrec.vpr.live import LiveTable, Window, as_int8_exact, merge_loads, next_table, owner_load
+from swarmrec.vpr.quantize import Int8Quantizer
 from swarmrec.vpr.table import centres_digest, swarm_table
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import check_fields, constellation_from_proto, encode, match_scores
@@ -172,6 +173,9 @@ class PlaceOwner(ServiceBase):
         # One re-balancing or move at a time.
         self.moving = threading.RLock()
         self._looked = -1.0
+        # The table before the current one, and the version whose move this owner made.
+        self.previous: LiveTable | None = None
+        self.moved_version = -1
         self.catching = threading.Lock()
         self.index = self._restore()
         self.unsaved = 0
@@ -546,6 +550,10 @@ class PlaceOwner(ServiceBase):
                 )
             if new.version > current.version:
                 self._save_table(new)
+                # Moves skip what the previous table put in place: one version back, and only
+                # when this process made that table's move (after a restart it sends all).
+                made = self.moved_version == current.version
+                self.previous = current if made and new.version == current.version + 1 else None
                 self.live = new
                 self.window = Window(new.version)
         if new.version > current.version:
@@ -572,9 +580,28 @@ class PlaceOwner(ServiceBase):
             robots, frames, vectors = self.index.export()
             holders = table.holders(vectors)
             me = self.bus.robot
+            waiting = {key for v in self.pending.values() for key in v}
+            # The previous table's holders have what it put there (its move completed, or the
+            # entry is pending at the one that sends it): an entry goes only to new holders,
+            # from one of its holders (the lowest). After that first move of a table, only
+            # what is pending goes again.
+            first = self.moved_version != table.version
+            prev = self.previous if first and self.previous is not None else None
+            before = prev.holders(vectors) if prev is not None else None
             by_target: dict[int, list[int]] = defaultdict(list)
+            considered: list[int] = []
             for j, where in enumerate(holders):
-                for target in where - {me}:
+                entry = (int(robots[j]), int(frames[j]))
+                if not first and entry not in waiting:
+                    continue
+                considered.append(j)
+                if before is None or entry in waiting or me not in before[j]:
+                    targets = where - {me}
+                elif me == min(before[j]):
+                    targets = where - before[j]
+                else:
+                    targets = set()
+                for target in targets:
                     by_target[target].append(j)
             failed: dict[int, set[tuple[int, int]]] = {}
             sent = 0
@@ -595,9 +622,7 @@ class PlaceOwner(ServiceBase):
                     self.ctx.log.warning("move not delivered yet, kept and retried", extra={"fields": fields})
             kept = {key for v in failed.values() for key in v}
             leaving = [
-                j
-                for j, where in enumerate(holders)
-                if me not in where and (int(robots[j]), int(frames[j])) not in kept
+                j for j in considered if me not in holders[j] and (int(robots[j]), int(frames[j])) not in kept
             ]
             removed = 0
             with self.lock:
@@ -609,6 +634,7 @@ class PlaceOwner(ServiceBase):
                         )
                         self.entries.append(encode(gone))
                     self.pending = failed
+                    self.moved_version = table.version
                 n = len(self.index)
             self.metrics.moved.labels("sent").inc(sent)
             self.metrics.moved.labels("removed").inc(removed)
@@ -974,12 +1000,24 @@ def _delta(base: LiveTable, new: LiveTable) -> pb.AdoptTableRequest:
     msg.centres = b""
     k = base.assignment.n_clusters
     replaced = [c for c in range(k) if not np.array_equal(new.centres[c], base.centres[c])]
+    rows = np.concatenate([new.centres[replaced], new.centres[k:]]).astype(np.float32)
+    exact = len(rows) == 0 or np.array_equal(as_int8_exact(rows), rows)
+    if exact:
+        quantizer = Int8Quantizer(new.router.dimension)
+        old, added = quantizer.encode(new.centres[replaced]), quantizer.encode(new.centres[k:])
+        replaced_data, appended_data = old.tobytes(), added.tobytes()
+        encoding = pb.DescriptorEncoding.DESCRIPTOR_ENCODING_INT8
+    else:
+        replaced_data = np.ascontiguousarray(new.centres[replaced], "<f4").tobytes()
+        appended_data = np.ascontiguousarray(new.centres[k:], "<f4").tobytes()
+        encoding = pb.DescriptorEncoding.DESCRIPTOR_ENCODING_FLOAT32
     return pb.AdoptTableRequest(
         table=msg,
         base_version=base.version,
         replaced=replaced,
-        replaced_centres=np.ascontiguousarray(new.centres[replaced], "<f4").tobytes(),
-        appended_centres=np.ascontiguousarray(new.centres[k:], "<f4").tobytes(),
+        replaced_centres=replaced_data,
+        appended_centres=appended_data,
+        centres_encoding=encoding,
     )
 
 
@@ -992,14 +1030,26 @@ def _applied(req: pb.AdoptTableRequest, base: LiveTable, d: int) -> pb.ClusterTa
             f"a change to table version {req.base_version}; this owner follows {base.version}: {WHOLE_TABLE}"
         )
     k = base.assignment.n_clusters
-    row = 4 * d
+    int8 = req.centres_encoding == pb.DescriptorEncoding.DESCRIPTOR_ENCODING_INT8
+    if not int8 and req.centres_encoding not in (0, pb.DescriptorEncoding.DESCRIPTOR_ENCODING_FLOAT32):
+        raise InvalidArgument(f"centres encoding {req.centres_encoding} is not float32 or int8")
+    row = 4 + d if int8 else 4 * d
     if len(req.replaced_centres) != row * len(req.replaced) or len(req.appended_centres) % row:
-        raise InvalidArgument("the table's changed centres are not whole rows of float32")
+        raise InvalidArgument("the table's changed centres are not whole rows")
     if len(set(req.replaced)) != len(req.replaced) or any(c >= k for c in req.replaced):
         raise InvalidArgument(f"changed clusters must be distinct and below the base's {k}")
+
+    def rows(data: bytes) -> np.ndarray:
+        if not int8:
+            return np.frombuffer(data, "<f4").reshape(-1, d)
+        try:
+            return Int8Quantizer(d).decode(np.frombuffer(data, np.uint8).reshape(-1, row))
+        except DescriptorError as e:
+            raise InvalidArgument(f"the table's changed centres: {e}") from None
+
     centres = base.centres.copy()
-    centres[list(req.replaced)] = np.frombuffer(req.replaced_centres, "<f4").reshape(-1, d)
-    appended = np.frombuffer(req.appended_centres, "<f4").reshape(-1, d)
+    centres[list(req.replaced)] = rows(req.replaced_centres)
+    appended = rows(req.appended_centres)
     full = np.concatenate([centres, appended]).astype("<f4")
     if len(full) != len(req.table.owners):
         raise InvalidArgument(f"{len(full)} centres for a table of {len(req.table.owners)} owners")

@@ -42,6 +42,7 @@ from swarmrec.vpr.balance import (
     split_hot_clusters,
 )
 from swarmrec.vpr.clusters import Assignment, Router, nearest_centre
+from swarmrec.vpr.quantize import Int8Quantizer
 
 __all__ = [
     "MAX_CLUSTERS",
@@ -50,6 +51,7 @@ __all__ = [
     "MergedLoad",
     "OwnerLoad",
     "Window",
+    "as_int8_exact",
     "merge_loads",
     "next_table",
     "owner_load",
@@ -65,6 +67,14 @@ MAX_CLUSTERS = 4096
 #: An owner keeps at most this many of a table's queries for its splits and gaps (2 kB each
 #: at d = 128: 128 MiB at most); it counts every query.
 MAX_WINDOW = 65536
+
+
+def as_int8_exact(rows: npt.NDArray[np.floating]) -> Float32Array:
+    """``rows`` through the int8 code and back: values an int8 code carries exactly (a decoded
+    code encodes to the same code)."""
+    x = np.asarray(rows, np.float32).reshape(len(rows), -1)
+    quantizer = Int8Quantizer(x.shape[1])
+    return quantizer.decode(quantizer.encode(x)).astype(np.float32)
 
 
 @dataclass(frozen=True, eq=False)
@@ -182,6 +192,12 @@ def owner_load(table: LiveTable, robot: int, window: Window, split_above: float,
         mine = x[np.isin(nearest_centre(centres, x), sorted(own))]
         if len(mine):
             centres = split_hot_clusters(centres, mine, split_above, seed)[:MAX_CLUSTERS]
+    changed = [c for c in range(len(centres)) if c >= k or not np.array_equal(centres[c], table.centres[c])]
+    if changed:
+        # New centres travel as int8 codes (132 B, not 512): make them exactly what a code decodes
+        # to, here, so the owners' routing and the offline replay use the very same values.
+        centres = centres.copy()
+        centres[changed] = as_int8_exact(centres[changed])
     replaced = tuple(c for c in sorted(own) if not np.array_equal(centres[c], table.centres[c]))
     empty = np.zeros(0, np.int64)
     pairs: tuple[IntArray, IntArray, IntArray] = (empty, empty, empty)

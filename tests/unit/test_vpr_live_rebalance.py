@@ -192,7 +192,10 @@ def test_a_table_change_rebuilds_the_whole_table_and_is_refused_off_its_base() -
     assert np.array_equal(rebuilt.centres, new.centres) and rebuilt.assignment.owners == new.assignment.owners
     with pytest.raises(FailedPrecondition, match=WHOLE_TABLE):
         _applied(change, new, D)  # not on the base version
+    # The split's new centres are exactly int8 codes' (made so by the owner): 4 + d bytes a row.
+    assert change.centres_encoding == pb.DescriptorEncoding.DESCRIPTOR_ENCODING_INT8
+    assert len(change.appended_centres) % (4 + D) == 0
     change.replaced.append(10**6)
-    change.replaced_centres += np.zeros(D, "<f4").tobytes()
+    change.replaced_centres += bytes(4 + D)
     with pytest.raises(InvalidArgument, match="below"):
         _applied(change, t, D)

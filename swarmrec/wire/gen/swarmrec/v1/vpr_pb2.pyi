@@ -202,20 +202,22 @@ class RebalanceReply(_message.Message):
     def __init__(self, changed: _Optional[bool] = ..., table: _Optional[_Union[ClusterTable, _Mapping]] = ..., observed_queries: _Optional[int] = ..., moved: _Optional[int] = ..., pending: _Optional[int] = ...) -> None: ...
 
 class AdoptTableRequest(_message.Message):
-    __slots__ = ("table", "base_version", "replaced", "replaced_centres", "appended_centres", "hold_moves")
+    __slots__ = ("table", "base_version", "replaced", "replaced_centres", "appended_centres", "hold_moves", "centres_encoding")
     TABLE_FIELD_NUMBER: _ClassVar[int]
     BASE_VERSION_FIELD_NUMBER: _ClassVar[int]
     REPLACED_FIELD_NUMBER: _ClassVar[int]
     REPLACED_CENTRES_FIELD_NUMBER: _ClassVar[int]
     APPENDED_CENTRES_FIELD_NUMBER: _ClassVar[int]
     HOLD_MOVES_FIELD_NUMBER: _ClassVar[int]
+    CENTRES_ENCODING_FIELD_NUMBER: _ClassVar[int]
     table: ClusterTable
     base_version: int
     replaced: _containers.RepeatedScalarFieldContainer[int]
     replaced_centres: bytes
     appended_centres: bytes
     hold_moves: bool
-    def __init__(self, table: _Optional[_Union[ClusterTable, _Mapping]] = ..., base_version: _Optional[int] = ..., replaced: _Optional[_Iterable[int]] = ..., replaced_centres: _Optional[bytes] = ..., appended_centres: _Optional[bytes] = ..., hold_moves: _Optional[bool] = ...) -> None: ...
+    centres_encoding: DescriptorEncoding
+    def __init__(self, table: _Optional[_Union[ClusterTable, _Mapping]] = ..., base_version: _Optional[int] = ..., replaced: _Optional[_Iterable[int]] = ..., replaced_centres: _Optional[bytes] = ..., appended_centres: _Optional[bytes] = ..., hold_moves: _Optional[bool] = ..., centres_encoding: _Optional[_Union[DescriptorEncoding, str]] = ...) -> None: ...
 
 class AdoptTableReply(_message.Message):
     __slots__ = ("robot_id", "version", "sent", "removed", "pending")
