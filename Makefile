@@ -147,6 +147,7 @@ bench: $(STAMP) $(DATAPLANE)
 	$(BIN)/python bench/bench_balance_bound.py --out bench/results/balance_bound.json --plot docs/figures/balance_bound.png
 	$(BIN)/python bench/bench_vpr.py --out bench/results/vpr.json
 	$(BIN)/python bench/bench_vpr_generalise.py --out bench/results/vpr_generalise.json
+	$(BIN)/python bench/bench_vpr_live.py --out bench/results/vpr_live.json --plot docs/figures/vpr_live.png
 	$(BIN)/python bench/bench_slam.py --out bench/results/slam.json --plots docs/figures
 	$(BIN)/python bench/bench_slam_live.py --out bench/results/slam_live.json
 
