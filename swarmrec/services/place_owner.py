@@ -406,11 +406,16 @@ class PlaceOwner(ServiceBase):
                 raise FailedPrecondition(
                     f"load asked for table version {req.version}; this owner follows {table.version}"
                 )
-            rows = list(window.rows)
-        snapshot = Window(window.version, window.queries, rows)
-        return load_to_proto(
+            rows = list(window.rows) if not req.counts_only else []
+            queries = window.queries
+        if req.counts_only:
+            return pb.ClusterLoad(robot_id=self.bus.robot, version=table.version, queries=queries)
+        snapshot = Window(window.version, queries, rows)
+        load = load_to_proto(
             owner_load(table, self.bus.robot, snapshot, req.split_above, int(req.seed) % 2**31)
         )
+        load.queries = queries
+        return load
 
     def _lowest_live(self) -> int:
         """The lowest place-owner this one sees alive (itself included): the coordinator."""
@@ -441,10 +446,10 @@ class PlaceOwner(ServiceBase):
             # Splits: a cluster busier than the capacity of the queries so far (every owner's).
             counted = self._ask_all(
                 "cluster_load",
-                pb.ClusterLoadRequest(version=table.version, split_above=math.inf),
+                pb.ClusterLoadRequest(version=table.version, counts_only=True),
                 pb.ClusterLoad,
             )
-            total = sum(sum(m.loads) for m in counted.values())
+            total = sum(m.queries for m in counted.values())
             if total == 0:
                 return pb.RebalanceReply(changed=False, table=table_to_proto(table))
             capacity = (1.0 + self.rule.slack) * total / n
@@ -716,9 +721,9 @@ class PlaceOwner(ServiceBase):
     def _swarm_queries(self) -> int:
         table = self.live
         loads = self._ask_all(
-            "cluster_load", pb.ClusterLoadRequest(version=table.version, split_above=math.inf), pb.ClusterLoad
+            "cluster_load", pb.ClusterLoadRequest(version=table.version, counts_only=True), pb.ClusterLoad
         )
-        return sum(sum(m.loads) for m in loads.values())
+        return sum(m.queries for m in loads.values())
 
     def _catch_up(self, wanted: int) -> None:
         """Follow the coordinator's table when a request names a version ``wanted`` newer than

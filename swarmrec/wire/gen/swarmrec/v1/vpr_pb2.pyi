@@ -150,17 +150,19 @@ class TableRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class ClusterLoadRequest(_message.Message):
-    __slots__ = ("version", "split_above", "seed")
+    __slots__ = ("version", "split_above", "seed", "counts_only")
     VERSION_FIELD_NUMBER: _ClassVar[int]
     SPLIT_ABOVE_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
+    COUNTS_ONLY_FIELD_NUMBER: _ClassVar[int]
     version: int
     split_above: float
     seed: int
-    def __init__(self, version: _Optional[int] = ..., split_above: _Optional[float] = ..., seed: _Optional[int] = ...) -> None: ...
+    counts_only: bool
+    def __init__(self, version: _Optional[int] = ..., split_above: _Optional[float] = ..., seed: _Optional[int] = ..., counts_only: _Optional[bool] = ...) -> None: ...
 
 class ClusterLoad(_message.Message):
-    __slots__ = ("robot_id", "version", "loads", "replaced", "replaced_centres", "new_centres", "pair_a", "pair_b", "pair_count", "gaps")
+    __slots__ = ("robot_id", "version", "loads", "replaced", "replaced_centres", "new_centres", "pair_a", "pair_b", "pair_count", "gaps", "queries")
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     VERSION_FIELD_NUMBER: _ClassVar[int]
     LOADS_FIELD_NUMBER: _ClassVar[int]
@@ -171,6 +173,7 @@ class ClusterLoad(_message.Message):
     PAIR_B_FIELD_NUMBER: _ClassVar[int]
     PAIR_COUNT_FIELD_NUMBER: _ClassVar[int]
     GAPS_FIELD_NUMBER: _ClassVar[int]
+    QUERIES_FIELD_NUMBER: _ClassVar[int]
     robot_id: int
     version: int
     loads: _containers.RepeatedScalarFieldContainer[int]
@@ -181,7 +184,8 @@ class ClusterLoad(_message.Message):
     pair_b: _containers.RepeatedScalarFieldContainer[int]
     pair_count: _containers.RepeatedScalarFieldContainer[int]
     gaps: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, robot_id: _Optional[int] = ..., version: _Optional[int] = ..., loads: _Optional[_Iterable[int]] = ..., replaced: _Optional[_Iterable[int]] = ..., replaced_centres: _Optional[bytes] = ..., new_centres: _Optional[bytes] = ..., pair_a: _Optional[_Iterable[int]] = ..., pair_b: _Optional[_Iterable[int]] = ..., pair_count: _Optional[_Iterable[int]] = ..., gaps: _Optional[_Iterable[float]] = ...) -> None: ...
+    queries: int
+    def __init__(self, robot_id: _Optional[int] = ..., version: _Optional[int] = ..., loads: _Optional[_Iterable[int]] = ..., replaced: _Optional[_Iterable[int]] = ..., replaced_centres: _Optional[bytes] = ..., new_centres: _Optional[bytes] = ..., pair_a: _Optional[_Iterable[int]] = ..., pair_b: _Optional[_Iterable[int]] = ..., pair_count: _Optional[_Iterable[int]] = ..., gaps: _Optional[_Iterable[float]] = ..., queries: _Optional[int] = ...) -> None: ...
 
 class RebalanceRequest(_message.Message):
     __slots__ = ()
