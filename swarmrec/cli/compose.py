@@ -98,6 +98,14 @@ def _add_dvpr_flags(p: argparse.ArgumentParser) -> None:
         "--assignment", type=Path, metavar="JSON", help="an assignment table (swarmrec.vpr.assignment/1)"
     )
     g.add_argument(
+        "--rebalance-every",
+        type=int,
+        default=d.rebalance_every,
+        metavar="STEPS",
+        help="`swarmrec run --attach` re-balances the cluster owners live after every STEPS lock-step "
+        "steps (default 0: never)",
+    )
+    g.add_argument(
         "--centres",
         type=Path,
         metavar="NPZ",
@@ -143,6 +151,7 @@ def write(args: argparse.Namespace, settings: compose.ComposeSettings) -> tuple[
                 wire_code=args.vpr_wire_code,
                 centres=args.centres,
                 assignment=args.assignment,
+                rebalance_every=args.rebalance_every,
             ),
         )
         info = compose_dvpr(vpr, settings, say=print)

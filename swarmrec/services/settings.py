@@ -415,7 +415,9 @@ class VprSettings(Component):
         "after a re-balancing, this share of descriptors nearest a cell boundary is also stored at the "
         "next cells' owners (1: every descriptor, 0: none)",
     )
-    vpr_copy_neighbours: int = setting(1, "after a re-balancing, copies go to at most this many other robots")
+    vpr_copy_neighbours: int = setting(
+        2, "after a re-balancing, copies go to at most this many other robots (docs/vpr.md: 2 generalises)"
+    )
 
     def problems(self) -> list[str]:
         problems = []

@@ -117,7 +117,7 @@ class EvaluationSettings:
     replica_share: float = 1.0
     slack: float = 0.25
     #: Boundary copies go to the owners of up to this many next-nearest cells.
-    copy_neighbours: int = 1
+    copy_neighbours: int = 2
     #: Product-quantisation code sizes (bytes) to measure beside int8.
     pq_bytes: tuple[int, ...] = (16, 32)
     max_distance_m: float = 0.5

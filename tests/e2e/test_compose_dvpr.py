@@ -1,12 +1,14 @@
 """Full-image place recognition in containers: a 3-robot dvpr swarm (a router, the gateway,
 per robot a detector in rgbd mode, a place-owner and a verifier, and Prometheus) composed by
 ``swarmrec compose up --workload dvpr`` and replayed in lock-step from the host as
-``swarmrec run --attach`` does, under mutual TLS.
+``swarmrec run --attach`` does, under mutual TLS, the cluster owners re-balanced live after
+every 20 steps (``--rebalance-every``: docs/vpr.md, "Re-balancing a live swarm").
 
 The expected answers come from the offline code alone, as in
 tests/integration/test_dvpr_swarm_matches_offline.py for local processes: the descriptors the
 containers' detectors wrote (to their data folders, bind mounts on the host), the shipped
-k = 10 centres, the assignment table given to the swarm, the int8 code, and
+k = 10 centres, the assignment table given to the swarm, the tables the coordinator rolled
+out (``tables/v<n>.pb`` of the report), the int8 code, and
 :func:`swarmrec.vpr.simulation.run_queries` in the simulation's arrival order; the loop
 closures from :func:`swarmrec.core.verification.verify` on the constellations the detectors
 wrote. Prometheus must have scraped every service, and a second run on the swarm, which
@@ -33,11 +35,12 @@ from swarmrec.experiments.vpr import DvprSettings, DvprSummary, VprRunSettings, 
 from swarmrec.experiments.vpr.keep import compose, from_record
 from swarmrec.models import DESCRIPTOR_CENTRES, shipped_model
 from swarmrec.vpr.clusters import ASSIGNMENT_FORMAT, load_centres
+from swarmrec.wire import messages as pb
 from tests.dvpr_checks import (
     assert_answers_are,
     closures_of,
     detector_frames,
-    offline_answers,
+    offline_answers_with_tables,
     read_closures,
     verified_matches,
 )
@@ -49,6 +52,8 @@ ROBOTS, FRAMES = 3, 240
 KINDS = ("verifier", "place-owner", "detector")
 #: The shipped centres hold k = 10 (not 3 x c): a table gives the 10 clusters to 3 robots.
 OWNERS = (0, 1, 2, 0, 1, 2, 0, 1, 2, 0)
+#: Lock-step steps between live re-balancings: after steps 20, 40 and 60 of 80.
+EVERY = 20
 
 
 def _targets(prometheus_url: str) -> dict[tuple[str, str], str]:
@@ -75,7 +80,7 @@ def test_a_compose_dvpr_swarm_answers_every_frame_as_the_offline_simulation_of_i
             progress=False,
             pixels=PixelSettings(from_pixels=True),
         ),
-        dvpr=DvprSettings(assignment=table),
+        dvpr=DvprSettings(assignment=table, rebalance_every=EVERY),
     )
     info = compose(
         composed,
@@ -113,7 +118,12 @@ def test_a_compose_dvpr_swarm_answers_every_frame_as_the_offline_simulation_of_i
     frames = detector_frames(folder / "dataset", data, ROBOTS)
     assert len(frames.robots) == FRAMES
     centres = load_centres(shipped_model(DESCRIPTOR_CENTRES), len(OWNERS))
-    expected = offline_answers(frames, centres, OWNERS)
+    assert summary.rebalancing is not None and [r.after_step for r in summary.rebalancing] == [20, 40, 60]
+    tables = [
+        (r.at_frame, pb.ClusterTable.FromString((out / "tables" / f"v{r.version}.pb").read_bytes()))
+        for r in summary.rebalancing
+    ]
+    expected = offline_answers_with_tables(frames, centres, OWNERS, tables)
     assert_answers_are(out / "answers.csv", expected, frames, matched=0.8)
     assert summary.offline_check is not None and summary.offline_check.identical
     # The load each owner counted, read through Prometheus, is the simulation's.
@@ -122,10 +132,10 @@ def test_a_compose_dvpr_swarm_answers_every_frame_as_the_offline_simulation_of_i
     closures = closures_of(verified_matches(data, frames, expected))
     assert len(closures) >= 5
     assert read_closures(out / "loop_closures.csv") == {k: v[:2] for k, v in closures.items()}
-    # Bytes were measured on the wire (Prometheus' counters of this run).
-    assert set(summary.bytes.per_query_by_message) == {
-        "PlaceQuery",
-        "PlaceMatch",
-        "VerifyRequest",
-        "VerifyReply",
-    }
+    # Bytes were measured on the wire (Prometheus' counters of this run), the re-balancing's too.
+    assert {"PlaceQuery", "PlaceMatch", "VerifyRequest", "VerifyReply"} <= set(
+        summary.bytes.per_query_by_message
+    )
+    assert {"ClusterLoad", "AdoptTableRequest", "StoreEntriesRequest"} <= set(
+        summary.bytes.per_query_by_message
+    )

@@ -227,7 +227,7 @@ def test_moves_under_replay_answer_every_frame_as_the_offline_simulation_of_the_
     for r in range(ROBOTS):
         table = reply_of(request(client.session, key(local, r, "table"), pb.TableRequest()), pb.ClusterTable)
         assert table.version == 3
-    assert sum(holdings) == 2 * len(x)  # every frame at its owner and one copy
+    assert sum(holdings) == 3 * len(x)  # every frame at its owner and two copies (the default)
     # A client's place query (the gateway's code) routes by the re-balanced table, whose
     # centres are no file's: it reads them from an owner, and finds a stored frame.
     last = run.tables[-1][1]
@@ -319,7 +319,9 @@ def test_a_query_routed_with_an_old_table_is_refused_and_stores_nothing(
         Assignment(tuple(table.owners), ROBOTS, version=1),
     )
     target = int(live.route(y).owner)
-    copies = replica_owners(live.centres, live.assignment, y[None], table.copy_margin, 1)[0]
+    copies = replica_owners(live.centres, live.assignment, y[None], table.copy_margin, table.copy_neighbours)[
+        0
+    ]
     elsewhere = next(r for r in range(ROBOTS) if r != target and r not in copies)
     entry = pb.PlaceEntry(robot_id=3, frame_index=901, descriptor=y.astype("<f4").tobytes(), encoding=FLOAT32)
     parked = pb.StoreEntriesRequest(version=1, entries=[entry])

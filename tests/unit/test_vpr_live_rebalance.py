@@ -168,10 +168,11 @@ def test_holders_are_the_owner_and_the_offline_copy_rule() -> None:
     nt = next_table(t, merged, RebalanceRule(clusters_per_robot=C))
     holders = nt.holders(x)
     owners = nt.router.route_many(x)[1]
-    copies = replica_owners(nt.centres, nt.assignment, x, math.inf, 1)
+    copies = replica_owners(nt.centres, nt.assignment, x, math.inf, 2)
+    assert nt.copy_neighbours == 2  # the default rule's
     for h, o, c in zip(holders, owners, copies, strict=True):
         assert h == {int(o)} | {int(r) for r in c if r >= 0}
-        assert len(h) == 2  # every descriptor has one copy at another robot
+        assert len(h) == 3  # every descriptor has two copies at other robots
 
 
 def test_a_table_change_rebuilds_the_whole_table_and_is_refused_off_its_base() -> None:
