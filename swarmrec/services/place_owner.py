@@ -97,7 +97,16 @@ from swarmrec.services.settings import PlaceSettings, VprSettings
 from swarmrec.vpr.balance import RebalanceRule
 from swarmrec.vpr.errors import DescriptorError, StateFileError
 from swarmrec.vpr.index import OwnerIndex, set_faiss_threads
-from swarmrec.vpr.live import LiveTable, Window, as_int8_exact, merge_loads, next_table, owner_load
+from swarmrec.vpr.live import (
+    MAX_SPLITS,
+    LiveTable,
+    Window,
+    as_int8_exact,
+    merge_loads,
+    next_table,
+    owner_load,
+    split_allowed,
+)
 from swarmrec.vpr.quantize import Int8Quantizer
 from swarmrec.vpr.table import centres_digest, swarm_table
 from swarmrec.wire import messages as pb
@@ -410,6 +419,11 @@ class PlaceOwner(ServiceBase):
             queries = window.queries
         if req.counts_only:
             return pb.ClusterLoad(robot_id=self.bus.robot, version=table.version, queries=queries)
+        if not split_allowed(len(rows), req.split_above):
+            raise InvalidArgument(
+                f"split_above {req.split_above:g} would split {len(rows)} queries into more than "
+                f"{MAX_SPLITS} clusters"
+            )
         snapshot = Window(window.version, queries, rows)
         load = load_to_proto(
             owner_load(table, self.bus.robot, snapshot, req.split_above, int(req.seed) % 2**31)

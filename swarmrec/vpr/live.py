@@ -46,6 +46,7 @@ from swarmrec.vpr.quantize import Int8Quantizer
 
 __all__ = [
     "MAX_CLUSTERS",
+    "MAX_SPLITS",
     "MAX_WINDOW",
     "LiveTable",
     "MergedLoad",
@@ -56,6 +57,7 @@ __all__ = [
     "next_table",
     "owner_load",
     "placements",
+    "split_allowed",
 ]
 
 Float32Array = npt.NDArray[np.float32]
@@ -64,9 +66,19 @@ IntArray = npt.NDArray[np.int64]
 #: A table may have at most this many clusters (a received one with more is refused; splits
 #: stop there): 4096 x 128 float32 centres are 2 MiB.
 MAX_CLUSTERS = 4096
+#: A load request may split an owner's queries into at most this many more clusters: a
+#: capacity below ``queries / MAX_SPLITS`` is refused (each split searches every query again).
+#: A swarm's own capacity is ``1.25 x`` an even share, ``queries / n_robots`` or more.
+MAX_SPLITS = 512
 #: An owner keeps at most this many of a table's queries for its splits and gaps (2 kB each
 #: at d = 128: 128 MiB at most); it counts every query.
 MAX_WINDOW = 65536
+
+
+def split_allowed(queries: int, split_above: float) -> bool:
+    """Whether a load request's capacity ``split_above`` keeps the splits of ``queries`` under
+    :data:`MAX_SPLITS` (inf, or 0 queries, always does)."""
+    return queries == 0 or split_above * MAX_SPLITS >= queries
 
 
 def as_int8_exact(rows: npt.NDArray[np.floating]) -> Float32Array:

@@ -200,3 +200,12 @@ def test_a_table_change_rebuilds_the_whole_table_and_is_refused_off_its_base() -
     change.replaced_centres += bytes(4 + D)
     with pytest.raises(InvalidArgument, match="below"):
         _applied(change, t, D)
+
+
+def test_a_capacity_that_would_split_into_too_many_clusters_is_refused() -> None:
+    from swarmrec.vpr.live import MAX_SPLITS, split_allowed
+
+    assert split_allowed(0, 0.0) and split_allowed(10_000, math.inf)
+    assert split_allowed(MAX_SPLITS * 10, 10.0) and not split_allowed(MAX_SPLITS * 10, 9.99)
+    # A swarm's own capacity, 1.25 x an even share, is allowed for any robot count up to MAX_SPLITS.
+    assert split_allowed(60_000, 1.25 * 60_000 / MAX_SPLITS)
