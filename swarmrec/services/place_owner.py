@@ -742,10 +742,10 @@ class PlaceOwner(ServiceBase):
     def _catch_up(self, wanted: int) -> None:
         """Follow the coordinator's table when a request names a version ``wanted`` newer than
         this owner's (it was down when the table came, or lost its file). One look at a time;
-        after a look that found nothing newer, none for 0.1 s: requests claiming versions that
+        after a look that found nothing newer, none for 1 s: requests claiming versions that
         do not exist cannot make it ask more often."""
         with self.catching:
-            if self.live.version >= wanted or time.monotonic() - self._looked < 0.1:
+            if self.live.version >= wanted or time.monotonic() - self._looked < 1.0:
                 return
             coordinator = self._lowest_live()
             fresh = self._fetch_table(coordinator) if coordinator != self.bus.robot else None
