@@ -290,18 +290,12 @@ class PlaceOwner(ServiceBase):
         ctx.require_own(robot, frame)  # the caller is the robot the key names (keys.CALLER_BOUND)
         self._check_entry(robot, frame)
         x = descriptor_from_wire(req.descriptor, req.encoding, self.dimension)
-        if req.assignment_version > self.live.version:
-            self._catch_up(req.assignment_version)  # the querier knows a newer table: this owner missed it
+        self._catch_up(req.assignment_version)  # the querier may know a table this owner missed
         with self.lock:
             # Checked under the lock: a table adopted meanwhile is seen here or the query is
             # stored before it (and then moved with the rest).
             self._check_route(self.live, cluster, req.assignment_version)
-            stored = self.index.get(robot, frame)
-            if stored is not None and not np.array_equal(stored, x):
-                raise AlreadyExists(
-                    f"frame {frame} of robot {robot} is already stored here with another descriptor; "
-                    "stores are idempotent (the same descriptor again is accepted)"
-                )
+            stored = self._stored_as(robot, frame, x)
             match = self.index.search(x, robot)
             if stored is None:
                 self._store(x, robot, frame, req.descriptor, req.encoding)
@@ -317,6 +311,17 @@ class PlaceOwner(ServiceBase):
             raise InvalidArgument(f"robot {robot} is not in this swarm of {self.bus.n_robots} robots")
         if frame >= MAX_FRAME_INDEX:
             raise InvalidArgument(f"frame index must be below {MAX_FRAME_INDEX}, got {frame}")
+
+    def _stored_as(self, robot: int, frame: int, x: np.ndarray) -> np.ndarray | None:
+        """What is stored for ``robot``'s ``frame`` (None: nothing); ALREADY_EXISTS when it is
+        another descriptor than ``x`` (under the lock)."""
+        stored = self.index.get(robot, frame)
+        if stored is not None and not np.array_equal(stored, x):
+            raise AlreadyExists(
+                f"frame {frame} of robot {robot} is already stored here with another descriptor; "
+                "stores are idempotent (the same descriptor again is accepted)"
+            )
+        return stored
 
     def _store(self, x: np.ndarray, robot: int, frame: int, data: bytes, encoding: int) -> bool:
         """Log and store one descriptor (under the lock); False when it was stored already."""
@@ -335,8 +340,7 @@ class PlaceOwner(ServiceBase):
         check_fields(req, "cluster")
         if req.HasField("robot_id") and req.robot_id >= self.bus.n_robots:
             raise InvalidArgument(f"robot {req.robot_id} is not in this swarm of {self.bus.n_robots} robots")
-        if req.assignment_version > self.live.version:
-            self._catch_up(req.assignment_version)
+        self._catch_up(req.assignment_version)
         self._check_route(self.live, req.cluster, req.assignment_version)
         x = descriptor_from_wire(req.descriptor, req.encoding, self.dimension)
         # No robot named: exclude a robot id no frame has (the swarm's are 0 .. n_robots - 1).
@@ -345,10 +349,7 @@ class PlaceOwner(ServiceBase):
 
     def _check_route(self, table: LiveTable, cluster: int, version: int) -> None:
         """Refuse a query for a cluster unknown, routed with another table, or not owned here."""
-        if version != table.version:
-            raise FailedPrecondition(
-                f"routed with assignment version {version}; this owner follows version {table.version}"
-            )
+        _check_version(table, version)
         k = table.assignment.n_clusters
         if cluster >= k:
             raise InvalidArgument(f"cluster {cluster} is not one of the swarm's {k} clusters")
@@ -363,24 +364,15 @@ class PlaceOwner(ServiceBase):
         ctx.require_own(robot, frame)
         self._check_entry(robot, frame)
         x = descriptor_from_wire(req.descriptor, req.encoding, self.dimension)
-        if req.assignment_version > self.live.version:
-            self._catch_up(req.assignment_version)
+        self._catch_up(req.assignment_version)
         with self.lock:
             table = self.live
-            if req.assignment_version != table.version:
-                raise FailedPrecondition(
-                    f"routed with assignment version {req.assignment_version}; this owner follows "
-                    f"version {table.version}"
-                )
+            _check_version(table, req.assignment_version)
             if self.bus.robot not in table.copy_holders(x)[0]:
                 raise FailedPrecondition(
                     f"table version {table.version} puts no copy of this descriptor at robot {self.bus.robot}"
                 )
-            stored = self.index.get(robot, frame)
-            if stored is not None and not np.array_equal(stored, x):
-                raise AlreadyExists(
-                    f"frame {frame} of robot {robot} is already stored here with another descriptor"
-                )
+            self._stored_as(robot, frame, x)
             new = self._store(x, robot, frame, req.descriptor, req.encoding)
             n = len(self.index)
         if new:
@@ -458,12 +450,7 @@ class PlaceOwner(ServiceBase):
             table = self.live
             n = self.bus.n_robots
             # Splits: a cluster busier than the capacity of the queries so far (every owner's).
-            counted = self._ask_all(
-                "cluster_load",
-                pb.ClusterLoadRequest(version=table.version, counts_only=True),
-                pb.ClusterLoad,
-            )
-            total = sum(m.queries for m in counted.values())
+            total = self._swarm_queries(table)
             if total == 0:
                 return pb.RebalanceReply(changed=False, table=table_to_proto(table))
             capacity = (1.0 + self.rule.slack) * total / n
@@ -684,8 +671,7 @@ class PlaceOwner(ServiceBase):
             if e.removed:
                 raise InvalidArgument("a moved entry cannot be a removal")
             rows.append(descriptor_from_wire(e.descriptor, e.encoding, self.dimension))
-        if req.version > self.live.version:
-            self._catch_up(req.version)  # moved by a table this owner missed
+        self._catch_up(req.version)  # moved by a table this owner may have missed
         stored = 0
         with self.lock:
             table = self.live
@@ -702,12 +688,7 @@ class PlaceOwner(ServiceBase):
                     f"elsewhere, not at robot {self.bus.robot}"
                 )
             for e, x in zip(req.entries, rows, strict=True):
-                held = self.index.get(e.robot_id, e.frame_index)
-                if held is not None and not np.array_equal(held, x):
-                    raise AlreadyExists(
-                        f"frame {e.frame_index} of robot {e.robot_id} is already stored here "
-                        "with another descriptor"
-                    )
+                self._stored_as(e.robot_id, e.frame_index, x)
             for e, x in zip(req.entries, rows, strict=True):
                 stored += self._store(x, e.robot_id, e.frame_index, e.descriptor, e.encoding)
             n = len(self.index)
@@ -727,13 +708,13 @@ class PlaceOwner(ServiceBase):
                 if every > 0 and time.monotonic() - last >= every:
                     last = time.monotonic()
                     coordinating = self._lowest_live() == self.bus.robot
-                    if coordinating and self._swarm_queries() >= self.vpr.vpr_rebalance_min_queries:
+                    if coordinating and self._swarm_queries(self.live) >= self.vpr.vpr_rebalance_min_queries:
                         self._rebalance()
             except SwarmrecError as e:
                 self.ctx.log.warning("table upkeep failed, tried again", extra={"fields": {"reason": str(e)}})
 
-    def _swarm_queries(self) -> int:
-        table = self.live
+    def _swarm_queries(self, table: LiveTable) -> int:
+        """How many queries every owner saw since ``table`` began (counts only)."""
         loads = self._ask_all(
             "cluster_load", pb.ClusterLoadRequest(version=table.version, counts_only=True), pb.ClusterLoad
         )
@@ -744,6 +725,8 @@ class PlaceOwner(ServiceBase):
         this owner's (it was down when the table came, or lost its file). One look at a time;
         after a look that found nothing newer, none for 1 s: requests claiming versions that
         do not exist cannot make it ask more often."""
+        if wanted <= self.live.version:
+            return  # the common case, without the lock
         with self.catching:
             if self.live.version >= wanted or time.monotonic() - self._looked < 1.0:
                 return
@@ -1011,6 +994,15 @@ class PlaceOwner(ServiceBase):
             "coordinator (lowest live place-owner): plan the next table from the owners' loads, roll it out",
         ),
     )
+
+
+def _check_version(table: LiveTable, version: int) -> None:
+    """FAILED_PRECONDITION for a request routed with another table than ``table`` (a querier
+    reads the version this owner follows from the words: ``_newer_table``)."""
+    if version != table.version:
+        raise FailedPrecondition(
+            f"routed with assignment version {version}; this owner follows version {table.version}"
+        )
 
 
 def _delta(base: LiveTable, new: LiveTable) -> pb.AdoptTableRequest:

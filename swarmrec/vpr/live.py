@@ -16,7 +16,7 @@ re-balancing (docs/vpr.md, "Re-balancing a live swarm") goes:
    (:func:`~swarmrec.vpr.balance.repair_assignment`), and the copy margin
    (:func:`~swarmrec.vpr.balance.boundary_margin`'s quantile, of the gaps the owners sent).
 4. Every owner adopts it and moves what it holds to where the table puts it
-   (:func:`placements`: each stored descriptor's owner and copy holders).
+   (:meth:`LiveTable.holders`: each stored descriptor's owner and copy holders).
 
 A :class:`LiveTable` is immutable, so a querier routes with one snapshot while an owner
 adopts the next. Everything here is plain computation, the same for any caller; the service
@@ -36,6 +36,7 @@ from swarmrec.errors import ConfigError
 from swarmrec.vpr.balance import (
     LoadReport,
     RebalanceRule,
+    _two_nearest,
     balanced_assignment,
     repair_assignment,
     replica_owners,
@@ -56,7 +57,6 @@ __all__ = [
     "merge_loads",
     "next_table",
     "owner_load",
-    "placements",
     "split_allowed",
 ]
 
@@ -132,11 +132,6 @@ class LiveTable:
         return [{int(o)} | {int(r) for r in row if r >= 0} for o, row in zip(owners, copies, strict=True)]
 
 
-def placements(table: LiveTable, descriptors: npt.NDArray[np.floating]) -> list[set[int]]:
-    """Where ``table`` puts each stored descriptor (:meth:`LiveTable.holders`)."""
-    return table.holders(descriptors)
-
-
 @dataclass
 class Window:
     """What an owner keeps of one table's queries (not thread-safe; the service locks)."""
@@ -155,17 +150,6 @@ class Window:
         if not self.rows:
             return np.zeros((0, dimension), np.float32)
         return np.stack(self.rows).astype(np.float32)
-
-
-def _two_nearest(
-    centres: Float32Array, x: Float32Array
-) -> tuple[IntArray, IntArray, npt.NDArray[np.float64]]:
-    c = centres.astype(np.float64)
-    cost = (c * c).sum(1)[None, :] - 2.0 * (x.astype(np.float64) @ c.T)
-    order = np.argsort(cost, axis=1, kind="stable")
-    rows = np.arange(len(x))
-    gap = cost[rows, order[:, 1]] - cost[rows, order[:, 0]]
-    return order[:, 0].astype(np.int64), order[:, 1].astype(np.int64), gap
 
 
 @dataclass(frozen=True, eq=False)

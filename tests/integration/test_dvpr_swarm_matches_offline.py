@@ -43,6 +43,18 @@ from tests.dvpr_checks import (
 ROBOTS, C, FRAMES = 4, 5, 200
 
 
+def _run(out: Path) -> PlacesSettings:
+    """Both tests' run: FRAMES of the synthetic world rendered, ROBOTS robots, no plots."""
+    return PlacesSettings(
+        source=DatasetSource(frames=FRAMES),
+        robots=ROBOTS,
+        out=out,
+        progress=False,
+        plots=False,
+        pixels=PixelSettings(from_pixels=True),
+    )
+
+
 @pytest.mark.slow
 def test_a_lockstep_dvpr_swarm_answers_every_frame_as_the_offline_simulation_of_its_own_descriptors(
     tmp_path: Path,
@@ -61,17 +73,7 @@ def test_a_lockstep_dvpr_swarm_answers_every_frame_as_the_offline_simulation_of_
             key, lambda sample: heard.append(pb.LoopClosure.FromString(sample.payload.to_bytes()))
         )
 
-    settings = VprRunSettings(
-        run=PlacesSettings(
-            source=DatasetSource(frames=FRAMES),
-            robots=ROBOTS,
-            out=out,
-            progress=False,
-            plots=False,
-            pixels=PixelSettings(from_pixels=True),
-        ),
-        dvpr=DvprSettings(clusters_per_robot=C),
-    )
+    settings = VprRunSettings(run=_run(out), dvpr=DvprSettings(clusters_per_robot=C))
     try:
         summary = main(settings, LocalDeployment.for_run, swarm_hook=listen)
     finally:
@@ -123,17 +125,7 @@ def test_a_lockstep_dvpr_run_rebalanced_live_answers_as_the_offline_simulation_o
     simulation of those tables on the detectors' descriptors (built here: tests/dvpr_checks)."""
     out = tmp_path / "run"
     c, every = 10, 10  # k = 40: shipped centres
-    settings = VprRunSettings(
-        run=PlacesSettings(
-            source=DatasetSource(frames=FRAMES),
-            robots=ROBOTS,
-            out=out,
-            progress=False,
-            plots=False,
-            pixels=PixelSettings(from_pixels=True),
-        ),
-        dvpr=DvprSettings(clusters_per_robot=c, rebalance_every=every),
-    )
+    settings = VprRunSettings(run=_run(out), dvpr=DvprSettings(clusters_per_robot=c, rebalance_every=every))
     summary = main(settings, LocalDeployment.for_run)
     assert isinstance(summary, DvprSummary)
     assert summary.queries.frames == FRAMES and summary.queries.missing_slots == 0, summary.queries.errors
