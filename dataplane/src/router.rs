@@ -14,6 +14,11 @@
 //!   from the router's own admin space every second (`follow_denials`), kept for sessions
 //!   that have left.
 //!
+//! * **bytes on each link to another router** (the mesh topology, docs/mesh.md): zenoh's
+//!   own transport counters (`zenoh_{tx,rx}_per_transport_bytes_total`, relayed traffic
+//!   included), summed by the neighbour's certificate name and kept for links that closed,
+//!   read with the access-control drops.
+//!
 //! It has no endpoint of its own beyond `info`.
 
 use std::collections::BTreeMap;
@@ -131,10 +136,65 @@ fn label(head: &str, name: &str) -> Option<String> {
     None
 }
 
+/// A line of zenoh's per-transport byte counters for a link to another router:
+/// `(peer, direction, bytes)`, the peer named by its certificate (`remote_cn`), or by its
+/// zenoh id where it presented none (an insecure swarm).
+pub fn router_link_bytes(line: &str) -> Option<(String, &'static str, f64)> {
+    if line.starts_with('#') || !line.contains("remote_whatami=\"router\"") {
+        return None;
+    }
+    let (head, value) = line.rsplit_once(' ')?;
+    let direction = match head.split('{').next()? {
+        "zenoh_tx_per_transport_bytes_total" => "sent",
+        "zenoh_rx_per_transport_bytes_total" => "received",
+        _ => return None,
+    };
+    let peer = match label(head, "remote_cn").filter(|cn| !cn.is_empty()) {
+        Some(cn) => cn,
+        None => format!("zid:{}", label(head, "remote_zid").unwrap_or_default()),
+    };
+    Some((peer, direction, value.trim().parse::<f64>().ok()?))
+}
+
+/// The links of zenoh's router graph (its admin space's `router/linkstate/north`, Graphviz
+/// text: `0 [ label = "<zid>" ]` nodes and `0 -- 1 [ label = "<weight>" ]` edges) as pairs
+/// of zenoh ids, each pair in order.
+pub fn linkstate_edges(dot: &str) -> std::collections::BTreeSet<(String, String)> {
+    let mut nodes: BTreeMap<&str, String> = BTreeMap::new();
+    let mut edges = std::collections::BTreeSet::new();
+    for line in dot.lines().map(str::trim) {
+        let Some((head, attrs)) = line.split_once('[') else {
+            continue;
+        };
+        let head = head.trim();
+        if let Some((a, b)) = head.split_once("--") {
+            edges.insert((a.trim().to_string(), b.trim().to_string()));
+        } else if let Some(zid) = attrs.split('"').nth(1) {
+            // `label = "<zid>" ]`: the text between the first two quotes.
+            nodes.insert(head, zid.to_string());
+        }
+    }
+    edges
+        .into_iter()
+        .filter_map(|(a, b)| {
+            let (za, zb) = (nodes.get(a.as_str())?.clone(), nodes.get(b.as_str())?.clone());
+            Some(if za <= zb { (za, zb) } else { (zb, za) })
+        })
+        .collect()
+}
+
 pub struct Router {
     metrics: Arc<ServiceMetrics>,
     refused_handshakes: Metric,
     denied_messages: Metric,
+    link_bytes: Metric,
+    neighbours: Metric,
+    graph_links: Metric,
+    zid: Metric,
+    /// Every router it was ever linked to: those not linked now are listed at 0.
+    known: Mutex<std::collections::BTreeSet<String>>,
+    /// Every link of the router graph it ever saw: those gone are listed at 0.
+    known_links: Mutex<std::collections::BTreeSet<(String, String)>>,
     session: OnceLock<zenoh::Session>,
     log: Log,
 }
@@ -152,10 +212,37 @@ impl Router {
              or not sent to it) and zenoh message type",
             &["identity", "direction", "message"],
         );
+        let link_bytes = metrics.registry.counter(
+            "swarmrec_router_link_bytes",
+            "Bytes on the links to other routers (a mesh), as zenoh's transports counted them, by the \
+             neighbour's certificate name and direction (sent to it, received from it); relayed traffic included",
+            &["peer", "direction"],
+        );
+        let neighbours = metrics.registry.gauge(
+            "swarmrec_router_neighbours",
+            "Links to another router now (a mesh's router, at each scrape), by the neighbour's \
+             zenoh id: 1 while linked, 0 after a link it had closed",
+            &["peer_zid"],
+        );
+        let graph_links = metrics.registry.gauge(
+            "swarmrec_router_graph_links",
+            "The links between routers in this router's view of the router graph now (zenoh's link \
+             state, at each scrape), by the two routers' zenoh ids: 1 while in it, 0 after it left",
+            &["a", "b"],
+        );
+        let zid = metrics
+            .registry
+            .gauge("swarmrec_router_zid", "This router's zenoh id", &["zid"]);
         Router {
             metrics,
             refused_handshakes,
             denied_messages,
+            link_bytes,
+            neighbours,
+            graph_links,
+            zid,
+            known_links: Mutex::new(Default::default()),
+            known: Mutex::new(Default::default()),
             session: OnceLock::new(),
             log,
         }
@@ -209,10 +296,16 @@ impl Service for Router {
     /// The refused handshakes counted so far. zenoh's drop counters are copied by the
     /// router's own thread ([`Router::follow_denials`]), never while a scrape or a probe
     /// waits: the metrics endpoint serves one request at a time, and the probes use it too.
+    ///
+    /// It also says, at each scrape, which routers it has a link to now: a mesh's deployment
+    /// reads it to know when every router follows a step's radio graph (docs/mesh.md). That
+    /// one reads zenoh's admin space during the scrape: a scrape waits about a millisecond
+    /// longer for it (the star's one router has no neighbour to list).
     fn refresh_metrics(&self) {
         for (reason, n) in lock(&REFUSED).iter() {
             self.metrics.registry.set(self.refused_handshakes, &[reason], *n as f64);
         }
+        self.copy_neighbours();
     }
 }
 
@@ -232,6 +325,44 @@ impl Router {
             });
     }
 
+    /// Which routers it is linked to now (its admin space's sessions to routers, by zenoh
+    /// id) and its view of the router graph.
+    fn copy_neighbours(&self) {
+        let Some(session) = self.session.get() else { return };
+        let own = session.zid().to_string();
+        let now: std::collections::BTreeSet<String> = self
+            .admin_json("router")
+            .and_then(|v| v.get("sessions").cloned())
+            .and_then(|v| v.as_array().cloned())
+            .unwrap_or_default()
+            .iter()
+            .filter(|s| s.get("whatami").and_then(|w| w.as_str()) == Some("router"))
+            .filter_map(|s| s.get("peer").and_then(|p| p.as_str()).map(str::to_string))
+            .collect();
+        let mut known = lock(&self.known);
+        known.extend(now.iter().cloned());
+        for peer in known.iter() {
+            let linked = if now.contains(peer) { 1.0 } else { 0.0 };
+            self.metrics.registry.set(self.neighbours, &[peer], linked);
+        }
+        drop(known);
+        self.metrics.registry.set(self.zid, &[&own], 1.0);
+        let Some(dot) = self.admin("router/linkstate/north") else {
+            return;
+        };
+        let edges = linkstate_edges(&String::from_utf8_lossy(&dot));
+        let mut known_links = lock(&self.known_links);
+        known_links.extend(edges.iter().cloned());
+        for (a, b) in known_links.iter() {
+            let present = if edges.contains(&(a.clone(), b.clone())) {
+                1.0
+            } else {
+                0.0
+            };
+            self.metrics.registry.set(self.graph_links, &[a, b], present);
+        }
+    }
+
     /// zenoh's access-control drops as they are now (sessions that left included).
     fn copy_denials(&self) {
         let registry = &self.metrics.registry;
@@ -240,7 +371,13 @@ impl Router {
                         disconnected=true";
         let Some(text) = self.admin(selector) else { return };
         let mut denied: BTreeMap<(String, &'static str, String), f64> = BTreeMap::new();
+        let mut links: BTreeMap<(String, &'static str), f64> = BTreeMap::new();
         for line in String::from_utf8_lossy(&text).lines() {
+            if let Some((peer, direction, n)) = router_link_bytes(line) {
+                // Summed over the transports to one neighbour (a link that closed and came back).
+                *links.entry((peer, direction)).or_insert(0.0) += n;
+                continue;
+            }
             if let Some((identity, direction, message, n)) = access_control_drop(line) {
                 // Summed over priorities and over the sessions of one name (a client that
                 // reconnects keeps its count).
@@ -249,6 +386,9 @@ impl Router {
         }
         for ((identity, direction, message), n) in denied {
             registry.set(self.denied_messages, &[&identity, direction, &message], n);
+        }
+        for ((peer, direction), n) in links {
+            registry.set(self.link_bytes, &[&peer, direction], n);
         }
     }
 }
@@ -272,6 +412,42 @@ mod tests {
         ];
         for (text, reason) in cases {
             assert_eq!(handshake_reason(text), reason, "{text}");
+        }
+    }
+
+    #[test]
+    fn router_graph_links_as_ordered_zid_pairs() {
+        // As zenoh 1.10.2's admin space writes a three-router chain.
+        let dot = "graph {\n    0 [ label = \"b8\" ]\n    1 [ label = \"f2\" ]\n    2 [ label = \"65\" ]\n    \
+                   1 -- 0 [ label = \"100.13\" ]\n    2 -- 1 [ label = \"100.49\" ]\n}\n";
+        let edges: Vec<(String, String)> = linkstate_edges(dot).into_iter().collect();
+        assert_eq!(
+            edges,
+            vec![
+                ("65".to_string(), "f2".to_string()),
+                ("b8".to_string(), "f2".to_string())
+            ]
+        );
+        assert!(linkstate_edges("graph {\n    0 [ label = \"b8\" ]\n}\n").is_empty());
+    }
+
+    #[test]
+    fn link_bytes_by_neighbour_and_direction() {
+        // Lines as zenoh 1.10.2 writes them (seen from a router of a three-router chain).
+        let tx = r#"zenoh_tx_per_transport_bytes_total{local_id="d7",local_whatami="router",protocol="tls",remote_zid="76",remote_whatami="router",remote_group="",remote_cn="r1.router.lab",disconnected="false"} 11068"#;
+        assert_eq!(
+            router_link_bytes(tx),
+            Some(("r1.router.lab".to_string(), "sent", 11068.0))
+        );
+        let rx = r#"zenoh_rx_per_transport_bytes_total{local_id="d7",local_whatami="router",protocol="tcp",remote_zid="76",remote_whatami="router",remote_group="",remote_cn="",disconnected="true"} 1040"#;
+        assert_eq!(router_link_bytes(rx), Some(("zid:76".to_string(), "received", 1040.0)));
+        // Not a link to a router: a client's transport, or another family.
+        for line in [
+            r#"zenoh_tx_per_transport_bytes_total{remote_whatami="client",remote_cn="r1.verifier.lab"} 5"#,
+            r#"zenoh_tx_network_message_payload_per_transport_bytes_sum{remote_whatami="router",remote_cn="x"} 5"#,
+            "# TYPE zenoh_tx_per_transport_bytes_total counter",
+        ] {
+            assert_eq!(router_link_bytes(line), None, "{line}");
         }
     }
 

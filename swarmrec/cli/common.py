@@ -89,6 +89,8 @@ def local_settings(args: argparse.Namespace) -> LocalSettings:
         link=LinkSpec(getattr(args, "link_rate", None), getattr(args, "link_latency", None)),
         schedule=getattr(args, "link_schedule", None),
         schedule_unit=getattr(args, "schedule_unit", "step"),
+        topology=getattr(args, "topology", "star"),
+        radio_range_m=getattr(args, "radio_range", None),
     )
 
 

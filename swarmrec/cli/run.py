@@ -68,13 +68,32 @@ def add(sub: Subparsers) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     add_local_swarm_flags(p)
     links = p.add_argument_group(
-        "emulated links",
-        "every robot reaches the swarm through a Toxiproxy proxy of its own (docs/links.md); local runs only",
+        "topology and emulated links",
+        "star: every robot reaches one router through a Toxiproxy proxy of its own (docs/links.md); "
+        "mesh: a router per robot, linked to the robots it hears by a proxy per link (docs/mesh.md); "
+        "local runs only",
     )
-    links.add_argument("--link-rate", type=float, metavar="KBPS", help="each robot's bandwidth, kilobytes/s")
-    links.add_argument("--link-latency", type=float, metavar="MS", help="each robot's latency, each way, ms")
     links.add_argument(
-        "--link-schedule", type=Path, metavar="CSV", help="when robots are out of range: start,end,robot rows"
+        "--topology",
+        choices=("star", "mesh"),
+        default="star",
+        help="star: one router for the swarm (default); mesh: a router per robot, each robot's services "
+        "on their own, routers linked only to the robots they hear, traffic relayed over several hops",
+    )
+    links.add_argument(
+        "--radio-range",
+        type=float,
+        metavar="M",
+        help="mesh: robots hear each other within M metres of their own positions at each step "
+        "(default: every robot hears every other)",
+    )
+    links.add_argument("--link-rate", type=float, metavar="KBPS", help="each link's bandwidth, kilobytes/s")
+    links.add_argument("--link-latency", type=float, metavar="MS", help="each link's latency, each way, ms")
+    links.add_argument(
+        "--link-schedule",
+        type=Path,
+        metavar="CSV",
+        help="when robots are out of range: start,end,robot rows (mesh: also start,end,robot_a,robot_b rows)",
     )
     links.add_argument(
         "--schedule-unit",
@@ -174,8 +193,16 @@ def _run_attached_dvpr(
 
 def _kubernetes(args: argparse.Namespace, out: Path) -> KubernetesDeployment:
     """``--deployment k8s``: the run's namespace, its overlay, PKI and report under ``out/k8s``."""
-    if args.link_rate or args.link_latency or args.link_schedule:
-        raise ConfigError("emulated links are set up by the local deployment (not --deployment k8s)")
+    if (
+        args.link_rate
+        or args.link_latency
+        or args.link_schedule
+        or args.topology != "star"
+        or args.radio_range
+    ):
+        raise ConfigError(
+            "emulated links and the mesh topology are set up by the local deployment (not --deployment k8s)"
+        )
     if args.insecure or args.hosting != "service":
         raise ConfigError(
             "a Kubernetes swarm runs one service per pod under mutual TLS: drop --insecure and --hosting"
@@ -215,8 +242,16 @@ def run(args: argparse.Namespace) -> int:
         "check_offline": not args.no_offline_check,
     }
     if args.attach is not None:
-        if args.link_rate or args.link_latency or args.link_schedule:
-            raise ConfigError("emulated links are set up by a local deployment the run starts itself")
+        if (
+            args.link_rate
+            or args.link_latency
+            or args.link_schedule
+            or args.topology != "star"
+            or args.radio_range
+        ):
+            raise ConfigError(
+                "emulated links and the mesh topology are set up by a local deployment the run starts itself"
+            )
         attached, info = attach(args.attach)
         out = args.out if args.out != DEFAULT_OUT else args.attach / "report"
         if info.workload == "dvpr" or args.method != "constellations":

@@ -37,7 +37,9 @@ from swarmrec.client import GatewayClient, ZenohClient
 from swarmrec.deployments.errors import DeploymentError, SwarmStartError
 from swarmrec.deployments.identities import client_tls
 from swarmrec.deployments.links import LinkSpec, Schedule
+from swarmrec.deployments.mesh import MeshOperator
 from swarmrec.deployments.metrics import Scrape
+from swarmrec.deployments.radio import FloatArray, RadioGraph
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.settings import BusSettings, Component, Config, StorageSettings, to_env, to_flags
 from swarmrec.runtime.tls import TlsFiles
@@ -222,6 +224,7 @@ class AttachedSwarm:
     fixed_size = False
     local_data_dir = None
     emulated_links = None
+    mesh = None
 
     @property
     def endpoint(self) -> str:
@@ -269,6 +272,25 @@ class EmulatedLinks(Protocol):
         ...
 
 
+class RadioMesh(Protocol):
+    """A deployment's router per robot, linked by radio range (docs/mesh.md)."""
+
+    #: The radio graph its links follow (None until planned or started).
+    radio: RadioGraph | None
+
+    def plan_radio(self, robots: int, steps: int, positions: FloatArray | None) -> RadioGraph:
+        """The radio graph of a run of ``steps`` lock-step steps; before the swarm starts."""
+        ...
+
+    def step_links(self, t: int, operator: MeshOperator) -> tuple[list[str], float | None]:
+        """Step ``t``'s links, converged; what changed and the seconds waited (None: nothing)."""
+        ...
+
+    def link_bytes(self) -> dict[tuple[int, int], tuple[float, float]]:
+        """Bytes on each link so far, ``{(a, b): (a to b, b to a)}``."""
+        ...
+
+
 class Deployment(Protocol):
     """Where a swarm runs; see the module docstring."""
 
@@ -289,6 +311,11 @@ class Deployment(Protocol):
     @property
     def emulated_links(self) -> EmulatedLinks | None:
         """The links it emulates; None when the robots reach the router as the network lets them."""
+        ...
+
+    @property
+    def mesh(self) -> RadioMesh | None:
+        """Its router per robot, linked by radio range; None for one router (the star)."""
         ...
 
     def start(self, spec: SwarmSpec, *, progress: bool = False) -> None:

@@ -51,6 +51,7 @@ def swarm_pki(
     gateway_names: Sequence[str] = (),
     hosts: Sequence[tuple[int, int]] = (),
     kinds: Sequence[str] = SERVICE_KINDS,
+    robot_routers: bool = False,
 ) -> Path:
     """The PKI of a swarm of ``robots`` in ``folder`` (created, or completed: an existing one
     is kept); the router and the gateway are also dialled at ``router_names`` and
@@ -67,6 +68,7 @@ def swarm_pki(
             gateway_names=(*DEFAULT_ROUTER_NAMES, "gateway", *gateway_names),
             hosts=tuple(hosts),
             kinds=tuple(kinds),
+            robot_routers=robot_routers,
         )
     )
     return folder
@@ -79,6 +81,7 @@ def run_pki(
     *,
     hosts: Sequence[tuple[int, int]] = (),
     kinds: Sequence[str] = SERVICE_KINDS,
+    robot_routers: bool = False,
 ) -> Path:
     """The PKI of one local run in ``folder`` (:func:`swarm_pki`). A PKI whose
     CA key an earlier run retired can issue nothing more, and its certificates were that
@@ -86,7 +89,7 @@ def run_pki(
     ca = ca_paths(folder)
     if ca.cert.exists() and not ca.key.exists():
         shutil.rmtree(folder)
-    return swarm_pki(folder, swarm, robots, hosts=hosts, kinds=kinds)
+    return swarm_pki(folder, swarm, robots, hosts=hosts, kinds=kinds, robot_routers=robot_routers)
 
 
 def retire_ca_key(folder: Path) -> bool:

@@ -667,6 +667,7 @@ class KubernetesDeployment:
     #: An operator may scale the robots' StatefulSets while a run replays.
     fixed_size = False
     emulated_links = None
+    mesh = None
 
     def __init__(self, settings: KubernetesSettings, *, info: KubernetesFile | None = None) -> None:
         self.settings = settings

@@ -23,10 +23,13 @@ rate and delay on loopback, per robot.
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import math
 import os
+import random
 import shutil
+import socket
 import subprocess
 import time
 import urllib.error
@@ -77,12 +80,20 @@ class LinkSpec:
 
 @dataclass(frozen=True)
 class Outage:
-    """Robot ``robot`` out of range (``link`` None) or on ``link`` during ``[start, end)``."""
+    """Robot ``robot`` out of range (``link`` None) or on ``link`` during ``[start, end)``;
+    with ``peer``, only the link between ``robot`` and ``peer`` (a pair row, ``robot < peer``:
+    the mesh topology, docs/mesh.md)."""
 
     start: float
     end: float
     robot: int
     link: LinkSpec | None = None
+    peer: int | None = None
+
+    @property
+    def subject(self) -> tuple[int, ...]:
+        """The robot, or the pair, the row is about."""
+        return (self.robot,) if self.peer is None else (self.robot, self.peer)
 
 
 @dataclass(frozen=True)
@@ -92,11 +103,45 @@ class Schedule:
     intervals: tuple[Outage, ...]
     unit: TimeUnit = "s"
 
+    @property
+    def has_pairs(self) -> bool:
+        """Whether a row is about a pair of robots (only a mesh has links between robots)."""
+        return any(o.peer is not None for o in self.intervals)
+
+    def check(self, robots: int) -> None:
+        """ConfigError, in one line, for a row naming a robot outside ``0..robots-1`` or two
+        rows about the same robot (or pair) whose intervals overlap."""
+        for o in self.intervals:
+            unknown = [r for r in o.subject if r >= robots]
+            if unknown:
+                raise ConfigError(
+                    f"the link schedule names robot {unknown[0]}, but the swarm has robots 0..{robots - 1}"
+                )
+        by_subject: dict[tuple[int, ...], list[Outage]] = {}
+        for o in self.intervals:
+            by_subject.setdefault(o.subject, []).append(o)
+        for subject, rows in by_subject.items():
+            rows.sort(key=lambda o: o.start)
+            for a, b in itertools.pairwise(rows):
+                if b.start < a.end:
+                    who = f"robot {subject[0]}" if len(subject) == 1 else f"robots {subject[0]}-{subject[1]}"
+                    raise ConfigError(
+                        f"the link schedule has overlapping rows for {who}: "
+                        f"[{a.start:g}, {a.end:g}) and [{b.start:g}, {b.end:g})"
+                    )
+
+    def pairs_at(self, t: float) -> dict[tuple[int, int], LinkSpec | None]:
+        """Pairs whose link is changed at ``t`` by a pair row: cut (None) or on another link."""
+        return {
+            (o.robot, o.peer): o.link for o in self.intervals if o.peer is not None and o.start <= t < o.end
+        }
+
     def state_at(self, t: float) -> dict[int, LinkSpec | None]:
-        """Robots whose link is changed at ``t``: out of range (None) or on another link."""
+        """Robots whose link is changed at ``t``: out of range (None) or on another link
+        (rows about one robot; pair rows: :meth:`pairs_at`)."""
         out: dict[int, LinkSpec | None] = {}
         for o in self.intervals:
-            if o.start <= t < o.end:
+            if o.peer is None and o.start <= t < o.end:
                 # An outage wins over a changed link in the same instant.
                 out[o.robot] = None if (o.link is None or out.get(o.robot, o.link) is None) else o.link
         return out
@@ -107,8 +152,10 @@ class Schedule:
 
 
 def read_schedule(path: Path, *, unit: TimeUnit = "s") -> Schedule:
-    """A schedule CSV: a header naming ``start, end, robot`` and optionally ``rate_kbps``,
-    ``latency_ms``; a row with neither is an outage. Errors name the file and line."""
+    """A schedule CSV: a header naming ``start, end`` and ``robot`` or ``robot_a, robot_b``
+    (or all three: a row fills one or the other), and optionally ``rate_kbps``,
+    ``latency_ms``; a row with neither is an outage. A ``robot_a, robot_b`` row is about the
+    link between two robots (the mesh topology). Errors name the file and line."""
     if unit not in ("s", "step"):
         raise ConfigError(f"schedule unit must be s or step, got {unit!r}")
     try:
@@ -116,14 +163,17 @@ def read_schedule(path: Path, *, unit: TimeUnit = "s") -> Schedule:
     except OSError as e:
         raise DatasetError(path, f"cannot read the schedule: {e.strerror}") from None
     rows = csv.DictReader(line for line in text.splitlines() if line.strip() and not line.startswith("#"))
-    need = {"start", "end", "robot"}
-    if rows.fieldnames is None or not need <= {f.strip() for f in rows.fieldnames}:
-        raise DatasetError(path, f"the header must name {', '.join(sorted(need))} (got {rows.fieldnames})", 1)
+    header = {f.strip() for f in rows.fieldnames or ()}
+    if not ({"start", "end"} <= header and ("robot" in header or {"robot_a", "robot_b"} <= header)):
+        raise DatasetError(
+            path, f"the header must name start, end and robot or robot_a, robot_b (got {rows.fieldnames})", 1
+        )
     intervals = []
     for number, row in enumerate(rows, start=2):
         clean = {k.strip(): (v or "").strip() for k, v in row.items() if k}
         try:
-            start, end, robot = float(clean["start"]), float(clean["end"]), int(clean["robot"])
+            start, end = float(clean["start"]), float(clean["end"])
+            robot, peer = _row_subject(clean)
             rate = float(clean["rate_kbps"]) if clean.get("rate_kbps") else None
             latency = float(clean["latency_ms"]) if clean.get("latency_ms") else None
             link = LinkSpec(rate, latency) if rate is not None or latency is not None else None
@@ -131,8 +181,23 @@ def read_schedule(path: Path, *, unit: TimeUnit = "s") -> Schedule:
             raise MalformedLineError(path, f"not a schedule row: {e}", number) from None
         if not (math.isfinite(start) and math.isfinite(end) and 0 <= start < end) or robot < 0:
             raise MalformedLineError(path, f"need 0 <= start < end and a robot id >= 0, got {clean}", number)
-        intervals.append(Outage(start, end, robot, link))
+        intervals.append(Outage(start, end, robot, link, peer))
     return Schedule(tuple(intervals), unit)
+
+
+def _row_subject(row: Mapping[str, str]) -> tuple[int, int | None]:
+    """A row's robot, or its pair (lower id first); ValueError for neither, both, or a robot
+    paired with itself."""
+    one = row.get("robot", "")
+    a, b = row.get("robot_a", ""), row.get("robot_b", "")
+    if one and not (a or b):
+        return int(one), None
+    if a and b and not one:
+        lo, hi = sorted((int(a), int(b)))
+        if lo == hi:
+            raise ValueError(f"robot_a and robot_b are both {lo}")
+        return lo, hi
+    raise ValueError("a row names either robot or both robot_a and robot_b")
 
 
 def toxiproxy_binary(cache: Path | None = None) -> Path:
@@ -160,6 +225,30 @@ def toxiproxy_binary(cache: Path | None = None) -> Path:
             f"go install {TOXIPROXY_MODULE}@{TOXIPROXY_VERSION} failed:\n{proc.stderr[-2000:]}"
         )
     return binary
+
+
+def reserved_port(taken: set[int] | None = None) -> int:
+    """A loopback port free now, below the range the OS gives out for port 0 and for outgoing
+    connections (``ip_local_port_range``): a proxy that closes and opens again (a mesh's link,
+    cut and healed) finds it still free, since only an explicit bind could take it. A port
+    from the OS's range was seen taken by an outgoing connection while its proxy was closed."""
+    try:
+        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        low = 32768
+    taken = taken if taken is not None else set()
+    start = max(1024, low - 16384)
+    for port in random.Random().sample(range(start, low), k=min(4096, low - start)):
+        if port in taken:
+            continue
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+            try:
+                sock.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+        taken.add(port)
+        return port
+    raise DeploymentError(f"no free loopback port in {start}..{low - 1} for a link's proxy")
 
 
 def listening_ports(pid: int) -> set[int]:
@@ -245,31 +334,48 @@ class LinkEmulator:
         except json.JSONDecodeError:
             return text  # /version answers plain text
 
-    def add_robot(self, robot: int, router_port: int, link: LinkSpec) -> str:
-        """A proxy for ``robot`` to the router, on a port the OS gives it (Toxiproxy binds port
-        0 and names the port it got); returns the endpoint its services use."""
-        name = f"robot-{robot}"
+    def add_proxy(self, name: str, upstream_port: int, listen_port: int = 0) -> int:
+        """A proxy ``name`` to ``upstream_port`` on loopback, listening on ``listen_port``, by
+        default a port the OS gives it (Toxiproxy binds port 0 and names the port it got);
+        returns that port."""
         made = self._call(
             "POST",
             "/proxies",
             {
                 "name": name,
-                "listen": "127.0.0.1:0",
-                "upstream": f"127.0.0.1:{router_port}",
+                "listen": f"127.0.0.1:{listen_port}",
+                "upstream": f"127.0.0.1:{upstream_port}",
                 "enabled": True,
             },
         )
         listen = made.get("listen", "") if isinstance(made, dict) else ""
         port = str(listen).rpartition(":")[2]
         if not port.isdigit() or int(port) == 0:
-            raise DeploymentError(f"Toxiproxy did not say where robot {robot}'s proxy listens: {made!r}")
-        self.ports[robot] = int(port)
+            raise DeploymentError(f"Toxiproxy did not say where proxy {name} listens: {made!r}")
+        return int(port)
+
+    def set_upstream(self, name: str, upstream_port: int) -> None:
+        """Point proxy ``name`` at ``upstream_port`` (a router that started after its proxy)."""
+        self._call("POST", f"/proxies/{name}", {"upstream": f"127.0.0.1:{upstream_port}"})
+
+    def set_enabled(self, name: str, enabled: bool) -> None:
+        """Open proxy ``name``, or close it and every connection through it."""
+        self._call("POST", f"/proxies/{name}", {"enabled": enabled})
+
+    def add_robot(self, robot: int, router_port: int, link: LinkSpec) -> str:
+        """A proxy for ``robot`` to the router; returns the endpoint its services use."""
+        port = self.add_proxy(f"robot-{robot}", router_port)
+        self.ports[robot] = port
         self.set_link(robot, link)
         return f"tcp/127.0.0.1:{port}"
 
     def set_link(self, robot: int, link: LinkSpec) -> None:
         """Replace ``robot``'s toxics by those of ``link`` (both directions)."""
-        name = f"robot-{robot}"
+        self.set_toxics(f"robot-{robot}", link)
+        self.links[robot] = link
+
+    def set_toxics(self, name: str, link: LinkSpec) -> None:
+        """Replace proxy ``name``'s toxics by those of ``link`` (both directions)."""
         for toxic in self._call("GET", f"/proxies/{name}/toxics"):
             self._call("DELETE", f"/proxies/{name}/toxics/{toxic['name']}")
         for stream in ("upstream", "downstream"):
@@ -280,7 +386,6 @@ class LinkEmulator:
                 self._toxic(
                     name, f"rate-{stream}", "bandwidth", stream, {"rate": max(1, round(link.rate_kbps))}
                 )
-        self.links[robot] = link
 
     def _toxic(self, proxy: str, name: str, kind: str, stream: str, attributes: Mapping[str, int]) -> None:
         body = {"name": name, "type": kind, "stream": stream, "toxicity": 1.0, "attributes": dict(attributes)}
@@ -288,7 +393,7 @@ class LinkEmulator:
 
     def set_connected(self, robot: int, connected: bool) -> None:
         """Cut ``robot``'s link (its connections close) or restore it."""
-        self._call("POST", f"/proxies/robot-{robot}", {"enabled": connected})
+        self.set_enabled(f"robot-{robot}", connected)
         if connected:
             self.cut.discard(robot)
         else:

@@ -26,6 +26,7 @@ start after the router, on free ports: :attr:`LocalDeployment.gateway_address`.
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import socket
@@ -36,7 +37,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO
+from typing import IO, Literal
 
 from tqdm import tqdm
 
@@ -45,15 +46,21 @@ from swarmrec.core.association import warm_up
 from swarmrec.deployments.base import SwarmSpec, SwarmStartError, config_flags
 from swarmrec.deployments.identities import Security, client_tls, retire_ca_key, run_pki, security_for
 from swarmrec.deployments.links import LinkEmulator, LinkSpec, Schedule, TimeUnit, read_schedule
+from swarmrec.deployments.mesh import MeshLinks, MeshOperator, RouterView, link_bytes, router_views
 from swarmrec.deployments.metrics import Scrape, scrape
+from swarmrec.deployments.radio import FloatArray, RadioGraph
 from swarmrec.errors import ConfigError
 from swarmrec.runtime.hosting import host_ranges, ready_entries, ready_events, robots_per_process, terminate
-from swarmrec.runtime.settings import Component, Config, to_flags
+from swarmrec.runtime.settings import BusSettings, Component, Config, to_flags
 from swarmrec.runtime.tls import tls_endpoint
 from swarmrec.security.identity import SERVICE_KINDS, Identity
 from swarmrec.services.settings import GatewaySettings, IndexSettings
 
-__all__ = ["LocalDeployment", "LocalSettings", "ServiceProcess", "free_port"]
+__all__ = ["LocalDeployment", "LocalSettings", "ServiceProcess", "Topology", "free_port"]
+
+#: How the robots' routers are laid out: one router for the swarm (star) or one per robot,
+#: linked by radio range (mesh, docs/mesh.md).
+Topology = Literal["star", "mesh"]
 
 
 def free_port() -> int:
@@ -148,10 +155,29 @@ class LocalSettings:
     schedule_unit: TimeUnit = "step"
     #: mtls (mutual TLS and access control) or insecure (debugging).
     security: Security = "mtls"
+    #: One router for the swarm (star) or one per robot, linked by radio range (mesh).
+    topology: Topology = "star"
+    #: The mesh's radio range in metres over the robots' positions (None: all hear all).
+    radio_range_m: float | None = None
 
     def __post_init__(self) -> None:
         if self.security not in ("mtls", "insecure"):
             raise ConfigError(f"security must be mtls or insecure, got {self.security!r}")
+        if self.topology not in ("star", "mesh"):
+            raise ConfigError(f"topology must be star or mesh, got {self.topology!r}")
+        if self.radio_range_m is not None and self.topology != "mesh":
+            raise ConfigError("a radio range links robots to each other: it needs --topology mesh")
+        if self.radio_range_m is not None and not (
+            math.isfinite(self.radio_range_m) and self.radio_range_m > 0
+        ):
+            raise ConfigError(f"the radio range must be a distance > 0 in metres, got {self.radio_range_m}")
+        if self.topology == "mesh" and (robots_per_process(self.hosting) or 1) > 1:
+            raise ConfigError(
+                "a mesh gives every robot its own router: use service or robot hosting, "
+                "not several robots a process"
+            )
+        if self.topology == "mesh" and self.schedule is not None and self.schedule_unit != "step":
+            raise ConfigError("a mesh's link schedule is in lock-step steps (--schedule-unit step)")
         if self.schedule_unit not in ("s", "step"):
             raise ConfigError(f"schedule_unit must be s or step, got {self.schedule_unit!r}")
         if (self.link.limited or self.schedule is not None) and (robots_per_process(self.hosting) or 1) > 1:
@@ -176,8 +202,17 @@ class LocalDeployment:
         link: LinkSpec | None = None,
         schedule: Schedule | None = None,
         security: Security = "mtls",
+        topology: Topology = "star",
+        radio_range_m: float | None = None,
     ) -> None:
         self.data_dir, self.log_dir = data_dir, log_dir
+        self.topology: Topology = topology
+        self.radio_range_m = radio_range_m
+        #: The mesh's routers (robot r's at index r), its links and the radio graph they follow.
+        self.routers: list[ServiceProcess] = []
+        self.router_ports: list[int] = []
+        self.mesh_links: MeshLinks | None = None
+        self.radio: RadioGraph | None = None
         self.router_port = router_port
         self.security: Security = security
         self.pki_dir: Path | None = None
@@ -186,14 +221,23 @@ class LocalDeployment:
         self.link = link or LinkSpec()
         self.schedule = schedule
         self.links: LinkEmulator | None = None
-        if (self.link.limited or schedule is not None) and (self.robots_per_process or 1) > 1:
+        if (self.link.limited or schedule is not None or topology == "mesh") and (
+            self.robots_per_process or 1
+        ) > 1:
             raise ConfigError(
-                "emulated links are per robot: use service or robot hosting, not several robots a process"
+                "emulated links and a mesh's routers are per robot: use service or robot hosting, "
+                "not several robots a process"
+            )
+        if schedule is not None and schedule.has_pairs and topology != "mesh":
+            raise ConfigError(
+                "the link schedule has robot_a,robot_b rows: links between robots need --topology mesh"
             )
         self.hosting = hosting
         self.description = (
             "local processes" if hosting == "service" else f"local processes ({hosting} hosting)"
         )
+        if topology == "mesh":
+            self.description += ", a router per robot (mesh)"
         self.spec: SwarmSpec | None = None
         self.router: ServiceProcess | None = None
         self.procs: list[ServiceProcess] = []
@@ -219,6 +263,8 @@ class LocalDeployment:
             link=settings.link,
             schedule=schedule,
             security=settings.security,
+            topology=settings.topology,
+            radio_range_m=settings.radio_range_m,
         )
         deployment.fresh = True
         return deployment
@@ -230,8 +276,28 @@ class LocalDeployment:
 
     @property
     def emulated_links(self) -> LocalDeployment | None:
-        """This deployment when it emulates links (a rate, a latency or a schedule), else None."""
+        """This deployment when it emulates links to the star's router (a rate, a latency or a
+        schedule), else None (a mesh's links between robots: :attr:`mesh`)."""
+        if self.topology == "mesh":
+            return None
         return self if self.link.limited or self.schedule is not None else None
+
+    def plan_radio(self, robots: int, steps: int, positions: FloatArray | None) -> RadioGraph:
+        """A mesh's radio graph for a run of ``steps`` lock-step steps, from the robots'
+        positions at each step (``(steps, robots, 3)``, :func:`~swarmrec.deployments.radio.robot_positions`),
+        the radio range and the link schedule; call it before :meth:`start`. ConfigError
+        (one line) for a schedule naming robots the swarm lacks or with overlapping rows."""
+        if self.topology != "mesh":
+            raise ConfigError("only a mesh has a radio graph (--topology mesh)")
+        self.radio = RadioGraph.build(
+            robots,
+            steps,
+            positions=positions if self.radio_range_m is not None else None,
+            range_m=self.radio_range_m,
+            schedule=self.schedule,
+            default=self.link,
+        )
+        return self.radio
 
     def services_of(self, robots: set[int]) -> set[tuple[str, int]]:
         """The (kind, robot) services this deployment runs for ``robots``."""
@@ -255,11 +321,15 @@ class LocalDeployment:
 
     @property
     def endpoint(self) -> str:
+        """The router's endpoint (a mesh: robot 0's router)."""
         if self.router_port is None:
             raise ConfigError("the router has not been started")
+        return self._loopback(self.router_port)
+
+    def _loopback(self, port: int) -> str:
         if self.security == "insecure":
-            return f"tcp/127.0.0.1:{self.router_port}"
-        return tls_endpoint("127.0.0.1", self.router_port)
+            return f"tcp/127.0.0.1:{port}"
+        return tls_endpoint("127.0.0.1", port)
 
     def _gateway_says(self, field: str) -> str | None:
         """A field of the gateway's readiness line (None: no gateway ready, or no such field)."""
@@ -283,13 +353,25 @@ class LocalDeployment:
         return self._gateway_says("web") or ""
 
     def client(self, timeout_s: float = 5.0, *, role: str = "operator") -> ZenohClient:
+        """A client of the swarm through its router (a mesh: robot 0's; the operator of a
+        mesh has a session on every robot's router, :class:`~swarmrec.deployments.mesh.MeshOperator`)."""
+        if self.topology == "mesh" and role == "operator" and self.router_ports:
+            return self.operator(timeout_s)  # type: ignore[return-value]  # a ZenohClient's interface
+        return self._client_at(self.endpoint, timeout_s, role=role)
+
+    def _client_at(self, endpoint: str, timeout_s: float, *, role: str = "operator") -> ZenohClient:
         spec = self._spec()
         if self.pki_dir is None:
             return ZenohClient(
-                [self.endpoint], spec.swarm, timeout_s=timeout_s, insecure_reason="insecure deployment"
+                [endpoint], spec.swarm, timeout_s=timeout_s, insecure_reason="insecure deployment"
             )
         tls = client_tls(self.pki_dir, spec.swarm, "client" if role == "client" else "operator")
-        return ZenohClient([self.endpoint], spec.swarm, timeout_s=timeout_s, tls=tls)
+        return ZenohClient([endpoint], spec.swarm, timeout_s=timeout_s, tls=tls)
+
+    def operator(self, timeout_s: float = 5.0) -> MeshOperator:
+        """The mesh's operator: a session on each robot's own router (not yet opened)."""
+        clients = [self._client_at(self._loopback(port), timeout_s) for port in self.router_ports]
+        return MeshOperator(clients, lambda r: self.services_of({r}))
 
     def gateway_client(self, timeout_s: float = 5.0) -> GatewayClient:
         spec = self._spec()
@@ -320,10 +402,15 @@ class LocalDeployment:
 
     def wait_ready(self, timeout_s: float | None = None) -> None:
         """Every started service printed its readiness line and has been routed to
-        (``timeout_s``: 60 s, longer for big swarms, :func:`_for_robots`)."""
+        (``timeout_s``: 60 s, longer for big swarms, :func:`_for_robots`); a mesh: every
+        robot's router sees exactly its component of step 0 and every service in it."""
         if timeout_s is None:
             timeout_s = _for_robots(60.0, self.spec.robots if self.spec else 0)
         self._wait(self.procs, timeout_s)
+        if self.mesh_links is not None:
+            with self.operator(5.0) as operator:
+                self.mesh_links.wait_converged(0, operator, self._router_views, timeout_s)
+            return
         with self.client(5.0) as client:
             running = {s for sp in self.procs if sp.proc.poll() is None for s in sp.services}
             client.wait_for(running, timeout_s)
@@ -349,6 +436,12 @@ class LocalDeployment:
             codes[sp.name] = int(sp.proc.returncode)
         if self.router is not None:
             codes["router"] = self.stop_process(self.router, timeout_s)
+        for r, sp in enumerate(self.routers):
+            if sp is not self.router:
+                codes[f"router-{r}"] = self.stop_process(sp, timeout_s)
+        if self.mesh_links is not None:
+            self.mesh_links.emulator.stop()
+            self.mesh_links = None
         if self.links is not None:
             self.links.stop()
             self.links = None
@@ -372,13 +465,18 @@ class LocalDeployment:
             raise ConfigError("start the router first (it takes the swarm spec)")
         return self.spec
 
-    def _secured(self, config: Config, who: str, *, host: tuple[int, int] | None = None) -> Config:
-        """``config`` with the process's security: its kind's own certificate, or for a process
-        hosting robots ``host`` (first, last) the host certificate of those robots."""
+    def _secured(
+        self, config: Config, who: str, *, host: tuple[int, int] | None = None, router_of: int | None = None
+    ) -> Config:
+        """``config`` with the process's security: its kind's own certificate, for a process
+        hosting robots ``host`` (first, last) the host certificate of those robots, for a
+        mesh's router ``router_of`` that robot's router certificate."""
         security = security_for(self.security, self.pki_dir, who)
         if host is not None and security.security == "mtls":
             identity = Identity.host(self._spec().swarm, *host).common_name
             security = security.with_(identity=identity)
+        if router_of is not None and security.security == "mtls":
+            security = security.with_(identity=Identity.router(self._spec().swarm, router_of).common_name)
         return config.replace(security)
 
     def start_router(self, spec: SwarmSpec, timeout_s: float = 30.0) -> None:
@@ -397,7 +495,17 @@ class LocalDeployment:
             # Index shards may have ids beyond the robots (IndexSettings.max_shards): certificates too.
             index = spec.component(IndexSettings)
             ids = max(spec.robots, index.max_shards if isinstance(index, IndexSettings) else 0)
-            self.pki_dir = run_pki(self.data_dir / "pki", spec.swarm, ids, hosts=sorted(hosts), kinds=kinds)
+            self.pki_dir = run_pki(
+                self.data_dir / "pki",
+                spec.swarm,
+                ids,
+                hosts=sorted(hosts),
+                kinds=kinds,
+                robot_routers=self.topology == "mesh",
+            )
+        if self.topology == "mesh":
+            self._start_mesh(spec, timeout_s)
+            return
         fixed = self.router_port
         self.router_port = fixed or 0
         config = spec.config_for("router", 0, listen=(self.endpoint,), metrics_port=0)
@@ -422,8 +530,68 @@ class LocalDeployment:
             self.links.add_robot(robot, self.router_port, self.link)
         self.apply_links(0.0)
 
+    def _start_mesh(self, spec: SwarmSpec, timeout_s: float) -> None:
+        """A router per robot, each dialling the proxies of its links to higher robots; the
+        proxies pointed at the routers once they listen; the links of step 0."""
+        radio = self.radio or self.plan_radio(spec.robots, 1, None)
+        if radio.robots != spec.robots:
+            raise ConfigError(f"the radio graph is of {radio.robots} robots, the swarm has {spec.robots}")
+        emulator = LinkEmulator(log_dir=self.log_dir)
+        emulator.start()
+        self.mesh_links = MeshLinks(radio, emulator)
+        self.mesh_links.create()
+        self.routers = []
+        for r in range(spec.robots):
+            config = spec.config_for("router", r, listen=(self._loopback(0),), metrics_port=0)
+            bus = config.get(BusSettings).with_(
+                peers=tuple(self._loopback(p) for p in self.mesh_links.dials(r))
+            )
+            config = self._secured(config.replace(bus), f"router-{r}", router_of=r)
+            self.routers.append(self._spawn("router", r, config_flags(config)))
+        try:
+            self._wait(self.routers, timeout_s)
+        except SwarmStartError:
+            for sp in self.routers:
+                sp.release()
+            raise
+        self.router_ports = [_listening_port(sp.info) for sp in self.routers]
+        self.router, self.router_port = self.routers[0], self.router_ports[0]
+        self.mesh_links.connect_to(self.router_ports)
+        self.mesh_links.apply(0)
+
+    @property
+    def mesh(self) -> LocalDeployment | None:
+        """This deployment when it runs a router per robot (the mesh), else None."""
+        return self if self.topology == "mesh" else None
+
+    def step_links(self, t: int, operator: MeshOperator) -> tuple[list[str], float | None]:
+        """Put the mesh's links in step ``t``'s state and, when any changed, wait until every
+        robot's router sees exactly its component; what changed, and the seconds waited
+        (None: nothing changed)."""
+        if self.mesh_links is None:
+            raise ConfigError("the mesh has not been started")
+        events = self.mesh_links.apply(t)
+        if not events:
+            return [], None
+        return events, self.mesh_links.wait_converged(t, operator, self._router_views)
+
+    def _router_scrape(self) -> Scrape:
+        targets = {("router", sp.robot): sp.metrics_url for sp in self.routers if sp.metrics_url}
+        return scrape(targets, parallel=8)
+
+    def _router_views(self) -> dict[int, RouterView]:
+        return router_views(self._router_scrape())
+
+    def link_bytes(self) -> dict[tuple[int, int], tuple[float, float]]:
+        """Bytes on each link between two robots' routers so far
+        (:func:`~swarmrec.deployments.mesh.link_bytes`)."""
+        return link_bytes(self._router_scrape(), self._spec().swarm)
+
     def robot_endpoint(self, robot: int) -> str:
-        """Where ``robot``'s services connect: its link's proxy, or the router itself."""
+        """Where ``robot``'s services connect: its own router (a mesh), its link's proxy, or
+        the router itself."""
+        if self.router_ports:
+            return self._loopback(self.router_ports[robot])
         if self.links is not None and robot in self.links.ports:
             port = self.links.ports[robot]
             # The proxy forwards bytes: TLS goes through it end to end, to the router.

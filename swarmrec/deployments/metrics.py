@@ -12,6 +12,7 @@ import time
 import urllib.parse
 import urllib.request
 from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -87,14 +88,27 @@ def read_metrics(url: str, timeout_s: float = 5.0) -> dict[tuple[str, tuple[tupl
         return parse_metrics(resp.read().decode("utf-8"))
 
 
-def scrape(targets: dict[tuple[str, int], str], timeout_s: float = 5.0) -> Scrape:
-    """GET every ``/metrics`` URL; an unreachable one is listed in ``failed``."""
+def scrape(targets: dict[tuple[str, int], str], timeout_s: float = 5.0, *, parallel: int = 1) -> Scrape:
+    """GET every ``/metrics`` URL, ``parallel`` at a time; an unreachable one is listed in
+    ``failed`` (in the targets' order either way)."""
     result = Scrape()
-    for (service, robot), url in targets.items():
+
+    def read(url: str) -> dict[tuple[str, tuple[tuple[str, str], ...]], float] | None:
         try:
-            result.samples[(service, robot)] = read_metrics(url, timeout_s)
+            return read_metrics(url, timeout_s)
         except OSError:
+            return None
+
+    if parallel > 1:
+        with ThreadPoolExecutor(max_workers=parallel) as pool:
+            pages = list(pool.map(read, targets.values()))
+    else:
+        pages = [read(url) for url in targets.values()]
+    for (service, robot), page in zip(targets, pages, strict=True):
+        if page is None:
             result.failed.append(f"{service}-{robot}")
+        else:
+            result.samples[(service, robot)] = page
     return result
 
 

@@ -337,6 +337,10 @@ def service_logger(kind: str, robot: int, level: str) -> logging.Logger:
     return log
 
 
+#: The longest a mesh router waits between two dials of a neighbour it lost (ms).
+ROUTER_REDIAL_MAX_MS = 500
+
+
 def zenoh_config(
     bus: BusSettings,
     security: SecuritySettings | None = None,
@@ -358,6 +362,18 @@ def zenoh_config(
     if bus.listen:
         conf.insert_json5("listen/endpoints", json.dumps(list(bus.listen)))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    if bus.mode == "router" and bus.peers:
+        # Its robot's radio neighbours (the mesh): dialled again soon after a link comes back,
+        # so a healed link carries traffic within about a second (ROUTER_REDIAL_MAX_MS).
+        conf.insert_json5("connect/endpoints", json.dumps(list(bus.peers)))
+        conf.insert_json5("connect/timeout_ms", "-1")
+        conf.insert_json5("connect/exit_on_failure", "false")
+        conf.insert_json5(
+            "connect/retry",
+            json.dumps(
+                {"period_init_ms": 100, "period_max_ms": ROUTER_REDIAL_MAX_MS, "period_increase_factor": 2}
+            ),
+        )
     if bus.mode == "router":
         # zenoh holds a router's open half a second for peers it might scout; with multicast
         # off there are none to wait for (every client dials it), so its start is 0.5 s shorter.

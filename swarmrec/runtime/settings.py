@@ -183,6 +183,11 @@ class BusSettings(Component):
         ("tls/127.0.0.1:7447",), "router endpoints to connect to (several give failover)"
     )
     listen: tuple[str, ...] = setting((), "endpoints to listen on (a router)")
+    peers: tuple[str, ...] = setting(
+        (),
+        "other routers a router dials (the mesh topology: its robot's radio neighbours, docs/mesh.md); "
+        "it keeps redialling each one it loses",
+    )
     metrics_port: int = setting(0, "Prometheus endpoint port (0: a free one, -1: none)")
     metrics_host: str = setting("127.0.0.1", "Prometheus endpoint address")
     workers: int = setting(
@@ -224,6 +229,8 @@ class BusSettings(Component):
             problems.append(f"mode must be client, peer or router, got {self.mode!r}")
         if self.mode == "router" and not self.listen:
             problems.append("a router needs at least one --listen endpoint")
+        if self.peers and self.mode != "router":
+            problems.append("only a router dials peers (--peers); a client or peer uses --connect")
         if self.mode == "client" and not self.connect:
             problems.append("a client needs at least one --connect endpoint")
         if not -1 <= self.metrics_port <= 65535:

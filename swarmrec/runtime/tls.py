@@ -211,6 +211,9 @@ def apply_security(
     files = TlsFiles.in_dir(Path(security.pki_dir), cn)
     if bus.mode == "router":
         configure_router_tls(conf, files, bus.listen)
+        if bus.peers:
+            # The mesh: its neighbours are dialled with mutual TLS only, as its own certificate.
+            _insert(conf, "connect/endpoints", list(require_tls_endpoints(bus.peers)))
         path = Path(security.pki_dir) / ACL_FILE
         try:
             acl = json.loads(path.read_text(encoding="utf-8"))

@@ -133,9 +133,15 @@ def grants(
                 Grant("ingress", ("declare_queryable", "reply"), (keys.endpoint(s, "gateway", 0, "*"),)),
                 Grant("ingress", ("liveliness_token",), (keys.alive(s, "gateway", 0),)),
             ]
+    elif identity.role == "router" and identity.robot >= 0:
+        # Another robot's router (the mesh, docs/mesh.md): it relays every robot's traffic,
+        # so it may send anything under the swarm's prefix, and nothing outside it (no one
+        # else's admin space). The entry router of each robot checked that robot's own
+        # services against their rules before the first hop.
+        out.append(Grant("ingress", ACL_MESSAGES, (f"{p}/**",)))
+        out[0] = Grant("egress", ACL_MESSAGES, (f"{p}/**",))
     else:
-        # A router dialling this one (several routers) is not a client: no rules
-        # yet, so default deny applies until router-to-router links are designed.
+        # The star's one router dials no other: it has no rules, and default deny applies.
         return []
     return out
 
@@ -190,10 +196,13 @@ def swarm_identities(
     clients: Sequence[str] = (),
     operators: Sequence[str] = (),
     hosts: Sequence[tuple[int, int]] = (),
+    robot_routers: bool = False,
 ) -> list[Identity]:
     """Every identity the ACL names: each robot's services, the hosts (first, last robot),
-    clients, operators."""
+    clients, operators, and with ``robot_routers`` each robot's own router (the mesh)."""
     out = [Identity.service(swarm, k, r) for r in robots for k in kinds]
+    if robot_routers:
+        out += [Identity.router(swarm, r) for r in robots]
     out += [Identity.host(swarm, first, last) for first, last in hosts]
     out += [Identity.client(swarm, n) for n in clients]
     out += [Identity.operator(swarm, n) for n in operators]
@@ -217,8 +226,10 @@ def access_control(
     gateways: Sequence[str] = (),
     hosts: Sequence[tuple[int, int]] = (),
     shard_read_endpoint: str = SHARD_READ_ENDPOINT,
+    robot_routers: bool = False,
 ) -> dict[str, Any]:
-    """The ``access_control`` section of the router's zenoh config.
+    """The ``access_control`` section of the router's zenoh config (every router's, in a
+    mesh: ``robot_routers`` adds each robot's own router as a relaying peer).
 
     ``robots`` is a count (ids 0..n-1) or the ids; ``gateways`` are client names that
     host the gRPC gateway (clients too, listed or not in ``clients``); ``hosts`` are the
@@ -237,7 +248,13 @@ def access_control(
     policies: list[dict[str, Any]] = []
     every_client = [*clients, *(g for g in gateways if g not in clients)]
     for ident in swarm_identities(
-        swarm, ids, kinds=kinds, clients=every_client, operators=operators, hosts=hosts
+        swarm,
+        ids,
+        kinds=kinds,
+        clients=every_client,
+        operators=operators,
+        hosts=hosts,
+        robot_routers=robot_routers,
     ):
         cn = ident.common_name
         rule_ids = []

@@ -9,7 +9,8 @@ everything a rule needs, and nothing else:
                                  (r3.host.lab for one robot: robot hosting)
     client.<name>.<swarm>        a read-only client       client.cli.lab
     operator.<name>.<swarm>      a client that also drives replay (detector step/replay/classify)
-    router.<swarm>               the router
+    router.<swarm>               the router (one per swarm: the star topology)
+    r<robot>.router.<swarm>      robot <robot>'s own router (the mesh topology, docs/mesh.md)
 
 Dots separate the parts because no part can hold one: swarm names are one
 key segment of ``[A-Za-z0-9_-]`` (swarmrec.runtime.keys), kinds are the
@@ -93,8 +94,8 @@ class Identity:
             if self.kind or self.robot != -1 or self.last != -1:
                 raise ConfigError(f"a {self.role} identity has a name, not a kind or a robot")
         elif self.role == "router":
-            if self.kind or self.name or self.robot != -1 or self.last != -1:
-                raise ConfigError("the router identity has only a swarm")
+            if self.kind or self.name or self.last != -1 or not -1 <= self.robot <= MAX_ROBOT:
+                raise ConfigError("a router identity has only a swarm, and a robot for a robot's own router")
         else:
             raise ConfigError(f"unknown role {self.role!r}")
 
@@ -125,8 +126,9 @@ class Identity:
         return cls(swarm, "operator", name=name)
 
     @classmethod
-    def router(cls, swarm: str) -> Identity:
-        return cls(swarm, "router")
+    def router(cls, swarm: str, robot: int = -1) -> Identity:
+        """The swarm's one router (``robot`` -1, the star), or ``robot``'s own (the mesh)."""
+        return cls(swarm, "router", robot=robot)
 
     @property
     def common_name(self) -> str:
@@ -136,7 +138,7 @@ class Identity:
             span = f"r{self.robot}" if self.last == self.robot else f"r{self.robot}-{self.last}"
             return f"{span}.host.{self.swarm}"
         if self.role == "router":
-            return f"router.{self.swarm}"
+            return f"router.{self.swarm}" if self.robot < 0 else f"r{self.robot}.router.{self.swarm}"
         return f"{self.role}.{self.name}.{self.swarm}"
 
     def __str__(self) -> str:
@@ -158,10 +160,12 @@ def parse_common_name(cn: str) -> Identity:
                 lo = int(span.group(1))
                 return Identity.host(swarm, lo, int(span.group(2)) if span.group(2) else lo)
         robot = _ROBOT.fullmatch(first)
+        if robot and middle == "router":
+            return Identity.router(swarm, int(robot.group(1)))
         if robot:
             return Identity.service(swarm, middle, int(robot.group(1)))
     raise ConfigError(
         f"{cn!r} is not a swarmrec common name "
         "(r<robot>.<kind>.<swarm>, r<first>-<last>.host.<swarm>, client.<name>.<swarm>, "
-        "operator.<name>.<swarm>, router.<swarm>)"
+        "operator.<name>.<swarm>, router.<swarm>, r<robot>.router.<swarm>)"
     )

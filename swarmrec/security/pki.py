@@ -288,6 +288,9 @@ class PkiSettings:
     router_names: tuple[str, ...] = DEFAULT_ROUTER_NAMES
     #: DNS names and IPs a gateway's gRPC port is dialled at.
     gateway_names: tuple[str, ...] = (*DEFAULT_ROUTER_NAMES, "gateway")
+    #: Every robot also gets a router certificate of its own (r<robot>.router.<swarm>: the
+    #: mesh topology, docs/mesh.md), dialled at ``router_names`` like the swarm's router.
+    robot_routers: bool = False
     key_type: KeyType = "p256"
     ca_days: int = 3650
     cert_days: int = 365
@@ -320,6 +323,8 @@ class PkiSettings:
         subject_alt_names(self.gateway_names)
         # Identity validates the swarm name, every kind and every client name.
         ids = [Identity.router(self.swarm)]
+        if self.robot_routers:
+            ids += [Identity.router(self.swarm, r) for r in range(self.robots)]
         ids += [Identity.service(self.swarm, k, r) for r in range(self.robots) for k in self.kinds]
         for first, last in self.hosts:
             if not 0 <= first <= last < self.robots:
@@ -368,6 +373,7 @@ def acl_document(settings: PkiSettings) -> dict[str, Any]:
         operators=s.operators,
         gateways=s.gateways,
         hosts=s.hosts,
+        robot_routers=s.robot_routers,
     )
 
 

@@ -39,14 +39,19 @@ _STAGE_BUCKETS = (0.0001, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.03, 0.05, 0
 
 @dataclass
 class RouterMetrics(MetricSet):
-    """What the router refused. Counted by the compiled router only (zenoh's TLS
-    listener and access control report to the Rust side; the Python binding is built
-    without zenoh's statistics): the Python router exports the families, at zero."""
+    """What the router refused, its links to other routers (a mesh) and their bytes.
+    Counted by the compiled router only (zenoh's TLS listener, access control, link state
+    and transports report to the Rust side; the Python binding is built without zenoh's
+    statistics): the Python router exports the families, empty."""
 
     title: ClassVar[str] = "router"
 
     refused_handshakes: Counter
     denied_messages: Counter
+    link_bytes: Counter
+    neighbours: Gauge
+    graph_links: Gauge
+    zid: Gauge
 
     @classmethod
     def create(cls, registry: CollectorRegistry) -> RouterMetrics:
@@ -64,6 +69,29 @@ class RouterMetrics(MetricSet):
                 ["identity", "direction", "message"],
                 registry=registry,
             ),
+            link_bytes=Counter(
+                "swarmrec_router_link_bytes",
+                "Bytes on the links to other routers (a mesh), as zenoh's transports counted them, by the "
+                "neighbour's certificate name and direction (sent to it, received from it); relayed traffic "
+                "included",
+                ["peer", "direction"],
+                registry=registry,
+            ),
+            neighbours=Gauge(
+                "swarmrec_router_neighbours",
+                "Links to another router now (a mesh's router, at each scrape), by the neighbour's "
+                "zenoh id: 1 while linked, 0 after a link it had closed",
+                ["peer_zid"],
+                registry=registry,
+            ),
+            graph_links=Gauge(
+                "swarmrec_router_graph_links",
+                "The links between routers in this router's view of the router graph now (zenoh's link "
+                "state, at each scrape), by the two routers' zenoh ids: 1 while in it, 0 after it left",
+                ["a", "b"],
+                registry=registry,
+            ),
+            zid=Gauge("swarmrec_router_zid", "This router's zenoh id", ["zid"], registry=registry),
         )
 
 

@@ -45,6 +45,7 @@ from swarmrec.deployments.base import Deployment, SwarmSpec, running
 from swarmrec.errors import ConfigError, WireError
 from swarmrec.evaluation.scoring import label_frequency_prior
 from swarmrec.evaluation.source import load_dataset
+from swarmrec.experiments.mesh import plan_mesh
 from swarmrec.experiments.places.pixels import PixelSource, detected_sequence, prepare_pixels, rgbd_settings
 from swarmrec.experiments.places.replay import collect_loop_closures, replay
 from swarmrec.experiments.places.report import (
@@ -235,6 +236,8 @@ def main(
     _refuse(settings, deployment)
     out.mkdir(parents=True, exist_ok=True)
     prepared = prepare(settings, dataset_dir=out / "dataset")
+    # A mesh's radio graph, from the robots' positions: a bad schedule is refused now.
+    mesh = plan_mesh(deployment, prepared.blocks, prepared.trajectory, lockstep=settings.lockstep)
     spec = prepared.spec
     timings: dict[str, float] = {"prepare_s": time.perf_counter() - t_start}
     offline: OfflineEvaluation | None = None
@@ -269,6 +272,9 @@ def main(
             swarm_hook(deployment)
         link_events: list[tuple[float, str]] = []
         before_step = _link_schedule(deployment, client, link_events)
+        if mesh is not None:
+            before_step = mesh.before_step(client)  # type: ignore[arg-type]  # a mesh's operator
+            mesh.start_counting()
         result = replay(client, prepared.blocks, settings.replay(), on_step, before_step)
         timings["replay_s"] = result.wall_s
         if prepared.sequence is not None:  # (from pixels: the detections, read after the stop)
@@ -283,6 +289,7 @@ def main(
         # another after it (it does not know the replay is over).
         final = index_state.placement.version if index_state.placement is not None else -1
         placement_changes = [c for c in _drain_placement_changes(placements) if c.version <= final]
+        mesh_figures = mesh.report(len(result.reports)) if mesh is not None else None
         if after_replay is not None:
             after_replay(deployment)
         t0 = time.perf_counter()
@@ -337,6 +344,7 @@ def main(
         dataset_folder=out / "detections" if prepared.pixels is not None else Path(replayed.dataset),
         labels_file=replayed.labels_file,
         links=_link_report(deployment, link_events),
+        mesh=mesh_figures,
     )
     return write_report(settings.report(), record)
 

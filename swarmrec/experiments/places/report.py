@@ -33,6 +33,7 @@ from swarmrec.core.funnel import Reason, Stage, passed_stages
 from swarmrec.core.presets import Preset
 from swarmrec.core.types import ConstellationSequence, Trajectory
 from swarmrec.datasets.constellations import label_counts
+from swarmrec.deployments.mesh import MeshReport
 from swarmrec.deployments.metrics import Scrape
 from swarmrec.evaluation.bandwidth import HolderLoad
 from swarmrec.evaluation.groundtruth import GroundTruth, ground_truth
@@ -313,6 +314,7 @@ class PlacesSummary:
     offline_not_compared: str = ""
     positions_effect: PositionsEffect | None = None
     links: LinkReport | None = None
+    mesh: MeshReport | None = None
     detector: DetectorFigures | None = None
     index: IndexSummary | None = None
     funnel: FunnelStats | None = None
@@ -560,6 +562,8 @@ class RunRecord:
     placement_changes: list[pb.PlacementChange] = field(default_factory=list)
     detector: DetectorFigures | None = None
     links: LinkReport | None = None
+    #: A mesh run's radio graph and link bytes (None: one router).
+    mesh: MeshReport | None = None
     #: Where the replayed constellations are on disk, and their label list (None: COCO).
     dataset_folder: Path | None = None
     labels_file: Path | None = None
@@ -699,6 +703,7 @@ def write_report(settings: ReportSettings, run: RunRecord) -> PlacesSummary:
         exit_codes=run.exit_codes,
         timings=run.timings,
         links=run.links,
+        mesh=run.mesh,
     )
     if run.detector is not None:
         summary.detector = _detector_figures(run.detector, metrics)
