@@ -294,17 +294,17 @@ impl Service for Router {
     }
 
     /// The refused handshakes counted so far. zenoh's drop counters are copied by the
-    /// router's own thread ([`Router::follow_denials`]), never while a scrape or a probe
-    /// waits: the metrics endpoint serves one request at a time, and the probes use it too.
+    /// router's own thread ([`Router::follow_denials`]) every second, and at each scrape.
     ///
-    /// It also says, at each scrape, which routers it has a link to now: a mesh's deployment
-    /// reads it to know when every router follows a step's radio graph (docs/mesh.md). That
-    /// one reads zenoh's admin space during the scrape: a scrape waits about a millisecond
-    /// longer for it (the star's one router has no neighbour to list).
+    /// A scrape also reads zenoh's counters and link state now (the router's admin space:
+    /// a few milliseconds), so that what it says of its links to other routers is as of the
+    /// scrape: a mesh's deployment reads them between two lock-step steps to know when every
+    /// router follows a step's radio graph and what each link carried (docs/mesh.md).
     fn refresh_metrics(&self) {
         for (reason, n) in lock(&REFUSED).iter() {
             self.metrics.registry.set(self.refused_handshakes, &[reason], *n as f64);
         }
+        self.copy_denials();
         self.copy_neighbours();
     }
 }

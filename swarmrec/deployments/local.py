@@ -434,11 +434,11 @@ class LocalDeployment:
                 sp.proc.wait()
             sp.release()
             codes[sp.name] = int(sp.proc.returncode)
-        if self.router is not None:
-            codes["router"] = self.stop_process(self.router, timeout_s)
-        for r, sp in enumerate(self.routers):
-            if sp is not self.router:
+        if self.routers:  # a mesh: a router per robot
+            for r, sp in enumerate(self.routers):
                 codes[f"router-{r}"] = self.stop_process(sp, timeout_s)
+        elif self.router is not None:
+            codes["router"] = self.stop_process(self.router, timeout_s)
         if self.mesh_links is not None:
             self.mesh_links.emulator.stop()
             self.mesh_links = None

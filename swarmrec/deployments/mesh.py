@@ -42,7 +42,7 @@ from swarmrec.deployments.errors import DeploymentError
 from swarmrec.deployments.links import LinkEmulator, LinkSpec, reserved_port
 from swarmrec.deployments.metrics import Scrape
 from swarmrec.deployments.radio import Pair, RadioGraph
-from swarmrec.errors import ConfigError
+from swarmrec.errors import CallError, ConfigError
 from swarmrec.runtime import keys
 from swarmrec.security.identity import parse_common_name
 
@@ -249,34 +249,47 @@ class MeshOperator:
         self.clients = list(clients)
         self.hub = self.clients[0]
         self._services = services
+        #: The robots whose own router accepted the operator's session.
+        self.opened: list[int] = []
 
     def __enter__(self) -> MeshOperator:
-        opened: list[ZenohClient] = []
-        try:
-            for c in self.clients:
+        """Open a session on every robot's router; a router that cannot be reached (it died)
+        leaves its robot to the hub, the first robot's router that can."""
+        self.opened = []
+        for r, c in enumerate(self.clients):
+            try:
                 c.__enter__()
-                opened.append(c)
-        except BaseException:
-            for c in reversed(opened):
-                c.__exit__(None, None, None)
-            raise
+            except CallError:
+                continue  # its router is gone: the robot is reached through the hub, if at all
+            self.opened.append(r)
+        if not self.opened:
+            raise DeploymentError("no robot's router of the mesh accepts the operator")
+        self.hub = self.clients[self.opened[0]]
         return self
 
     def __exit__(self, *exc: object) -> None:
-        for c in reversed(self.clients):
-            c.__exit__(None, None, None)
+        for r in reversed(self.opened):
+            self.clients[r].__exit__(None, None, None)
+        self.opened = []
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.hub, name)
 
+    def _through(self, robot: int) -> ZenohClient:
+        """Robot ``robot``'s own session while it has its router; the hub's once that router
+        is gone (a session without a router would wait out every call's timeout; through
+        the hub a robot cut off answers nothing at once)."""
+        own = self.clients[robot]
+        return own if robot in self.opened and own.session.info.routers_zid() else self.hub
+
     def step(self, step: int, timeout_s: float, *, robot: int | None = None) -> list[Any]:
         """Step ``robot`` (default: every robot, each through its own router, at once)."""
         if robot is not None:
-            return self.clients[robot].step(step, timeout_s, robot=robot)
+            return self._through(robot).step(step, timeout_s, robot=robot)
         out: list[list[Any]] = [[] for _ in self.clients]
 
         def one(r: int) -> None:
-            out[r] = self.clients[r].step(step, timeout_s, robot=r)
+            out[r] = self._through(r).step(step, timeout_s, robot=r)
 
         threads = [
             threading.Thread(target=one, args=(r,), name=f"step-r{r}") for r in range(len(self.clients))
@@ -289,14 +302,14 @@ class MeshOperator:
 
     def loop_closures(self, robot: int) -> Any:
         """Robot ``robot``'s loop closures, asked of its own router."""
-        return self.clients[robot].loop_closures(robot)
+        return self._through(robot).loop_closures(robot)
 
     def routers_answering(self, robot: int, timeout_s: float = 2.0) -> set[int]:
         """The robots whose routers answer robot ``robot``'s ask for their ``info``, sent
         through its own router: the routes from it, tried."""
         key = keys.endpoint(self.hub.swarm, "router", "*", "info")
         got: set[int] = set()
-        replies = self.clients[robot].session.get(
+        replies = self._through(robot).session.get(
             key, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s
         )
         for reply in replies:
@@ -308,7 +321,7 @@ class MeshOperator:
 
     def alive_at(self, robot: int) -> set[tuple[str, int]]:
         """(kind, robot) of every liveliness token robot ``robot``'s router knows now."""
-        return self.clients[robot].alive()
+        return self._through(robot).alive()
 
     def services_of(self, robots: frozenset[int]) -> set[tuple[str, int]]:
         return {s for r in robots for s in self._services(r)}

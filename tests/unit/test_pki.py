@@ -86,6 +86,7 @@ def test_common_names_name_robot_kind_and_swarm() -> None:
         Identity.client("s", "cli-2"),
         Identity.operator("s", "job"),
         Identity.router("s"),
+        Identity.router("s", 3),
         Identity.host("s", 7),
         Identity.host("s", 10, 19),
     ],
@@ -94,10 +95,18 @@ def test_every_common_name_parses_back_to_its_identity(identity: Identity) -> No
     assert parse_common_name(identity.common_name) == identity
 
 
+def test_a_robots_own_router_is_a_router_that_acts_for_no_robot() -> None:
+    # The mesh (docs/mesh.md): robot 3's router relays, it is none of robot 3's services.
+    ident = parse_common_name("r3.router.lab")
+    assert (ident.role, ident.robot, ident.kind) == ("router", 3, "")
+    assert list(ident.robots) == []
+    assert Identity.router("lab").common_name == "router.lab"
+
+
 @pytest.mark.parametrize(
     "cn",
     [
-        "r3.router.lab",  # the router is not a robot's service
+        "r03.router.lab",  # one spelling per robot id, a robot's own router's too
         "r03.verifier.lab",  # one spelling per robot id
         "r-1.verifier.lab",
         "r3.verifier.lab.extra",
