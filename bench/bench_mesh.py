@@ -35,14 +35,14 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_cpu import Threads, account, descendants, executable, parent_pids, read_threads  # noqa: E402
+from bench_cpu import Threads, account, descendants, executable, parent_pids, read_threads
 
-from swarmrec.core.split import split_frames  # noqa: E402
-from swarmrec.deployments.base import Deployment  # noqa: E402
-from swarmrec.deployments.local import LocalDeployment, LocalSettings  # noqa: E402
-from swarmrec.deployments.radio import RadioGraph  # noqa: E402
-from swarmrec.evaluation.source import DatasetSource  # noqa: E402
-from swarmrec.experiments.places import PlacesSettings, main  # noqa: E402
+from swarmrec.core.split import split_frames
+from swarmrec.deployments.base import Deployment
+from swarmrec.deployments.local import LocalDeployment, LocalSettings
+from swarmrec.deployments.radio import RadioGraph
+from swarmrec.evaluation.source import DatasetSource
+from swarmrec.experiments.places import PlacesSettings, main
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -201,7 +201,9 @@ def main_cli() -> int:
             ("4 m range", LocalSettings(hosting="robot", topology="mesh", radio_range_m=4.0)),
             (
                 "chain half the run",
-                LocalSettings(hosting="robot", topology="mesh", schedule=chain_schedule(work / "chain.csv", steps)),
+                LocalSettings(
+                    hosting="robot", topology="mesh", schedule=chain_schedule(work / "chain.csv", steps)
+                ),
             ),
         ):
             cases.append(run(f"synthetic, mesh, {name}", work, synthetic, local))
@@ -214,7 +216,11 @@ def main_cli() -> int:
         by["synthetic, mesh, full range"]["cpu_ms_per_query"] / by["synthetic, star"]["cpu_ms_per_query"]
     )
     result = {
-        "machine": {"platform": platform.platform(), "cores": os.cpu_count(), "python": platform.python_version()},
+        "machine": {
+            "platform": platform.platform(),
+            "cores": os.cpu_count(),
+            "python": platform.python_version(),
+        },
         "robots": ROBOTS,
         "hosting": "robot",
         "cases": cases,
