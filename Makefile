@@ -142,6 +142,7 @@ bench: $(STAMP) $(DATAPLANE)
 	$(BIN)/python bench/bench_tls.py --out bench/results/tls.json
 	$(BIN)/python bench/bench_scale.py --out bench/results/scale.json --plot docs/figures/scale.png
 	$(BIN)/python bench/bench_links.py --out bench/results/links.json
+	$(BIN)/python bench/bench_mesh.py --out bench/results/mesh.json --plot docs/figures/mesh_hops.png
 	$(BIN)/python bench/bench_elastic.py --out bench/results/elastic.json
 	$(BIN)/python bench/bench_scale.py --robots 100,50,25,10 --rules off,greedy,pack --out bench/results/scale_rules.json --plot docs/figures/scale_rules.png
 	$(BIN)/python bench/bench_balance_bound.py --out bench/results/balance_bound.json --plot docs/figures/balance_bound.png

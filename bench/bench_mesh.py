@@ -83,6 +83,7 @@ def run(name: str, work: Path, source: DatasetSource, local: LocalSettings) -> d
         assert isinstance(d, LocalDeployment)
         marks["after"], marks["t1"] = snapshot(d), time.perf_counter()
         marks["deployment"] = d
+        marks["router_rss_mib"] = _router_rss_mib(d)
 
     print(f"{name} ...", flush=True)
     settings = PlacesSettings(
@@ -126,7 +127,8 @@ def run(name: str, work: Path, source: DatasetSource, local: LocalSettings) -> d
             "converge_s_max": max(s.mesh.converge_s, default=None),
             "max_hops": s.mesh.max_hops,
             "mean_hops": mean_hops(d.radio),
-            "router_rss_mib": _router_rss_mib(marks["after"], d),
+            "router_rss_mib": marks["router_rss_mib"],
+            "mesh_start_s": s.mesh.start_s,
             "link_bytes": s.mesh.link_bytes,
         }
     print(
@@ -137,7 +139,7 @@ def run(name: str, work: Path, source: DatasetSource, local: LocalSettings) -> d
     return out
 
 
-def _router_rss_mib(_snap: dict[str, Threads], d: LocalDeployment) -> float | None:
+def _router_rss_mib(d: LocalDeployment) -> float | None:
     """The mean resident memory of the mesh's routers (MiB), read from /proc."""
     sizes = []
     for sp in d.routers:

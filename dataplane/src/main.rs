@@ -396,6 +396,12 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
             let m = host_metrics.clone();
             pages.push(("/metrics".to_string(), Arc::new(move || m.render())));
         }
+        // A router's links and link state alone, cheap to read often (a mesh's deployment
+        // polls it while the routers follow a new radio graph): `<its metrics path>/mesh`.
+        for (h, r) in hosted.iter().filter(|h| h.kind == "router").zip(&routers) {
+            let r = r.clone();
+            pages.push((format!("{}/mesh", h.url.trim_end_matches('/')), Arc::new(move || r.mesh_page())));
+        }
         let port = u16::try_from(spec.metrics_port).context("metrics_port")?;
         let server = MetricsServer::start(&spec.metrics_host, port, pages).context("metrics endpoint")?;
         for h in &mut hosted {

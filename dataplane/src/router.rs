@@ -325,6 +325,13 @@ impl Router {
             });
     }
 
+    /// Its page of links, link state and zenoh id, as of now (without zenoh's counters,
+    /// which are costly to read: they are the full page's, `refresh_metrics`).
+    pub fn mesh_page(&self) -> String {
+        self.copy_neighbours();
+        self.metrics.registry.render()
+    }
+
     /// Which routers it is linked to now (its admin space's sessions to routers, by zenoh
     /// id) and its view of the router graph.
     fn copy_neighbours(&self) {

@@ -22,6 +22,7 @@ from swarmrec.deployments.attach import attach
 from swarmrec.deployments.base import AttachFile, Deployment
 from swarmrec.deployments.kubernetes import DEFAULT_OVERLAY, KubernetesDeployment, KubernetesSettings
 from swarmrec.deployments.local import LocalDeployment
+from swarmrec.deployments.mesh import MeshReport
 from swarmrec.errors import ConfigError
 from swarmrec.experiments.places import PixelSettings, PlacesSettings, PlacesSummary, main
 from swarmrec.experiments.places.report import DetectorFigures, FunnelStats, IndexSummary
@@ -306,6 +307,34 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def print_mesh(m: MeshReport) -> None:
+    """A mesh run's lines: its routers and links, the radio graph over time, the link bytes."""
+    radio = (
+        "every robot hears every other" if m.radio_range_m is None else f"radio range {m.radio_range_m:g} m"
+    )
+    waits = f"; followed in {max(m.converge_s):.2f} s at most" if m.converge_s else ""
+    start = m.start_s
+    print(
+        f"  mesh: a router per robot ({m.routers}), {len(m.link_bytes)} links used, {radio}, up to "
+        f"{m.max_hops} hops; {len(m.events)} link changes{waits}"
+    )
+    if start:
+        print(
+            f"    start: links {start.get('links_s', 0):.1f} s, routers {start.get('routers_s', 0):.1f} s, "
+            f"first convergence {start.get('converge_s', 0):.1f} s"
+        )
+    for span in m.components[:6]:
+        parts = span["components"]
+        assert isinstance(parts, list)
+        shape = "connected" if len(parts) == 1 else f"{len(parts)} components {parts}"
+        print(f"    steps {span['start']}-{int(str(span['end'])) - 1}: {span['links']} links, {shape}")
+    if len(m.components) > 6:
+        print(f"    ... {len(m.components) - 6} more in summary.json")
+    busiest = max(m.link_bytes.items(), key=lambda kv: kv[1]["a_to_b"] + kv[1]["b_to_a"], default=None)
+    most = "" if busiest is None else f" (busiest link {busiest[0]}: {sum(busiest[1].values()):.0f} B)"
+    print(f"    bytes on the links between routers, measured: {m.link_bytes_per_query:.0f} B per query{most}")
+
+
 def print_summary(s: PlacesSummary, out: Path) -> None:
     q, b, load, sw = s.queries, s.bytes, s.shard_load, s.swarm
     where = f"{sw.processes} processes" if sw.processes else sw.deployment
@@ -354,6 +383,8 @@ def print_summary(s: PlacesSummary, out: Path) -> None:
             print(f"    at {at}: {event}")
         if len(lk.events) > 10:
             print(f"    ... {len(lk.events) - 10} more in summary.json")
+    if s.mesh is not None:
+        print_mesh(s.mesh)
     if s.offline_check is not None:
         oc = s.offline_check
         verdict = "identical" if oc.identical else f"DIFFERENT ({oc})"

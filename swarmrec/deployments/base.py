@@ -277,6 +277,8 @@ class RadioMesh(Protocol):
 
     #: The radio graph its links follow (None until planned or started).
     radio: RadioGraph | None
+    #: Seconds its start took, by part (links, routers, converge).
+    mesh_start: dict[str, float]
 
     def plan_radio(self, robots: int, steps: int, positions: FloatArray | None) -> RadioGraph:
         """The radio graph of a run of ``steps`` lock-step steps; before the swarm starts."""

@@ -46,7 +46,7 @@ from swarmrec.core.association import warm_up
 from swarmrec.deployments.base import SwarmSpec, SwarmStartError, config_flags
 from swarmrec.deployments.identities import Security, client_tls, retire_ca_key, run_pki, security_for
 from swarmrec.deployments.links import LinkEmulator, LinkSpec, Schedule, TimeUnit, read_schedule
-from swarmrec.deployments.mesh import MeshLinks, MeshOperator, RouterView, link_bytes, router_views
+from swarmrec.deployments.mesh import MESH_PAGE, MeshLinks, MeshOperator, RouterView, link_bytes, router_views
 from swarmrec.deployments.metrics import Scrape, scrape
 from swarmrec.deployments.radio import FloatArray, RadioGraph
 from swarmrec.errors import ConfigError
@@ -213,6 +213,10 @@ class LocalDeployment:
         self.router_ports: list[int] = []
         self.mesh_links: MeshLinks | None = None
         self.radio: RadioGraph | None = None
+        #: How long the mesh took to start: its links (the emulator and a proxy per pair), its
+        #: routers (started at once, to the last one ready), its first convergence (with the
+        #: services up), in seconds.
+        self.mesh_start: dict[str, float] = {}
         self.router_port = router_port
         self.security: Security = security
         self.pki_dir: Path | None = None
@@ -409,7 +413,8 @@ class LocalDeployment:
         self._wait(self.procs, timeout_s)
         if self.mesh_links is not None:
             with self.operator(5.0) as operator:
-                self.mesh_links.wait_converged(0, operator, self._router_views, timeout_s)
+                waited = self.mesh_links.wait_converged(0, operator, self._router_views, timeout_s)
+            self.mesh_start["converge_s"] = waited
             return
         with self.client(5.0) as client:
             running = {s for sp in self.procs if sp.proc.poll() is None for s in sp.services}
@@ -536,10 +541,13 @@ class LocalDeployment:
         radio = self.radio or self.plan_radio(spec.robots, 1, None)
         if radio.robots != spec.robots:
             raise ConfigError(f"the radio graph is of {radio.robots} robots, the swarm has {spec.robots}")
+        t0 = time.perf_counter()
         emulator = LinkEmulator(log_dir=self.log_dir)
         emulator.start()
         self.mesh_links = MeshLinks(radio, emulator)
         self.mesh_links.create()
+        self.mesh_start["links_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
         self.routers = []
         for r in range(spec.robots):
             config = spec.config_for("router", r, listen=(self._loopback(0),), metrics_port=0)
@@ -554,6 +562,7 @@ class LocalDeployment:
             for sp in self.routers:
                 sp.release()
             raise
+        self.mesh_start["routers_s"] = time.perf_counter() - t0
         self.router_ports = [_listening_port(sp.info) for sp in self.routers]
         self.router, self.router_port = self.routers[0], self.router_ports[0]
         self.mesh_links.connect_to(self.router_ports)
@@ -575,12 +584,13 @@ class LocalDeployment:
             return [], None
         return events, self.mesh_links.wait_converged(t, operator, self._router_views)
 
-    def _router_scrape(self) -> Scrape:
-        targets = {("router", sp.robot): sp.metrics_url for sp in self.routers if sp.metrics_url}
+    def _router_scrape(self, page: str = "") -> Scrape:
+        """Every router's metrics page, or (``page`` "/mesh") its cheap page of links alone."""
+        targets = {("router", sp.robot): sp.metrics_url + page for sp in self.routers if sp.metrics_url}
         return scrape(targets, parallel=8)
 
     def _router_views(self) -> dict[int, RouterView]:
-        return router_views(self._router_scrape())
+        return router_views(self._router_scrape(MESH_PAGE))
 
     def link_bytes(self) -> dict[tuple[int, int], tuple[float, float]]:
         """Bytes on each link between two robots' routers so far

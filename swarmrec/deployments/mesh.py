@@ -50,6 +50,9 @@ from swarmrec.security.identity import parse_common_name
 LINK_BYTES = "swarmrec_router_link_bytes_total"
 NEIGHBOURS = "swarmrec_router_neighbours"
 GRAPH_LINKS = "swarmrec_router_graph_links"
+#: The compiled router's page of its links, link state and zenoh id alone, beside its
+#: metrics page (which also reads zenoh's counters: too costly to poll every 50 ms).
+MESH_PAGE = "/mesh"
 #: How often the routers are asked whether they follow a step's radio graph (each asking
 #: reads every router's admin space once).
 CONVERGE_POLL_S = 0.05
@@ -60,6 +63,7 @@ ZID = "swarmrec_router_zid"
 
 __all__ = [
     "LINK_BYTES",
+    "MESH_PAGE",
     "MeshLinks",
     "MeshOperator",
     "MeshReport",
@@ -148,16 +152,16 @@ class MeshLinks:
         while True:
             now = views()
             for r in sorted(pending):
-                expected = {b if a == r else a for a, b in links if r in (a, b)}
+                expected = frozenset(b if a == r else a for a, b in links if r in (a, b))
                 view = now.get(r)
                 if view is None:
                     wrong[r] = f"robot {r}'s router did not answer its scrape"
                     continue
                 if view.neighbours != expected:
-                    shown = "unknown routers" if view.neighbours is None else sorted(view.neighbours)
-                    wrong[r] = f"robot {r}'s router is linked to {shown}, not robots {sorted(expected)}"
+                    peers = "unknown routers" if view.neighbours is None else sorted(view.neighbours)
+                    wrong[r] = f"robot {r}'s router is linked to {peers}, not robots {sorted(expected)}"
                     continue
-                component_links = {p for p in links if p[0] in want[r]}
+                component_links = frozenset(p for p in links if p[0] in want[r])
                 if view.graph != component_links:
                     shown = "unknown routers" if view.graph is None else sorted(view.graph)
                     wrong[r] = f"robot {r}'s router graph has links {shown}, not {sorted(component_links)}"
@@ -371,9 +375,13 @@ class MeshReport:
     converge_s: list[float] = field(default_factory=list)
     #: The most links between two robots of one component, over the run.
     max_hops: int = 0
+    #: Seconds the mesh's start took: its links, its routers (all at once), its first convergence.
+    start_s: dict[str, float] = field(default_factory=dict)
     note: str = (
         "link bytes are zenoh's transport counters in each robot's router (what it sent to each "
-        "neighbouring router: messages relayed for others included), read before and after the replay"
+        "neighbouring router: messages relayed for others included), read before and after the replay, "
+        "less what crossed the links while they changed between two steps (closing links, the "
+        "convergence checks)"
     )
 
 
@@ -384,6 +392,7 @@ def mesh_report(
     queries: int,
     events: Sequence[tuple[int, str]],
     converge_s: Sequence[float],
+    start_s: dict[str, float] | None = None,
 ) -> MeshReport:
     """The report of a mesh run whose links carried ``after`` less ``before``."""
     delta = {
@@ -404,4 +413,5 @@ def mesh_report(
         link_bytes_per_query=total / queries if queries else 0.0,
         converge_s=list(converge_s),
         max_hops=hops,
+        start_s=dict(start_s or {}),
     )

@@ -174,6 +174,10 @@ def _refuse(deployment: Deployment) -> Path:
         )
     if deployment.emulated_links is not None:
         raise ConfigError("emulated links (--link-*) are not wired into --method dvpr yet")
+    if deployment.mesh is not None:
+        raise ConfigError(
+            "the mesh topology (a router per robot) is not wired into --method dvpr yet: docs/mesh.md"
+        )
     return deployment.local_data_dir
 
 
