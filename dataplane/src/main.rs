@@ -400,7 +400,10 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
         // polls it while the routers follow a new radio graph): `<its metrics path>/mesh`.
         for (h, r) in hosted.iter().filter(|h| h.kind == "router").zip(&routers) {
             let r = r.clone();
-            pages.push((format!("{}/mesh", h.url.trim_end_matches('/')), Arc::new(move || r.mesh_page())));
+            pages.push((
+                format!("{}/mesh", h.url.trim_end_matches('/')),
+                Arc::new(move || r.mesh_page()),
+            ));
         }
         let port = u16::try_from(spec.metrics_port).context("metrics_port")?;
         let server = MetricsServer::start(&spec.metrics_host, port, pages).context("metrics endpoint")?;
