@@ -192,15 +192,20 @@ def _run_attached_dvpr(
     return 0
 
 
-def _kubernetes(args: argparse.Namespace, out: Path) -> KubernetesDeployment:
-    """``--deployment k8s``: the run's namespace, its overlay, PKI and report under ``out/k8s``."""
-    if (
+def _local_links(args: argparse.Namespace) -> bool:
+    """Whether the flags ask for emulated links or the mesh: only a local run starts them."""
+    return bool(
         args.link_rate
         or args.link_latency
         or args.link_schedule
         or args.topology != "star"
         or args.radio_range
-    ):
+    )
+
+
+def _kubernetes(args: argparse.Namespace, out: Path) -> KubernetesDeployment:
+    """``--deployment k8s``: the run's namespace, its overlay, PKI and report under ``out/k8s``."""
+    if _local_links(args):
         raise ConfigError(
             "emulated links and the mesh topology are set up by the local deployment (not --deployment k8s)"
         )
@@ -243,13 +248,7 @@ def run(args: argparse.Namespace) -> int:
         "check_offline": not args.no_offline_check,
     }
     if args.attach is not None:
-        if (
-            args.link_rate
-            or args.link_latency
-            or args.link_schedule
-            or args.topology != "star"
-            or args.radio_range
-        ):
+        if _local_links(args):
             raise ConfigError(
                 "emulated links and the mesh topology are set up by a local deployment the run starts itself"
             )
