@@ -171,8 +171,12 @@ def parent_pids() -> dict[int, int]:
 
 def snapshot(d: LocalDeployment) -> dict[str, Threads]:
     procs = {sp.name: sp.proc.pid for sp in d.procs if sp.proc.poll() is None}
-    if d.router is not None:
-        procs[d.router.name] = d.router.proc.pid
+    # The swarm's router, or a mesh's router per robot and its link emulator.
+    for sp in d.routers or ([d.router] if d.router is not None else []):
+        if sp.proc.poll() is None:
+            procs[sp.name] = sp.proc.pid
+    if d.mesh_links is not None and d.mesh_links.emulator.proc is not None:
+        procs["toxiproxy"] = d.mesh_links.emulator.proc.pid
     parents = parent_pids()
     for name, pid in list(procs.items()):
         for child in descendants(parents, pid):

@@ -35,7 +35,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_cpu import Threads, account, descendants, executable, parent_pids, read_threads
+from bench_cpu import account, snapshot
 
 from swarmrec.core.split import split_frames
 from swarmrec.deployments.base import Deployment
@@ -48,22 +48,6 @@ REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
 TUM = DATA / "tum_fr3_long_office_household_constellations.zip"
 ROBOTS = 10
-
-
-def snapshot(d: LocalDeployment) -> dict[str, Threads]:
-    """CPU of every process of the swarm now: services, routers, their children, this one."""
-    procs = {sp.name: sp.proc.pid for sp in d.procs if sp.proc.poll() is None}
-    for sp in d.routers or ([d.router] if d.router is not None else []):
-        if sp.proc.poll() is None:
-            procs[sp.name] = sp.proc.pid
-    if d.mesh_links is not None and d.mesh_links.emulator.proc is not None:
-        procs["toxiproxy"] = d.mesh_links.emulator.proc.pid
-    parents = parent_pids()
-    for name, pid in list(procs.items()):
-        for child in descendants(parents, pid):
-            procs[f"{name}/{executable(child) or 'child'}-{child}"] = child
-    procs["replay driver (this process)"] = os.getpid()
-    return {name: read_threads(pid) for name, pid in procs.items()}
 
 
 def mean_hops(graph: RadioGraph) -> float:
