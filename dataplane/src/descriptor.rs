@@ -21,7 +21,7 @@
 //! thread with no message (`LocalEndpoints`).
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
@@ -230,6 +230,9 @@ pub struct Descriptor {
     caller: Caller,
     routing: Routing,
     pending: Mutex<PendingStores>,
+    /// Passes over the pending stores finished (`PendingStores::next_batch`), said in
+    /// `MemberInfo.pending_passes`.
+    pending_passes: AtomicU64,
     memory: Mutex<Memory>,
     metrics: Arc<ServiceMetrics>,
     ids: Ids,
@@ -345,6 +348,7 @@ impl Descriptor {
             spec: d,
             caller,
             pending: Mutex::new(pending),
+            pending_passes: AtomicU64::new(0),
             memory: Mutex::new(Memory {
                 closure_log: clog,
                 closures,
@@ -1007,8 +1011,11 @@ impl Descriptor {
     /// Sends every waiting slice to every shard that must hold it under the current
     /// placement; done with those all of them acknowledged.
     fn retry_once(&self) {
-        let waiting = lock(&self.pending).snapshot(RETRY_BATCH);
+        let (waiting, ends_pass) = lock(&self.pending).next_batch(RETRY_BATCH);
         if waiting.is_empty() {
+            if ends_pass {
+                self.pending_passes.fetch_add(1, Ordering::SeqCst);
+            }
             return;
         }
         let placement = self.routing.placement();
@@ -1056,6 +1063,9 @@ impl Descriptor {
         if !stale.is_empty() {
             self.refresh(&stale, routed);
         }
+        if ends_pass {
+            self.pending_passes.fetch_add(1, Ordering::SeqCst);
+        }
         let n = lock(&self.pending).len();
         self.metrics.registry.set(self.ids.pending_stores, &[], n as f64);
     }
@@ -1090,6 +1100,7 @@ impl Service for Descriptor {
         pb::MemberInfo {
             n_labels: self.places.n_labels,
             pending_items: lock(&self.pending).len() as u64,
+            pending_passes: self.pending_passes.load(Ordering::SeqCst),
             ..Default::default()
         }
     }

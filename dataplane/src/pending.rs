@@ -25,6 +25,9 @@ pub struct PendingStores {
     seq_of: HashMap<SliceKey, u64>,
     next: u64,
     done_since_compaction: usize,
+    /// The pass under way (see `next_batch`): the next sequence number it reaches and its
+    /// end (exclusive); None between passes.
+    pass: Option<(u64, u64)>,
 }
 
 impl PendingStores {
@@ -37,6 +40,7 @@ impl PendingStores {
             seq_of: HashMap::new(),
             next: 0,
             done_since_compaction: 0,
+            pass: None,
         };
         for r in records {
             match r.split_first() {
@@ -103,9 +107,17 @@ impl PendingStores {
         Ok(())
     }
 
-    /// The slices waiting, oldest first (at most `limit`).
-    pub fn snapshot(&self, limit: usize) -> Vec<pb::PartialDescriptor> {
-        self.items.values().take(limit).cloned().collect()
+    /// The next `limit` slices of the pass under way, and whether they end it. A pass
+    /// takes every slice that was waiting when it began, oldest first, so a retry that
+    /// sends a batch a round reaches each of them within one pass, however many wait.
+    pub fn next_batch(&mut self, limit: usize) -> (Vec<pb::PartialDescriptor>, bool) {
+        let (from, end) = self.pass.unwrap_or((0, self.next));
+        let batch: Vec<(u64, pb::PartialDescriptor)> =
+            self.items.range(from..end).take(limit).map(|(s, d)| (*s, d.clone())).collect();
+        let after = batch.last().map_or(end, |(s, _)| s + 1);
+        let last = self.items.range(after..end).next().is_none();
+        self.pass = if last { None } else { Some((after, end)) };
+        (batch.into_iter().map(|(_, d)| d).collect(), last)
     }
 
     /// Every shard that must hold `d` has acknowledged it.
@@ -169,9 +181,23 @@ mod tests {
             q.done(&slice(1)).unwrap();
         }
         let (log, records) = RecordLog::open(Some(&path), false).unwrap();
-        let q = PendingStores::new(log, records, 2);
-        assert_eq!(q.snapshot(10), vec![slice(2)]);
+        let mut q = PendingStores::new(log, records, 2);
+        assert_eq!(q.next_batch(10), (vec![slice(2)], true));
         assert_eq!(q.room(), 1);
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_pass_reaches_every_slice_waiting_when_it_began_a_batch_at_a_time() {
+        let (log, records) = RecordLog::open(None, false).unwrap();
+        let mut q = PendingStores::new(log, records, 10);
+        for f in 1..=5 {
+            q.add(&slice(f)).unwrap();
+        }
+        assert_eq!(q.next_batch(2), (vec![slice(1), slice(2)], false));
+        q.done(&slice(3)).unwrap(); // acknowledged meanwhile: the pass skips it
+        q.add(&slice(6)).unwrap(); // added after the pass began: the next pass's
+        assert_eq!(q.next_batch(2), (vec![slice(4), slice(5)], true));
+        assert_eq!(q.next_batch(10), (vec![slice(1), slice(2), slice(4), slice(5), slice(6)], true));
     }
 }

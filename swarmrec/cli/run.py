@@ -387,7 +387,14 @@ def print_summary(s: PlacesSummary, out: Path) -> None:
     if s.offline_check is not None:
         oc = s.offline_check
         verdict = "identical" if oc.identical else f"DIFFERENT ({oc})"
-        print(f"  pair scores vs offline decentralized evaluation: {verdict}")
+        if oc.split_steps:
+            print(
+                f"  pair scores vs the offline simulation of the same splits ({oc.split_steps} steps split; "
+                f"{oc.unreached_group_queries} partial queries found no owner in reach, "
+                f"{oc.unreachable_verifications} verifications were out of reach): {verdict}"
+            )
+        else:
+            print(f"  pair scores vs offline decentralized evaluation: {verdict}")
     elif s.offline_not_compared:
         print(f"  pair scores vs offline decentralized evaluation: not compared ({s.offline_not_compared})")
     if q.missing_slots:

@@ -35,7 +35,7 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import IO, Literal
 
@@ -122,6 +122,16 @@ class ServiceProcess:
             return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-n:])
         except OSError:
             return ""
+
+
+def on_mesh(spec: SwarmSpec) -> SwarmSpec:
+    """``spec`` for a router per robot: its index tells a member away (its robot's router out
+    of reach, a split team) from one gone (docs/mesh.md, "Partitions")."""
+    index = spec.component(IndexSettings)
+    if not isinstance(index, IndexSettings) or index.away_by_router:
+        return spec
+    parts = tuple(c.with_(away_by_router=True) if c is index else c for c in spec.components)
+    return replace(spec, components=parts)
 
 
 def _listening_port(ready: dict[str, object]) -> int:
@@ -390,6 +400,8 @@ class LocalDeployment:
             timeout_s = _for_robots(120.0, spec.robots)
         if self.fresh:
             self._clear_earlier_run()
+        if self.topology == "mesh":
+            spec = on_mesh(spec)
         if "verifier" in spec.kinds:
             # Compiled once here, the verifier processes load the kernels from numba's cache
             # instead of each compiling them at once.

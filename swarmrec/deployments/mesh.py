@@ -42,9 +42,11 @@ from swarmrec.deployments.errors import DeploymentError
 from swarmrec.deployments.links import LinkEmulator, LinkSpec, reserved_port
 from swarmrec.deployments.metrics import Scrape
 from swarmrec.deployments.radio import Pair, RadioGraph
-from swarmrec.errors import CallError, ConfigError
+from swarmrec.errors import CallError, ConfigError, WireError
 from swarmrec.runtime import keys
 from swarmrec.security.identity import parse_common_name
+from swarmrec.wire import messages as pb
+from swarmrec.wire.codec import decode
 
 #: The compiled router's counter of bytes on its links to other routers, and its gauge of them.
 LINK_BYTES = "swarmrec_router_link_bytes_total"
@@ -323,6 +325,23 @@ class MeshOperator:
                     got.add(int(parts[-2]))
         return got
 
+    def descriptor_info(self, robot: int, timeout_s: float = 2.0) -> pb.MemberInfo | None:
+        """What robot ``robot``'s descriptor says of itself (its pending stores), asked through
+        its own router; None when it does not answer."""
+        client = self._through(robot)
+        key = keys.endpoint(client.swarm, "descriptor", robot, "info")
+        for reply in client.session.get(key, timeout=timeout_s):
+            if reply.ok is not None:
+                try:
+                    return decode(reply.ok.payload.to_bytes(), pb.MemberInfo)
+                except WireError:
+                    return None
+        return None
+
+    def shard_states_at(self, robot: int) -> list[pb.ShardState]:
+        """The index shards' states robot ``robot`` reaches (its component's), through its own router."""
+        return list(self._through(robot).shard_states())
+
     def alive_at(self, robot: int) -> set[tuple[str, int]]:
         """(kind, robot) of every liveliness token robot ``robot``'s router knows now."""
         return self._through(robot).alive()
@@ -377,6 +396,13 @@ class MeshReport:
     max_hops: int = 0
     #: Seconds the mesh's start took: its links, its routers (all at once), its first convergence.
     start_s: dict[str, float] = field(default_factory=dict)
+    #: Seconds each link change then waited for the descriptors' pass over their pending stores.
+    deliver_s: list[float] = field(default_factory=list)
+    #: While split: {"step", "version"} of the placement every part followed from that step.
+    held_placements: list[dict[str, int]] = field(default_factory=list)
+    #: While split: {"step", "versions"} where the parts did not all follow one placement (none
+    #: expected: the coordinators change nothing while the team is split).
+    split_disagreements: list[dict[str, object]] = field(default_factory=list)
     note: str = (
         "link bytes are zenoh's transport counters in each robot's router (what it sent to each "
         "neighbouring router: messages relayed for others included), read before and after the replay, "

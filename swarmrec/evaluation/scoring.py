@@ -29,12 +29,14 @@ import numpy.typing as npt
 
 from swarmrec.core.association import FrameTable, build_table, score_pairs
 from swarmrec.core.index import PARTIAL_EPSILON
+from swarmrec.core.placement import groups_from_bounds
 from swarmrec.core.presets import Preset
 from swarmrec.core.ranges import label_bounds, validate_bounds
 from swarmrec.core.selection import select_candidates_many, select_robots
 from swarmrec.core.split import split_frames
 from swarmrec.core.types import ConstellationSequence
 from swarmrec.evaluation.band import fill_band
+from swarmrec.evaluation.partition import Holdings, Reach
 
 __all__ = [
     "DecentralizedRun",
@@ -202,6 +204,9 @@ class DecentralizedRun:
     partial_descriptors_per_holder: IntArray = field(repr=False)  # (R,)
     labels_per_holder: IntArray = field(repr=False)  # (R,) non-zero bins received
     objects_per_holder: IntArray = field(repr=False)  # (R,) objects of the holder's labels
+    #: With a ``reach``: what each owner held, the queries that found no owner, the
+    #: verifications that could not reach their robot.
+    holdings: Holdings | None = field(default=None, repr=False)
 
 
 def score_decentralized(
@@ -213,8 +218,10 @@ def score_decentralized(
     label_load: FloatArray | None = None,
     bounds: IntArray | None = None,
     progress: Progress | None = None,
+    reach: Reach | None = None,
 ) -> DecentralizedRun:
-    """Simulate the two-step decentralized query with ``n_robots`` robots."""
+    """Simulate the two-step decentralized query with ``n_robots`` robots; with ``reach``,
+    on a team that splits and heals as it says (:mod:`swarmrec.evaluation.partition`)."""
     table = table or build_table(seq.constellations, seq.n_labels)
     valid = _valid_frames(table, preset)
     n, n_labels = len(seq), seq.n_labels
@@ -235,12 +242,23 @@ def score_decentralized(
     for k in range(n_ranges):
         member[bounds[k] : bounds[k + 1], k] = 1.0
     sem_part = sem @ member  # (n_robots, per, R)
+    holdings = None
+    if reach is not None:
+        groups = groups_from_bounds(bounds.tolist())
+        range_groups = [
+            groups.index((lo, hi)) if hi > lo else None
+            for lo, hi in zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True)
+        ]
+        holdings = Holdings(reach, sem_part > 0, range_groups)
+        holdings.store(0)
 
     cand_count = np.zeros((n_robots, per), np.int64)
     checked: dict[tuple[int, int], IntArray] = {}
     pair_i: list[int] = []
     pair_j: list[int] = []
     for t in range(1, per):
+        if holdings is not None:
+            holdings.deliver(t)
         query_part = sem_part[:, t]  # (n, R)
         act_q, act_k = np.nonzero(query_part > 0)
         selected: dict[tuple[int, int], IntArray] = {}
@@ -257,13 +275,27 @@ def score_decentralized(
             stored_part = np.moveaxis(sem_part[:, :t, act_k], 2, 0)  # (A, n, t)
             total = stored_part + query_part[act_q, act_k][:, None, None] - common
             values = (common / (total + PARTIAL_EPSILON)).reshape(act_q.shape[0], n_robots * t)
-            for q, k, cols in zip(
-                act_q.tolist(),
-                act_k.tolist(),
-                select_candidates_many(values, preset.n_ret),
-                strict=True,
+            unreached: set[int] = set()
+            if holdings is not None:
+                # A split team: each query sees what its serving owner holds (unheld slots
+                # score 0, as a shard's own dense vector has them), or nothing.
+                for a, (q, k) in enumerate(zip(act_q.tolist(), act_k.tolist(), strict=True)):
+                    seen = holdings.visible(q, k, t)
+                    if seen is None:
+                        unreached.add(a)
+                        values[a] = 0.0
+                    else:
+                        values[a] = np.where(seen, values[a], 0.0)
+            for a, (q, k, cols) in enumerate(
+                zip(
+                    act_q.tolist(),
+                    act_k.tolist(),
+                    select_candidates_many(values, preset.n_ret),
+                    strict=True,
+                )
             ):
-                selected[(q, k)] = cols
+                if a not in unreached:
+                    selected[(q, k)] = cols
         for r in range(n_robots):
             g = r * per + t
             if t >= len(blocks[r]) or not valid[g]:
@@ -274,10 +306,19 @@ def score_decentralized(
             cand_robot = cols // t
             robots = select_robots(cand_robot, preset.n_fq, r)
             checked[(r, t)] = robots
-            keep = np.unique(cols[np.isin(cand_robot, robots)])
+            verified = np.isin(cand_robot, robots)
+            if holdings is not None:
+                # A picked robot outside the querier's component cannot verify.
+                reachable = holdings.reachable(r, t, cand_robot)
+                for lost in np.unique(cand_robot[verified & ~reachable]).tolist():
+                    holdings.unverified.append((r, t, lost))
+                verified &= reachable
+            keep = np.unique(cols[verified])
             for c in keep.tolist():
                 pair_i.append(g)
                 pair_j.append((c // t) * per + c % t)
+        if holdings is not None:
+            holdings.store(t)
         if progress:
             progress(1)
     pi = np.array(pair_i, np.int64)
@@ -311,4 +352,5 @@ def score_decentralized(
         partial_descriptors_per_holder=descriptors_per_holder,
         labels_per_holder=labels_per_holder,
         objects_per_holder=objects_per_holder,
+        holdings=holdings,
     )

@@ -87,6 +87,8 @@ class Descriptor(ServiceBase):
         )
         self.pending = PendingStores(ctx.open_log("pending-stores"), self.index.pending_capacity)
         self.metrics.pending_stores.set(len(self.pending))
+        # Passes over the pending stores finished (PendingStores.next_batch), said in MemberInfo.
+        self.pending_passes = 0
         self._retrier: threading.Thread | None = None
         self.rule = ClosureRule(self.places.loop_closure_min_score, self.preset.exclusion)
         self.lock = threading.Lock()
@@ -102,7 +104,11 @@ class Descriptor(ServiceBase):
         self.seen = bytearray(MAX_FRAME_INDEX // 8)
 
     def member_info(self) -> pb.MemberInfo:
-        return pb.MemberInfo(n_labels=self.places.n_labels, pending_items=len(self.pending))
+        return pb.MemberInfo(
+            n_labels=self.places.n_labels,
+            pending_items=len(self.pending),
+            pending_passes=self.pending_passes,
+        )
 
     def serving(self, ready: bool) -> None:
         if ready and self._retrier is None:
@@ -125,8 +131,9 @@ class Descriptor(ServiceBase):
                 self.ctx.log.exception("retrying pending stores failed")
 
     def _retry_once(self, batch: int = 256) -> None:
-        waiting = self.pending.snapshot(batch)
+        waiting, ends_pass = self.pending.next_batch(batch)
         if not waiting:
+            self.pending_passes += ends_pass
             return
         placement = self.routing.placement
         caller = self.ctx.caller
@@ -164,6 +171,7 @@ class Descriptor(ServiceBase):
                 self.pending.done(desc)
         if stale:
             self.routing.refresh(caller, from_shards=stale, routed=placement.version)
+        self.pending_passes += ends_pass
         self.metrics.pending_stores.set(len(self.pending))
 
     def process(self, msg: pb.Constellation, _ctx: RequestContext) -> pb.QueryReport:

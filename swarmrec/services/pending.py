@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import struct
 import threading
+from collections import deque
 
 from swarmrec.errors import Unavailable
 from swarmrec.runtime.storage import RecordLog
@@ -40,6 +41,8 @@ class PendingStores:
         self._lock = threading.Lock()
         self._items: dict[SliceKey, pb.PartialDescriptor] = {}
         self._done_since_compaction = 0
+        # The pass under way (see next_batch): the keys it has still to reach.
+        self._pass: deque[SliceKey] = deque()
         for record in log.records():
             tag, body = record[:1], record[1:]
             if tag == _ADD:
@@ -72,11 +75,21 @@ class PendingStores:
             self._log.append(_ADD + desc.SerializeToString())
             self._items[key] = desc
 
-    def snapshot(self, limit: int | None = None) -> list[pb.PartialDescriptor]:
-        """The slices waiting, oldest first (at most ``limit``)."""
+    def next_batch(self, limit: int) -> tuple[list[pb.PartialDescriptor], bool]:
+        """The next ``limit`` slices of the pass under way, and whether they end it. A pass
+        takes every slice that was waiting when it began, oldest first, so a retry that
+        sends a batch a round reaches each of them within one pass, however many wait."""
         with self._lock:
-            items = list(self._items.values())
-        return items if limit is None else items[:limit]
+            if not self._pass:
+                self._pass = deque(self._items)
+            batch: list[pb.PartialDescriptor] = []
+            while self._pass and len(batch) < limit:
+                desc = self._items.get(self._pass.popleft())
+                if desc is not None:
+                    batch.append(desc)
+            while self._pass and self._pass[0] not in self._items:
+                self._pass.popleft()
+            return batch, not self._pass
 
     def done(self, desc: pb.PartialDescriptor) -> None:
         """Every shard that must hold ``desc`` has acknowledged it."""

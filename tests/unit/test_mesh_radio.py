@@ -140,11 +140,16 @@ def _trajectory(xs: list[float]) -> Trajectory:
     )
 
 
-def test_a_run_whose_radio_graph_splits_the_team_is_refused_before_it_starts(tmp_path: Path) -> None:
+def test_a_team_may_split_during_a_run_but_starts_whole(tmp_path: Path) -> None:
     mesh = LocalDeployment(data_dir=tmp_path, log_dir=tmp_path, topology="mesh", radio_range_m=1.5)
-    blocks = split_frames(4, 2)  # robot 0 at x = 0, 1; robot 1 at x = 1, 5
-    with pytest.raises(ConfigError, match=r"splits the team at steps 1-1 into \[\[0\], \[1\]\]"):
-        plan_mesh(mesh, blocks, _trajectory([0, 1, 1, 5]), lockstep=True)
+    blocks = split_frames(4, 2)
+    # Robot 0 at x = 0, 1; robot 1 at x = 5, 2: apart at step 0.
+    with pytest.raises(ConfigError, match=r"splits the team at step 0 into \[\[0\], \[1\]\]"):
+        plan_mesh(mesh, blocks, _trajectory([0, 1, 5, 2]), lockstep=True)
+    # Robot 1 at x = 1, 5: together at step 0, apart at step 1.
+    split = plan_mesh(mesh, blocks, _trajectory([0, 1, 1, 5]), lockstep=True)
+    assert split is not None and mesh.radio is not None
+    assert [len(mesh.radio.components_at(t)) for t in range(2)] == [1, 2]
     # Connected all along: planned, and the links change between steps.
     run = plan_mesh(mesh, blocks, _trajectory([0, 1, 1, 2]), lockstep=True)
     assert run is not None and mesh.radio is not None and mesh.radio.steps == 2

@@ -43,6 +43,7 @@ from swarmrec.core.types import ConstellationSequence, Trajectory
 from swarmrec.datasets.constellations import write_constellations
 from swarmrec.deployments.base import Deployment, SwarmSpec, running
 from swarmrec.errors import ConfigError, WireError
+from swarmrec.evaluation.partition import Reach
 from swarmrec.evaluation.scoring import label_frequency_prior
 from swarmrec.evaluation.source import load_dataset
 from swarmrec.experiments.mesh import plan_mesh
@@ -151,13 +152,14 @@ def prepare(settings: PlacesSettings, *, dataset_dir: Path) -> Prepared:
     return Prepared(spec, preset, bounds, split_frames(n_frames, settings.robots), seq, trajectory, px)
 
 
-def _offline(seq: ConstellationSequence, prepared: Prepared) -> OfflineEvaluation:
-    """The offline evaluation of ``seq`` as the run's swarm saw it."""
+def _offline(seq: ConstellationSequence, prepared: Prepared, reach: Reach | None = None) -> OfflineEvaluation:
+    """The offline evaluation of ``seq`` as the run's swarm saw it (``reach``: a mesh's team
+    that split and healed, simulated on the same schedule)."""
     places = prepared.spec.component(PlaceSettings)
     assert isinstance(places, PlaceSettings)
     wire_seq = as_on_the_wire(seq, exact=places.exact_positions)
     return OfflineEvaluation(
-        seq, wire_seq, prepared.trajectory, prepared.preset, prepared.bounds, prepared.spec.robots
+        seq, wire_seq, prepared.trajectory, prepared.preset, prepared.bounds, prepared.spec.robots, reach
     )
 
 
@@ -277,8 +279,10 @@ def main(
             mesh.start_counting()
         result = replay(client, prepared.blocks, settings.replay(), on_step, before_step)
         timings["replay_s"] = result.wall_s
+        # A team that split: the offline simulation of the same connectivity schedule.
+        reach = mesh.reach(prepared.bounds.tolist(), settings.index.replicas) if mesh is not None else None
         if prepared.sequence is not None:  # (from pixels: the detections, read after the stop)
-            checking = _offline(prepared.sequence, prepared)
+            checking = _offline(prepared.sequence, prepared, reach)
             offline = checking.start(check_offline=settings.check_offline)
         # Handoffs and retried stores finish before anything is counted, so the report
         # agrees with what the shards hold.
@@ -322,7 +326,7 @@ def main(
     assert isinstance(places, PlaceSettings)
     replayed = spec.component(DetectorSettings)
     assert isinstance(replayed, DetectorSettings)
-    offline = offline or _offline(seq, prepared)
+    offline = offline or _offline(seq, prepared, reach)
     record = RunRecord(
         seq=seq,
         offline=offline,

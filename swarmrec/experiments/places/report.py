@@ -37,6 +37,7 @@ from swarmrec.deployments.mesh import MeshReport
 from swarmrec.deployments.metrics import Scrape
 from swarmrec.evaluation.bandwidth import HolderLoad
 from swarmrec.evaluation.groundtruth import GroundTruth, ground_truth
+from swarmrec.evaluation.partition import Holdings, Reach
 from swarmrec.evaluation.plots import (
     plot_bytes,
     plot_closures_map,
@@ -205,6 +206,12 @@ class OfflineCheck:
     scores_differ: int
     only_in_swarm: int
     only_offline: int
+    #: A mesh's team that split: the steps it was split, simulated offline on the same schedule.
+    split_steps: int = 0
+    #: In that simulation: partial queries that found no owner of their group in reach, and
+    #: verifications whose robot was out of reach (no pair from them).
+    unreached_group_queries: int = 0
+    unreachable_verifications: int = 0
 
 
 @dataclass
@@ -383,9 +390,14 @@ class OfflineEvaluation:
         preset: Preset,
         bounds: npt.NDArray[np.int64],
         robots: int,
+        reach: Reach | None = None,
     ) -> None:
         self.seq, self.wire_seq, self.trajectory = seq, wire_seq, trajectory
         self.preset, self.bounds, self.robots = preset, bounds, robots
+        #: A mesh's team that split: the evaluation simulates the same connectivity schedule,
+        #: and keeps what each owner held (:class:`~swarmrec.evaluation.partition.Holdings`).
+        self.reach = reach
+        self.holdings: Holdings | None = None
         # By sequence: with exact positions on the wire, both are the same frames.
         self._done: dict[int, tuple[FrameTable, ScoreMatrix]] = {}
         self._truth: GroundTruth | None = None
@@ -440,8 +452,12 @@ class OfflineEvaluation:
             if done is not None:
                 matrix = done.rescored(table, self.preset)
             else:
-                scored = score_decentralized(seq, self.robots, self.preset, table=table, bounds=self.bounds)
+                scored = score_decentralized(
+                    seq, self.robots, self.preset, table=table, bounds=self.bounds, reach=self.reach
+                )
                 matrix = scored.matrix
+                if scored.holdings is not None:
+                    self.holdings = scored.holdings
             self._done[id(seq)] = (table, matrix)
         return self._done[id(seq)][1]
 
@@ -714,6 +730,11 @@ def write_report(settings: ReportSettings, run: RunRecord) -> PlacesSummary:
     # Frames delivered late were stored after their step: the lock-step identity is off then.
     if settings.check_offline and settings.lockstep and not replay.missing and not replay.late:
         summary.offline_check = _compare_offline(matrix, offline.matrix(wire=True))
+        if offline.reach is not None and offline.holdings is not None:
+            reach = offline.reach
+            summary.offline_check.split_steps = sum(reach.split_at(t) for t in range(len(reach.components)))
+            summary.offline_check.unreached_group_queries = len(offline.holdings.unreached)
+            summary.offline_check.unreachable_verifications = len(offline.holdings.unverified)
     else:
         summary.offline_not_compared = _why_not_compared(settings, len(replay.missing), len(replay.late))
     dense = matrix.dense()

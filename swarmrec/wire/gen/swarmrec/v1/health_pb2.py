@@ -24,15 +24,15 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18swarmrec/v1/health.proto\x12\x0bswarmrec.v1\"\xf4\x01\n\nMemberInfo\x12&\n\x04kind\x18\x01 \x01(\x0e\x32\x18.swarmrec.v1.ServiceKind\x12\x10\n\x08robot_id\x18\x02 \x01(\r\x12\x10\n\x08label_lo\x18\x03 \x01(\r\x12\x10\n\x08label_hi\x18\x04 \x01(\r\x12\x0f\n\x07version\x18\x05 \x01(\t\x12\x10\n\x08n_labels\x18\x06 \x01(\r\x12\x13\n\x0bmetrics_url\x18\x07 \x01(\t\x12\r\n\x05swarm\x18\x08 \x01(\t\x12\x14\n\x0cstored_items\x18\t \x01(\x04\x12\x15\n\rpending_items\x18\n \x01(\x04\x12\x14\n\x0clabel_ranges\x18\x0b \x03(\r*\x9d\x02\n\x0bServiceKind\x12\x1c\n\x18SERVICE_KIND_UNSPECIFIED\x10\x00\x12\x19\n\x15SERVICE_KIND_DETECTOR\x10\x01\x12\x1b\n\x17SERVICE_KIND_DESCRIPTOR\x10\x02\x12\x1c\n\x18SERVICE_KIND_INDEX_SHARD\x10\x03\x12\x19\n\x15SERVICE_KIND_VERIFIER\x10\x04\x12\x17\n\x13SERVICE_KIND_FUSION\x10\x05\x12\x17\n\x13SERVICE_KIND_ROUTER\x10\x06\x12\x18\n\x14SERVICE_KIND_GATEWAY\x10\x07\x12\x1c\n\x18SERVICE_KIND_PLACE_OWNER\x10\x08\x12\x15\n\x11SERVICE_KIND_SLAM\x10\tb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18swarmrec/v1/health.proto\x12\x0bswarmrec.v1\"\x8c\x02\n\nMemberInfo\x12&\n\x04kind\x18\x01 \x01(\x0e\x32\x18.swarmrec.v1.ServiceKind\x12\x10\n\x08robot_id\x18\x02 \x01(\r\x12\x10\n\x08label_lo\x18\x03 \x01(\r\x12\x10\n\x08label_hi\x18\x04 \x01(\r\x12\x0f\n\x07version\x18\x05 \x01(\t\x12\x10\n\x08n_labels\x18\x06 \x01(\r\x12\x13\n\x0bmetrics_url\x18\x07 \x01(\t\x12\r\n\x05swarm\x18\x08 \x01(\t\x12\x14\n\x0cstored_items\x18\t \x01(\x04\x12\x15\n\rpending_items\x18\n \x01(\x04\x12\x14\n\x0clabel_ranges\x18\x0b \x03(\r\x12\x16\n\x0epending_passes\x18\x0c \x01(\x04*\x9d\x02\n\x0bServiceKind\x12\x1c\n\x18SERVICE_KIND_UNSPECIFIED\x10\x00\x12\x19\n\x15SERVICE_KIND_DETECTOR\x10\x01\x12\x1b\n\x17SERVICE_KIND_DESCRIPTOR\x10\x02\x12\x1c\n\x18SERVICE_KIND_INDEX_SHARD\x10\x03\x12\x19\n\x15SERVICE_KIND_VERIFIER\x10\x04\x12\x17\n\x13SERVICE_KIND_FUSION\x10\x05\x12\x17\n\x13SERVICE_KIND_ROUTER\x10\x06\x12\x18\n\x14SERVICE_KIND_GATEWAY\x10\x07\x12\x1c\n\x18SERVICE_KIND_PLACE_OWNER\x10\x08\x12\x15\n\x11SERVICE_KIND_SLAM\x10\tb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, __name__, _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_SERVICEKIND']._serialized_start=289
-  _globals['_SERVICEKIND']._serialized_end=574
+  _globals['_SERVICEKIND']._serialized_start=313
+  _globals['_SERVICEKIND']._serialized_end=598
   _globals['_MEMBERINFO']._serialized_start=42
-  _globals['_MEMBERINFO']._serialized_end=286
+  _globals['_MEMBERINFO']._serialized_end=310
 # @@protoc_insertion_point(module_scope)

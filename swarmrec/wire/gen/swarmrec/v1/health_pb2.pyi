@@ -31,7 +31,7 @@ SERVICE_KIND_PLACE_OWNER: ServiceKind
 SERVICE_KIND_SLAM: ServiceKind
 
 class MemberInfo(_message.Message):
-    __slots__ = ("kind", "robot_id", "label_lo", "label_hi", "version", "n_labels", "metrics_url", "swarm", "stored_items", "pending_items", "label_ranges")
+    __slots__ = ("kind", "robot_id", "label_lo", "label_hi", "version", "n_labels", "metrics_url", "swarm", "stored_items", "pending_items", "label_ranges", "pending_passes")
     KIND_FIELD_NUMBER: _ClassVar[int]
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     LABEL_LO_FIELD_NUMBER: _ClassVar[int]
@@ -43,6 +43,7 @@ class MemberInfo(_message.Message):
     STORED_ITEMS_FIELD_NUMBER: _ClassVar[int]
     PENDING_ITEMS_FIELD_NUMBER: _ClassVar[int]
     LABEL_RANGES_FIELD_NUMBER: _ClassVar[int]
+    PENDING_PASSES_FIELD_NUMBER: _ClassVar[int]
     kind: ServiceKind
     robot_id: int
     label_lo: int
@@ -54,4 +55,5 @@ class MemberInfo(_message.Message):
     stored_items: int
     pending_items: int
     label_ranges: _containers.RepeatedScalarFieldContainer[int]
-    def __init__(self, kind: _Optional[_Union[ServiceKind, str]] = ..., robot_id: _Optional[int] = ..., label_lo: _Optional[int] = ..., label_hi: _Optional[int] = ..., version: _Optional[str] = ..., n_labels: _Optional[int] = ..., metrics_url: _Optional[str] = ..., swarm: _Optional[str] = ..., stored_items: _Optional[int] = ..., pending_items: _Optional[int] = ..., label_ranges: _Optional[_Iterable[int]] = ...) -> None: ...
+    pending_passes: int
+    def __init__(self, kind: _Optional[_Union[ServiceKind, str]] = ..., robot_id: _Optional[int] = ..., label_lo: _Optional[int] = ..., label_hi: _Optional[int] = ..., version: _Optional[str] = ..., n_labels: _Optional[int] = ..., metrics_url: _Optional[str] = ..., swarm: _Optional[str] = ..., stored_items: _Optional[int] = ..., pending_items: _Optional[int] = ..., label_ranges: _Optional[_Iterable[int]] = ..., pending_passes: _Optional[int] = ...) -> None: ...
