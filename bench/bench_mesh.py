@@ -16,6 +16,12 @@ only its radio traffic leaves it), measured in this one invocation:
    full otherwise. Bytes each link carried during the replay, summed over links, per
    query, against the mean hop count between robots: relayed traffic is counted on every
    link it crosses, measured by the routers on the wire.
+3. **Partitions** (the synthetic world, 10 robots): a chain for steps 10-29, then the
+   chain cut in the middle (two parts, 0-4 and 5-9) for 50 steps, then healed; and a
+   radio range of 3 m, at which the robots' own movements split the team twice (in parts
+   that change as they move, up to 6 hops). Pair scores against the offline simulation of
+   the same schedule (swarmrec.evaluation.partition), the stores pending when the split
+   ends, and those left at the end (none: every one delivered).
 
 The figure plots each case's bytes on the links a query against the mean number of hops
 between two robots.
@@ -56,12 +62,24 @@ def mean_hops(graph: RadioGraph) -> float:
     return sum(per_step) / len(per_step) if per_step else 0.0
 
 
-def run(name: str, work: Path, source: DatasetSource, local: LocalSettings) -> dict[str, Any]:
+def run(
+    name: str, work: Path, source: DatasetSource, local: LocalSettings, *, pending_at: int | None = None
+) -> dict[str, Any]:
+    """One lock-step run; ``pending_at``: the step after which the stores the descriptors
+    owe are counted (the last step of a split)."""
     marks: dict[str, Any] = {}
 
     def up(d: Deployment) -> None:
         assert isinstance(d, LocalDeployment)
         marks["before"], marks["t0"] = snapshot(d), time.perf_counter()
+        marks["live"] = d
+
+    def counted(t: int) -> None:
+        if t != pending_at:
+            return
+        with marks["live"].operator(5.0) as operator:
+            infos = [operator.descriptor_info(r) for r in range(ROBOTS)]
+        marks["pending_at_split_end"] = sum(i.pending_items for i in infos if i is not None)
 
     def over(d: Deployment) -> None:
         assert isinstance(d, LocalDeployment)
@@ -79,7 +97,13 @@ def run(name: str, work: Path, source: DatasetSource, local: LocalSettings) -> d
         progress=False,
         plots=False,
     )
-    s = main(settings, LocalDeployment.for_run(settings.out, local), swarm_hook=up, after_replay=over)
+    s = main(
+        settings,
+        LocalDeployment.for_run(settings.out, local),
+        swarm_hook=up,
+        after_replay=over,
+        on_step=counted if pending_at is not None else None,
+    )
     queries = s.queries.queried
     cpu = account(marks["before"], marks["after"], queries)
     check = s.offline_check
@@ -115,6 +139,20 @@ def run(name: str, work: Path, source: DatasetSource, local: LocalSettings) -> d
             "mesh_start_s": s.mesh.start_s,
             "link_bytes": s.mesh.link_bytes,
         }
+    if check is not None and check.split_steps:
+        index = s.index
+        out |= {
+            "split_steps": check.split_steps,
+            "components": s.mesh.components if s.mesh is not None else None,
+            "unreached_group_queries": check.unreached_group_queries,
+            "unreachable_verifications": check.unreachable_verifications,
+            "pending_stores_at_split_end": marks.get("pending_at_split_end"),
+            "pending_stores_at_end": index.pending_stores if index is not None else None,
+            "index_settled": index.settled if index is not None else None,
+            "held_placements": s.mesh.held_placements if s.mesh is not None else None,
+            "split_disagreements": s.mesh.split_disagreements if s.mesh is not None else None,
+            "deliver_s_max": max(s.mesh.deliver_s, default=None) if s.mesh is not None else None,
+        }
     print(
         f"  identical {out['identical_to_offline']}, cpu {out['cpu_ms_per_query']:.2f} ms/query, "
         f"start {out['start_s']:.1f} s, link bytes/query {out.get('link_bytes_per_query', 0):.0f}",
@@ -144,13 +182,26 @@ def chain_schedule(path: Path, steps: int) -> Path:
     return path
 
 
+def split_schedule(path: Path) -> Path:
+    """A chain 0 - 1 - ... - 9 for steps 10-29; then the chain cut between 4 and 5 (two parts)
+    for steps 30-79; whole again from step 80."""
+    rows = [f"10,80,{a},{b}" for a in range(ROBOTS) for b in range(a + 2, ROBOTS)]
+    rows.append("30,80,4,5")
+    path.write_text("start,end,robot_a,robot_b\n" + "\n".join(rows) + "\n")
+    return path
+
+
 def plot(cases: list[dict[str, Any]], path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    mesh = [c for c in cases if c["topology"] == "mesh" and c["case"].startswith("synthetic")]
+    mesh = [
+        c
+        for c in cases
+        if c["topology"] == "mesh" and c["case"].startswith("synthetic") and not c.get("split_steps")
+    ]
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.plot([c["mean_hops"] for c in mesh], [c["link_bytes_per_query"] for c in mesh], "o-")
     for c in mesh:
@@ -193,6 +244,10 @@ def main_cli() -> int:
             ),
         ):
             cases.append(run(f"synthetic, mesh, {name}", work, synthetic, local))
+        split = LocalSettings(hosting="robot", topology="mesh", schedule=split_schedule(work / "split.csv"))
+        cases.append(run("synthetic, mesh, chain then split 50 steps", work, synthetic, split, pending_at=79))
+        ranged = LocalSettings(hosting="robot", topology="mesh", radio_range_m=3.0)
+        cases.append(run("synthetic, mesh, 3 m range (splits)", work, synthetic, ranged))
     by = {c["case"]: c for c in cases}
     ratios: dict[str, float | None] = {}
     if "TUM fr3, star" in by:

@@ -329,6 +329,16 @@ def print_mesh(m: MeshReport) -> None:
         print(f"    steps {span['start']}-{int(str(span['end'])) - 1}: {span['links']} links, {shape}")
     if len(m.components) > 6:
         print(f"    ... {len(m.components) - 6} more in summary.json")
+    if m.held_placements:
+        versions = ", ".join(f"version {h['version']} from step {h['step']}" for h in m.held_placements)
+        agree = (
+            "every part on it"
+            if not m.split_disagreements
+            else f"PARTS DISAGREED at {len(m.split_disagreements)} steps (summary.json)"
+        )
+        print(f"    while split: placement held ({versions}), {agree}")
+    if m.deliver_s:
+        print(f"    pending stores delivered after each link change in {max(m.deliver_s):.2f} s at most")
     busiest = max(m.link_bytes.items(), key=lambda kv: kv[1]["a_to_b"] + kv[1]["b_to_a"], default=None)
     most = "" if busiest is None else f" (busiest link {busiest[0]}: {sum(busiest[1].values()):.0f} B)"
     print(f"    bytes on the links between routers, measured: {m.link_bytes_per_query:.0f} B per query{most}")

@@ -17,8 +17,9 @@ reach each other, and heal. The constellation method then does, by definition:
   cannot verify, and its candidates give no pair.
 * **The placement does not change while the team is split** (no coordinator moves a
   group of a robot it cannot reach), so the owners of a split stretch are the placement
-  in force when it began. While the team is whole, every owner holds every earlier
-  slice (pending stores are delivered first), so which owner answers, and the
+  in force when it began, made (its handoffs done) while the team was whole: its owners
+  hold every slice stored before. While the team is whole, every owner holds every
+  earlier slice (pending stores are delivered first), so which owner answers, and the
   placement, change nothing.
 
 :class:`Reach` is the schedule (components per step, placements by step) and
@@ -65,6 +66,11 @@ class Reach:
         if starts != sorted(starts):
             raise ConfigError(f"the placements' first steps must be in order, got {starts}")
         object.__setattr__(self, "components", comps)
+        made_apart = [s for s in starts[1:] if self.split_at(s - 1)]
+        if made_apart:
+            raise ConfigError(
+                f"placements come into force only after a step of the whole team, not at steps {made_apart}"
+            )
 
     @classmethod
     def of(
@@ -142,10 +148,15 @@ class Holdings:
 
     def deliver(self, t: int) -> None:
         """Before step ``t``: every owner holds every earlier slice of the robots in its
-        component (what it got when stored, and the pending stores delivered now)."""
+        component (what it got when stored, and the pending stores delivered now). A
+        placement that comes into force at ``t`` was made, and its handoffs done, while
+        the team was whole: its new owners copied every earlier slice."""
         comp = self.reach.at(t)
         for k in range(len(self.range_groups)):
+            before = set(self._owners(t - 1, k)) if t > 0 else set()
             for o in self._owners(t, k):
+                if t > 0 and o not in before:
+                    self.held(o, k)[:, :t] = self.stored[:, :t, k]
                 mates = comp == comp[o]
                 self.held(o, k)[mates, :t] = self.stored[mates, :t, k]
 

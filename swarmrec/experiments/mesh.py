@@ -108,9 +108,15 @@ class MeshRun:
             states += operator.shard_states_at(min(part))
         versions = {st.shard_id: version_of(st) if st.confirmed else -1 for st in states}
         placement = newest_placement(states)
-        if placement is None or len(set(versions.values())) != 1:
+        held = placement is not None and placement.settled and len(set(versions.values())) == 1
+        # A placement comes into force only while the team is whole (after step t - 1): a
+        # new one in the middle of a split was made apart.
+        apart = len(self.mesh.radio.components_at(t - 1)) > 1
+        new = placement is not None and (not self.held or self.held[-1][1].version != placement.version)
+        if not held or (new and apart):
             self.disagreed.append((t, versions))
-        if placement is not None and (not self.held or self.held[-1][1].version != placement.version):
+        elif new:
+            assert placement is not None
             self.held.append((t, placement))
 
     def reach(self, bounds: Sequence[int], replicas: int) -> Reach | None:

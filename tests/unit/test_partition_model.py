@@ -118,3 +118,20 @@ def test_while_split_no_pair_joins_the_two_parts_and_after_healing_they_do_again
     plain_pairs = set(zip(plain.matrix.pairs_i.tolist(), plain.matrix.pairs_j.tolist(), strict=True))
     split_pairs = set(zip(m.pairs_i.tolist(), m.pairs_j.tolist(), strict=True))
     assert len(split_pairs) < len(plain_pairs)
+
+
+def test_a_placement_made_while_whole_gives_its_new_owners_every_earlier_slice() -> None:
+    first, moved = (
+        _one_group((0, 1)),
+        Placement(version=4, groups=((0, 4),), owners=((0, 2),), members=(0, 1, 2), replicas=2),
+    )
+    reach = Reach.of([WHOLE, WHOLE, SPLIT], 3, [0, 4], replicas=2, placements=[(0, first), (2, moved)])
+    h = Holdings(reach, np.ones((3, 3, 1), bool), [0])
+    for t in range(3):
+        h.deliver(t)
+        h.store(t)
+    # Shard 2 became an owner at step 2 (the handoff done while whole): it copied steps 0-1,
+    # then stored only its own part's slice of step 2.
+    assert h.held(2, 0).tolist() == [[True, True, False], [True, True, True], [True, True, True]]
+    with pytest.raises(ConfigError, match="whole team"):
+        Reach.of([WHOLE, SPLIT, SPLIT], 3, [0, 4], replicas=2, placements=[(0, first), (2, moved)])
