@@ -112,8 +112,12 @@ impl PendingStores {
     /// sends a batch a round reaches each of them within one pass, however many wait.
     pub fn next_batch(&mut self, limit: usize) -> (Vec<pb::PartialDescriptor>, bool) {
         let (from, end) = self.pass.unwrap_or((0, self.next));
-        let batch: Vec<(u64, pb::PartialDescriptor)> =
-            self.items.range(from..end).take(limit).map(|(s, d)| (*s, d.clone())).collect();
+        let batch: Vec<(u64, pb::PartialDescriptor)> = self
+            .items
+            .range(from..end)
+            .take(limit)
+            .map(|(s, d)| (*s, d.clone()))
+            .collect();
         let after = batch.last().map_or(end, |(s, _)| s + 1);
         let last = self.items.range(after..end).next().is_none();
         self.pass = if last { None } else { Some((after, end)) };
@@ -198,6 +202,9 @@ mod tests {
         q.done(&slice(3)).unwrap(); // acknowledged meanwhile: the pass skips it
         q.add(&slice(6)).unwrap(); // added after the pass began: the next pass's
         assert_eq!(q.next_batch(2), (vec![slice(4), slice(5)], true));
-        assert_eq!(q.next_batch(10), (vec![slice(1), slice(2), slice(4), slice(5), slice(6)], true));
+        assert_eq!(
+            q.next_batch(10),
+            (vec![slice(1), slice(2), slice(4), slice(5), slice(6)], true)
+        );
     }
 }

@@ -18,6 +18,10 @@
 //!   own transport counters (`zenoh_{tx,rx}_per_transport_bytes_total`, relayed traffic
 //!   included), summed by the neighbour's certificate name and kept for links that closed,
 //!   read with the access-control drops.
+//! * **bytes of each message type on each link to another router**: zenoh's per-key payload
+//!   histograms (`zenoh_{tx,rx}_network_message_payload_per_key_per_transport_bytes_sum`,
+//!   for the key expressions of the bus setting `stats_keys`, one per message type), summed
+//!   by neighbour, direction, key and zenoh message (query, reply, put).
 //!
 //! It has no endpoint of its own beyond `info`.
 
@@ -156,6 +160,28 @@ pub fn router_link_bytes(line: &str) -> Option<(String, &'static str, f64)> {
     Some((peer, direction, value.trim().parse::<f64>().ok()?))
 }
 
+/// A line of zenoh's per-key payload histograms for a link to another router:
+/// `(peer, direction, key, message, bytes)` (the histogram's sum), the peer named as in
+/// [`router_link_bytes`].
+pub fn router_key_bytes(line: &str) -> Option<(String, &'static str, String, String, f64)> {
+    if line.starts_with('#') || !line.contains("remote_whatami=\"router\"") {
+        return None;
+    }
+    let (head, value) = line.rsplit_once(' ')?;
+    let direction = match head.split('{').next()? {
+        "zenoh_tx_network_message_payload_per_key_per_transport_bytes_sum" => "sent",
+        "zenoh_rx_network_message_payload_per_key_per_transport_bytes_sum" => "received",
+        _ => return None,
+    };
+    let peer = match label(head, "remote_cn").filter(|cn| !cn.is_empty()) {
+        Some(cn) => cn,
+        None => format!("zid:{}", label(head, "remote_zid").unwrap_or_default()),
+    };
+    let key = label(head, "key")?;
+    let message = label(head, "message").unwrap_or_default();
+    Some((peer, direction, key, message, value.trim().parse::<f64>().ok()?))
+}
+
 /// The links of zenoh's router graph (its admin space's `router/linkstate/north`, Graphviz
 /// text: `0 [ label = "<zid>" ]` nodes and `0 -- 1 [ label = "<weight>" ]` edges) as pairs
 /// of zenoh ids, each pair in order.
@@ -188,6 +214,7 @@ pub struct Router {
     refused_handshakes: Metric,
     denied_messages: Metric,
     link_bytes: Metric,
+    key_bytes: Metric,
     neighbours: Metric,
     graph_links: Metric,
     zid: Metric,
@@ -218,6 +245,13 @@ impl Router {
              neighbour's certificate name and direction (sent to it, received from it); relayed traffic included",
             &["peer", "direction"],
         );
+        let key_bytes = metrics.registry.counter(
+            "swarmrec_router_key_bytes",
+            "Payload bytes on the links to other routers (a mesh) by message type: zenoh's per-key \
+             counts for each key expression of the bus setting stats_keys, by neighbour, direction, \
+             key and zenoh message (query, reply, put); relayed traffic included, framing not",
+            &["peer", "direction", "key", "message"],
+        );
         let neighbours = metrics.registry.gauge(
             "swarmrec_router_neighbours",
             "Links to another router now (a mesh's router, at each scrape), by the neighbour's \
@@ -238,6 +272,7 @@ impl Router {
             refused_handshakes,
             denied_messages,
             link_bytes,
+            key_bytes,
             neighbours,
             graph_links,
             zid,
@@ -374,12 +409,18 @@ impl Router {
     fn copy_denials(&self) {
         let registry = &self.metrics.registry;
         // zenoh's selector parameters are separated by `;`.
-        let selector = "router/metrics?compression=false;descriptors=false;per_key=false;per_link=false;\
+        let selector = "router/metrics?compression=false;descriptors=false;per_key=true;per_link=false;\
                         disconnected=true";
         let Some(text) = self.admin(selector) else { return };
         let mut denied: BTreeMap<(String, &'static str, String), f64> = BTreeMap::new();
         let mut links: BTreeMap<(String, &'static str), f64> = BTreeMap::new();
+        let mut by_key: BTreeMap<(String, &'static str, String, String), f64> = BTreeMap::new();
         for line in String::from_utf8_lossy(&text).lines() {
+            if let Some((peer, direction, key, message, n)) = router_key_bytes(line) {
+                // Summed over priorities and over the transports to one neighbour.
+                *by_key.entry((peer, direction, key, message)).or_insert(0.0) += n;
+                continue;
+            }
             if let Some((peer, direction, n)) = router_link_bytes(line) {
                 // Summed over the transports to one neighbour (a link that closed and came back).
                 *links.entry((peer, direction)).or_insert(0.0) += n;
@@ -396,6 +437,9 @@ impl Router {
         }
         for ((peer, direction), n) in links {
             registry.set(self.link_bytes, &[&peer, direction], n);
+        }
+        for ((peer, direction, key, message), n) in by_key {
+            registry.set(self.key_bytes, &[&peer, direction, &key, &message], n);
         }
     }
 }
@@ -485,6 +529,29 @@ mod tests {
             "# HELP zenoh_rx_network_message_dropped_payload_per_transport_bytes reason=\"access-control\"",
         ] {
             assert_eq!(access_control_drop(line), None, "{line}");
+        }
+    }
+
+    #[test]
+    fn bytes_by_key_are_read_from_the_per_key_histograms_of_links_to_routers() {
+        let tx = r#"zenoh_tx_network_message_payload_per_key_per_transport_bytes_sum{local_id="41",local_whatami="router",space="user",priority="data",message="query",shm="false",remote_zid="9f",remote_whatami="router",remote_cn="r2.router.lab",key="swarmrec/v1/lab/index-shard/*/query/**"} 3072"#;
+        assert_eq!(
+            router_key_bytes(tx),
+            Some((
+                "r2.router.lab".to_string(),
+                "sent",
+                "swarmrec/v1/lab/index-shard/*/query/**".to_string(),
+                "query".to_string(),
+                3072.0
+            ))
+        );
+        // Not counted: a client's transport, the histogram's count, lines without a key.
+        for line in [
+            r#"zenoh_tx_network_message_payload_per_key_per_transport_bytes_sum{message="query",remote_whatami="client",key="k"} 5"#,
+            r#"zenoh_tx_network_message_payload_per_key_per_transport_bytes_count{message="query",remote_whatami="router",key="k"} 5"#,
+            r#"zenoh_rx_network_message_payload_per_key_per_transport_bytes_sum{message="reply",remote_whatami="router"} 5"#,
+        ] {
+            assert_eq!(router_key_bytes(line), None, "{line}");
         }
     }
 

@@ -292,6 +292,13 @@ class RadioMesh(Protocol):
         """Bytes on each link so far, ``{(a, b): (a to b, b to a)}``."""
         ...
 
+    def wire_bytes(
+        self,
+    ) -> tuple[dict[tuple[int, int], tuple[float, float]], dict[tuple[str, str], float]]:
+        """One reading of the routers: :meth:`link_bytes`, and the payload bytes of each
+        (message type, zenoh message) summed over every link so far."""
+        ...
+
 
 class Deployment(Protocol):
     """Where a swarm runs; see the module docstring."""

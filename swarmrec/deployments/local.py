@@ -46,7 +46,16 @@ from swarmrec.core.association import warm_up
 from swarmrec.deployments.base import SwarmSpec, SwarmStartError, config_flags
 from swarmrec.deployments.identities import Security, client_tls, retire_ca_key, run_pki, security_for
 from swarmrec.deployments.links import LinkEmulator, LinkSpec, Schedule, TimeUnit, read_schedule
-from swarmrec.deployments.mesh import MESH_PAGE, MeshLinks, MeshOperator, RouterView, link_bytes, router_views
+from swarmrec.deployments.mesh import (
+    MESH_PAGE,
+    MeshLinks,
+    MeshOperator,
+    RouterView,
+    key_bytes,
+    link_bytes,
+    message_types,
+    router_views,
+)
 from swarmrec.deployments.metrics import Scrape, scrape
 from swarmrec.deployments.radio import FloatArray, RadioGraph
 from swarmrec.errors import ConfigError
@@ -564,7 +573,8 @@ class LocalDeployment:
         for r in range(spec.robots):
             config = spec.config_for("router", r, listen=(self._loopback(0),), metrics_port=0)
             bus = config.get(BusSettings).with_(
-                peers=tuple(self._loopback(p) for p in self.mesh_links.dials(r))
+                peers=tuple(self._loopback(p) for p in self.mesh_links.dials(r)),
+                stats_keys=tuple(message_types(spec.swarm).values()),
             )
             config = self._secured(config.replace(bus), f"router-{r}", router_of=r)
             self.routers.append(self._spawn("router", r, config_flags(config)))
@@ -608,6 +618,14 @@ class LocalDeployment:
         """Bytes on each link between two robots' routers so far
         (:func:`~swarmrec.deployments.mesh.link_bytes`)."""
         return link_bytes(self._router_scrape(), self._spec().swarm)
+
+    def wire_bytes(
+        self,
+    ) -> tuple[dict[tuple[int, int], tuple[float, float]], dict[tuple[str, str], float]]:
+        """One scrape of the routers: bytes on each link, and payload bytes by message type
+        summed over the links (:func:`~swarmrec.deployments.mesh.key_bytes`)."""
+        routers, swarm = self._router_scrape(), self._spec().swarm
+        return link_bytes(routers, swarm), key_bytes(routers, swarm)
 
     def robot_endpoint(self, robot: int) -> str:
         """Where ``robot``'s services connect: its own router (a mesh), its link's proxy, or

@@ -45,11 +45,14 @@ from swarmrec.deployments.radio import Pair, RadioGraph
 from swarmrec.errors import CallError, ConfigError, WireError
 from swarmrec.runtime import keys
 from swarmrec.security.identity import parse_common_name
+from swarmrec.services.registry import REGISTRY
 from swarmrec.wire import messages as pb
 from swarmrec.wire.codec import decode
 
 #: The compiled router's counter of bytes on its links to other routers, and its gauge of them.
 LINK_BYTES = "swarmrec_router_link_bytes_total"
+#: Its counter of payload bytes on those links by message type (zenoh's per-key counts).
+KEY_BYTES = "swarmrec_router_key_bytes_total"
 NEIGHBOURS = "swarmrec_router_neighbours"
 GRAPH_LINKS = "swarmrec_router_graph_links"
 #: The compiled router's page of its links, link state and zenoh id alone, beside its
@@ -64,15 +67,18 @@ ZENOH_TREES_DELAY_S = 0.15
 ZID = "swarmrec_router_zid"
 
 __all__ = [
+    "KEY_BYTES",
     "LINK_BYTES",
     "MESH_PAGE",
     "MeshLinks",
     "MeshOperator",
     "MeshReport",
     "RouterView",
+    "key_bytes",
     "link_bytes",
     "link_name",
     "mesh_report",
+    "message_types",
     "router_views",
 ]
 
@@ -375,6 +381,42 @@ def link_bytes(routers: Scrape, swarm: str) -> dict[Pair, tuple[float, float]]:
     return {p: (v[0], v[1]) for p, v in sorted(out.items())}
 
 
+def message_types(swarm: str) -> dict[str, str]:
+    """The message types robots send each other, ``{name: key expression}``: every endpoint
+    some kind calls (``"index-shard query"``: its requests and their replies) and the
+    events. A mesh's routers count the payload bytes of each on each link (``stats_keys``)."""
+    calls = sorted({(c.kind, c.endpoint) for entry in REGISTRY.values() for c in entry.calls})
+    out = {
+        f"{kind} {endpoint}": keys.endpoint(swarm, kind, "*", f"{endpoint}/**") for kind, endpoint in calls
+    }
+    out["events"] = f"{keys.PREFIX}/{swarm}/events/**"
+    return out
+
+
+def key_bytes(routers: Scrape, swarm: str) -> dict[tuple[str, str], float]:
+    """Payload bytes of each message type sent on the links between routers so far, summed
+    over every link (so a relayed message counts once per link it crossed), by (message
+    type, zenoh message: query, reply or put), from the routers' :data:`KEY_BYTES`."""
+    names = {key: name for name, key in message_types(swarm).items()}
+    out: dict[tuple[str, str], float] = {}
+    for (kind, _robot), series in routers.samples.items():
+        if kind != "router":
+            continue
+        for (name, labels), value in series.items():
+            d = dict(labels)
+            if name != KEY_BYTES or d.get("direction") != "sent" or d.get("key") not in names:
+                continue
+            try:
+                peer = parse_common_name(d.get("peer", ""))
+            except ConfigError:
+                continue
+            if peer.role != "router" or peer.swarm != swarm:
+                continue
+            entry = (names[d["key"]], d.get("message", ""))
+            out[entry] = out.get(entry, 0.0) + value
+    return dict(sorted(out.items()))
+
+
 @dataclass
 class MeshReport:
     """What a mesh run reports (``summary.json``'s ``mesh``): its radio graph over time,
@@ -398,6 +440,9 @@ class MeshReport:
     start_s: dict[str, float] = field(default_factory=dict)
     #: Seconds each link change then waited for the descriptors' pass over their pending stores.
     deliver_s: list[float] = field(default_factory=list)
+    #: Payload bytes a query of each message type (and zenoh message: query, reply, put) on
+    #: the links, summed over every link crossed: zenoh's per-key counts in the routers.
+    type_bytes_per_query: dict[str, float] = field(default_factory=dict)
     #: While split: {"step", "version"} of the placement every part followed from that step.
     held_placements: list[dict[str, int]] = field(default_factory=list)
     #: While split: {"step", "versions"} where the parts did not all follow one placement (none

@@ -374,6 +374,9 @@ def zenoh_config(
                 {"period_init_ms": 100, "period_max_ms": ROUTER_REDIAL_MAX_MS, "period_increase_factor": 2}
             ),
         )
+    if bus.mode == "router" and bus.stats_keys:
+        # The bytes of each message type on each link (zenoh's per-key payload histograms).
+        conf.insert_json5("stats/filters", json.dumps([{"key": k} for k in bus.stats_keys]))
     if bus.mode == "router":
         # zenoh holds a router's open half a second for peers it might scout; with multicast
         # off there are none to wait for (every client dials it), so its start is 0.5 s shorter.

@@ -50,6 +50,7 @@ from swarmrec.runtime.keys import validate_swarm_name
 __all__ = [
     "AUTO_QUEUE_ABOVE",
     "ENV_PREFIX",
+    "MAX_STATS_KEYS",
     "BusSettings",
     "Component",
     "Config",
@@ -75,6 +76,10 @@ def setting(default: T, help: str) -> T:
     contract page shows."""
     out: T = field(default=default, metadata={"help": help})
     return out
+
+
+#: Key expressions a router may count bytes of (each costs it a match per new resource).
+MAX_STATS_KEYS = 64
 
 
 @dataclass(frozen=True)
@@ -188,6 +193,11 @@ class BusSettings(Component):
         "other routers a router dials (the mesh topology: its robot's radio neighbours, docs/mesh.md); "
         "it keeps redialling each one it loses",
     )
+    stats_keys: tuple[str, ...] = setting(
+        (),
+        "key expressions a router counts payload bytes of, per link to another router (zenoh's "
+        "per-key stats; the mesh: one per message type, docs/mesh.md)",
+    )
     metrics_port: int = setting(0, "Prometheus endpoint port (0: a free one, -1: none)")
     metrics_host: str = setting("127.0.0.1", "Prometheus endpoint address")
     workers: int = setting(
@@ -231,6 +241,10 @@ class BusSettings(Component):
             problems.append("a router needs at least one --listen endpoint")
         if self.peers and self.mode != "router":
             problems.append("only a router dials peers (--peers); a client or peer uses --connect")
+        if self.stats_keys and self.mode != "router":
+            problems.append("only a router counts bytes per key (--stats-keys)")
+        if len(self.stats_keys) > MAX_STATS_KEYS:
+            problems.append(f"at most {MAX_STATS_KEYS} stats keys, got {len(self.stats_keys)}")
         if self.mode == "client" and not self.connect:
             problems.append("a client needs at least one --connect endpoint")
         if not -1 <= self.metrics_port <= 65535:

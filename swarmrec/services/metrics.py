@@ -49,6 +49,7 @@ class RouterMetrics(MetricSet):
     refused_handshakes: Counter
     denied_messages: Counter
     link_bytes: Counter
+    key_bytes: Counter
     neighbours: Gauge
     graph_links: Gauge
     zid: Gauge
@@ -75,6 +76,14 @@ class RouterMetrics(MetricSet):
                 "neighbour's certificate name and direction (sent to it, received from it); relayed traffic "
                 "included",
                 ["peer", "direction"],
+                registry=registry,
+            ),
+            key_bytes=Counter(
+                "swarmrec_router_key_bytes",
+                "Payload bytes on the links to other routers (a mesh) by message type: zenoh's per-key "
+                "counts for each key expression of the bus setting stats_keys, by neighbour, direction, "
+                "key and zenoh message (query, reply, put); relayed traffic included, framing not",
+                ["peer", "direction", "key", "message"],
                 registry=registry,
             ),
             neighbours=Gauge(

@@ -107,6 +107,13 @@ def test_a_chain_relays_every_query_and_the_run_equals_the_offline_evaluation(tm
     assert set(mesh.link_bytes) == {f"{a}-{b}" for a, b in CUT + CHAIN}
     assert all(v["a_to_b"] > 0 and v["b_to_a"] > 0 for v in mesh.link_bytes.values())
     assert mesh.link_bytes_per_query > 0
+    # Each message type's payload bytes, summed over the links it crossed (zenoh's per-key
+    # counts): the two-step query's requests and replies are there, and all of them
+    # together are less than the links carried (framing, keys, control are not payload).
+    by_type = mesh.type_bytes_per_query
+    for name in ("index-shard query query", "index-shard query reply", "verifier verify query"):
+        assert by_type.get(name, 0) > 0, by_type
+    assert sum(by_type.values()) < mesh.link_bytes_per_query, by_type
 
 
 SPLIT = [(0, 2), (0, 3), (1, 2), (1, 3)]

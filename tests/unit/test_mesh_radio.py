@@ -12,7 +12,7 @@ from swarmrec.core.split import split_frames
 from swarmrec.core.types import Trajectory
 from swarmrec.deployments.links import LinkSpec, Outage, Schedule, read_schedule
 from swarmrec.deployments.local import LocalDeployment, LocalSettings
-from swarmrec.deployments.mesh import link_bytes, mesh_report, router_views
+from swarmrec.deployments.mesh import key_bytes, link_bytes, mesh_report, message_types, router_views
 from swarmrec.deployments.metrics import Scrape
 from swarmrec.deployments.radio import RadioGraph, components, robot_positions
 from swarmrec.errors import ConfigError, MalformedLineError
@@ -236,3 +236,36 @@ def test_link_bytes_are_what_each_side_sent_to_the_other() -> None:
     assert report.max_hops == 1 and report.components == [
         {"start": 0, "end": 1, "components": [[0, 1, 2]], "links": 3}
     ]
+
+
+def test_a_message_types_bytes_are_summed_over_every_link_it_crossed() -> None:
+    types = message_types("lab")
+    # Every endpoint a kind calls of another, and the events.
+    assert types["index-shard query"] == "swarmrec/v1/lab/index-shard/*/query/**"
+    assert types["verifier verify"] == "swarmrec/v1/lab/verifier/*/verify/**"
+    assert types["events"] == "swarmrec/v1/lab/events/**"
+
+    def sent(
+        peer: str, key: str, message: str, v: float
+    ) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+        labels = (("direction", "sent"), ("key", key), ("message", message), ("peer", peer))
+        return {("swarmrec_router_key_bytes_total", labels): v}
+
+    query = types["index-shard query"]
+    pages = Scrape(
+        {
+            # A query relayed 0 -> 1 -> 2 is counted on both links; its reply on both too.
+            ("router", 0): sent("r1.router.lab", query, "query", 30.0),
+            ("router", 1): {
+                **sent("r2.router.lab", query, "query", 30.0),
+                **sent("r0.router.lab", query, "reply", 12.0),
+                **sent("r0.router.lab", "swarmrec/v1/lab/unknown/**", "put", 5.0),  # not a type of ours
+                **sent("zid:ff", query, "query", 7.0),  # an unnamed peer: not attributable
+            },
+            ("router", 2): sent("r1.router.lab", query, "reply", 12.0),
+        }
+    )
+    assert key_bytes(pages, "lab") == {
+        ("index-shard query", "query"): 60.0,
+        ("index-shard query", "reply"): 24.0,
+    }
