@@ -339,7 +339,7 @@ impl Service for Router {
         for (reason, n) in lock(&REFUSED).iter() {
             self.metrics.registry.set(self.refused_handshakes, &[reason], *n as f64);
         }
-        self.copy_denials();
+        self.copy_denials(true);
         self.copy_neighbours();
     }
 }
@@ -353,7 +353,9 @@ impl Router {
             .name("router-denials".into())
             .spawn(move || {
                 while let Some(router) = me.upgrade() {
-                    router.copy_denials();
+                    // Without the per-key counts: a few thousand histogram lines a read, read
+                    // at each scrape only.
+                    router.copy_denials(false);
                     drop(router);
                     std::thread::sleep(every);
                 }
@@ -406,12 +408,15 @@ impl Router {
     }
 
     /// zenoh's access-control drops as they are now (sessions that left included).
-    fn copy_denials(&self) {
+    /// With `per_key`, also the bytes of each message type (zenoh's per-key histograms).
+    fn copy_denials(&self, per_key: bool) {
         let registry = &self.metrics.registry;
         // zenoh's selector parameters are separated by `;`.
-        let selector = "router/metrics?compression=false;descriptors=false;per_key=true;per_link=false;\
-                        disconnected=true";
-        let Some(text) = self.admin(selector) else { return };
+        let selector = format!(
+            "router/metrics?compression=false;descriptors=false;per_key={per_key};per_link=false;\
+             disconnected=true"
+        );
+        let Some(text) = self.admin(&selector) else { return };
         let mut denied: BTreeMap<(String, &'static str, String), f64> = BTreeMap::new();
         let mut links: BTreeMap<(String, &'static str), f64> = BTreeMap::new();
         let mut by_key: BTreeMap<(String, &'static str, String, String), f64> = BTreeMap::new();

@@ -134,12 +134,12 @@ class ServiceProcess:
 
 
 def on_mesh(spec: SwarmSpec) -> SwarmSpec:
-    """``spec`` for a router per robot: its index tells a member away (its robot's router out
-    of reach, a split team) from one gone (docs/mesh.md, "Partitions")."""
+    """``spec`` for a router per robot: its index takes a member out of sight for away (in
+    another part of a split team), not gone, and holds its placement (docs/mesh.md, "Partitions")."""
     index = spec.component(IndexSettings)
-    if not isinstance(index, IndexSettings) or index.away_by_router:
+    if not isinstance(index, IndexSettings) or index.hold_when_away:
         return spec
-    parts = tuple(c.with_(away_by_router=True) if c is index else c for c in spec.components)
+    parts = tuple(c.with_(hold_when_away=True) if c is index else c for c in spec.components)
     return replace(spec, components=parts)
 
 

@@ -41,9 +41,9 @@ members the start grace again, as they come back one by one (:meth:`Coordinator.
 Otherwise the first shard back after a router restart would take the others for gone
 and publish a placement none of them follows.
 
-In a mesh (``away_by_router``, a router per robot, docs/mesh.md "Partitions") a member
-whose robot's router is out of reach is **away**: the team is split, or that router
-died, and from here the two look the same. While any member is away the coordinator of
+In a mesh (``hold_when_away``, a router per robot, docs/mesh.md "Partitions") a member
+out of sight is **away**: the team is split, or that robot's router or shard died, and
+from here these look the same. While any member is away the coordinator of
 each part (the lowest shard present there) changes no placement: no group moves, none
 is re-placed, nothing is rebalanced. Each part goes on with the placement it had: a
 query goes to a group's owners in its part, a store to an owner away waits on its robot
@@ -76,7 +76,7 @@ from swarmrec.errors import CallError, WireError
 from swarmrec.runtime import ServiceContext, keys
 from swarmrec.runtime.settings import BusSettings
 from swarmrec.services.metrics import ShardMetrics
-from swarmrec.services.routing import LiveRouters, LiveShards, version_of
+from swarmrec.services.routing import LiveShards, version_of
 from swarmrec.services.settings import IndexSettings, PlaceSettings
 from swarmrec.wire import messages as pb
 from swarmrec.wire.placement import placement_from_proto, placement_to_proto
@@ -326,8 +326,6 @@ class Coordinator:
         self.settings = shard.index_settings
         self.log = shard.ctx.log
         self.live: LiveShards | None = None
-        # A mesh's routers (away_by_router): which robots this shard reaches.
-        self.routers: LiveRouters | None = None
         # The members away at the last tick (logged when that changes).
         self._away: frozenset[int] = frozenset()
         self.acting = False
@@ -365,8 +363,6 @@ class Coordinator:
         self.live = LiveShards(
             self.shard.ctx.session, self.shard.bus.swarm, needs_link=needs_link, watch_draining=True
         )
-        if self.settings.away_by_router:
-            self.routers = LiveRouters(self.shard.ctx.session, self.shard.bus.swarm)
         self._thread = threading.Thread(target=self._run, name="index-coordinator", daemon=True)
         self._thread.start()
 
@@ -377,9 +373,6 @@ class Coordinator:
         if self.live is not None:
             self.live.close()
             self.live = None
-        if self.routers is not None:
-            self.routers.close()
-            self.routers = None
 
     def anyone_stays(self) -> bool:
         """Whether another live shard has not declared it is stopping (False before start)."""
@@ -677,7 +670,7 @@ class Coordinator:
         )
         if behind:
             self._adopt(behind, current)
-        if self._split(current):
+        if self._split(current, live):
             return  # no placement is made while part of the team is out of reach
         if not present:
             return  # every shard is stopping: nowhere to move anything
@@ -710,20 +703,21 @@ class Coordinator:
             plan = self._plan if reason == pb.PlacementReason.PLACEMENT_REASON_REBALANCE else None
             self.publish(step, live, reason, plan)
 
-    def away(self, placement: Placement) -> frozenset[int]:
-        """The members of ``placement`` whose robot's router this shard does not reach (a
-        mesh's, ``away_by_router``; empty otherwise). A member beyond the robots has no
-        router of its own and is never away."""
-        if self.routers is None:
+    def away(self, placement: Placement, live: set[int]) -> frozenset[int]:
+        """The members of ``placement`` out of sight (not among the ``live`` shards) in a mesh
+        (``hold_when_away``; empty otherwise). From here a robot in another part of a split
+        team, one whose router died and one whose shard alone died look alike, so none of
+        them is taken for gone. (The routers' own liveliness tokens would tell the last from
+        the others, but a subscriber to them, and liveliness queries of them at each look,
+        left zenoh 1.10 routers of a changing mesh whose own admin space stopped answering.)"""
+        if not self.settings.hold_when_away:
             return frozenset()
-        reached = self.routers.ids() | {self.shard.shard}
-        robots = self.shard.bus.n_robots
-        return frozenset(m for m in placement.members if m < robots and m not in reached)
+        return frozenset(m for m in placement.members if m not in live)
 
-    def _split(self, current: Placement) -> bool:
+    def _split(self, current: Placement, live: set[int]) -> bool:
         """Whether part of the team is away: then this coordinator changes nothing (module
         docstring); said once in the log each time the set of away members changes."""
-        away = self.away(current)
+        away = self.away(current, live)
         if away != self._away:
             fields = {"fields": {"away": sorted(away), "version": current.version}}
             if away:

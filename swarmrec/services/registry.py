@@ -272,9 +272,7 @@ for _entry in (
         ),
         # A client reads through `lookup` (swarmrec.security.acl.SHARD_READ_ENDPOINT), added there.
         client_endpoints=("placement",),
-        # In a mesh the coordinator tells a member away (its robot's router out of reach)
-        # from one gone (docs/mesh.md, "Partitions").
-        watches=("index-shard", "router"),
+        watches=("index-shard",),
         drains=True,
         compiled=True,
     ),

@@ -25,7 +25,7 @@ from swarmrec.runtime.rpc import Caller
 from swarmrec.wire import messages as pb
 from swarmrec.wire.placement import placement_from_proto
 
-__all__ = ["LiveRouters", "LiveShards", "Routing", "newest_placement", "version_of"]
+__all__ = ["LiveShards", "Routing", "newest_placement", "version_of"]
 
 
 class LiveShards:
@@ -143,37 +143,6 @@ class LiveShards:
         if self._link_listener is not None:
             with contextlib.suppress(zenoh.ZError):
                 self._link_listener.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
-
-
-class LiveRouters:
-    """The robots whose router this session reaches now, kept by a liveliness subscriber
-    (a mesh: a router per robot, docs/mesh.md). A robot whose router is out of reach is in
-    another part of a split team, or its router died: from here the two look the same."""
-
-    def __init__(self, session: zenoh.Session, swarm: str) -> None:
-        self._lock = threading.Lock()
-        self._alive: set[int] = set()
-        self._sub = session.liveliness().declare_subscriber(
-            keys.alive(swarm, "router", "*"), self._on_token, history=True
-        )
-
-    def _on_token(self, sample: zenoh.Sample) -> None:
-        parsed = keys.parse_alive(str(sample.key_expr))
-        if parsed is None:
-            return
-        with self._lock:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self._alive.add(parsed[1])
-            else:
-                self._alive.discard(parsed[1])
-
-    def ids(self) -> set[int]:
-        with self._lock:
-            return set(self._alive)
-
-    def close(self) -> None:
-        with contextlib.suppress(zenoh.ZError):  # the session closed first
-            self._sub.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stub
 
 
 def version_of(state: pb.ShardState) -> int:

@@ -229,11 +229,11 @@ class IndexSettings(Component):
         "past it, new frames are refused (UNAVAILABLE) rather than stores dropped",
     )
     retry_interval_s: float = setting(0.5, "how often a descriptor retries its pending stores")
-    away_by_router: bool = setting(
+    hold_when_away: bool = setting(
         False,
-        "a mesh (a router per robot, docs/mesh.md): a member whose robot's router is out of reach "
-        "is away in a split team, not gone, and while one is the coordinator changes no placement "
-        "(set by the deployment for --topology mesh)",
+        "a mesh (a router per robot, docs/mesh.md): a member out of sight is away (in another "
+        "part of a split team, or its robot's router died), not gone, and while one is the "
+        "coordinator changes no placement (set by the deployment for --topology mesh)",
     )
     suspect_s: float = setting(
         5.0, "a shard that timed out is asked last for this long (another owner answers first)"
