@@ -398,11 +398,17 @@ fn host(spec: HostSpec) -> anyhow::Result<()> {
         }
         // A router's links and link state alone, cheap to read often (a mesh's deployment
         // polls it while the routers follow a new radio graph): `<its metrics path>/mesh`.
+        // Its bytes by message type (zenoh's per-key counts): `<its metrics path>/keys`, read
+        // while the links do not change (before and after a replay).
         for (h, r) in hosted.iter().filter(|h| h.kind == "router").zip(&routers) {
-            let r = r.clone();
+            let (r, k) = (r.clone(), r.clone());
             pages.push((
                 format!("{}/mesh", h.url.trim_end_matches('/')),
                 Arc::new(move || r.mesh_page()),
+            ));
+            pages.push((
+                format!("{}/keys", h.url.trim_end_matches('/')),
+                Arc::new(move || k.keys_page()),
             ));
         }
         let port = u16::try_from(spec.metrics_port).context("metrics_port")?;

@@ -292,11 +292,9 @@ class RadioMesh(Protocol):
         """Bytes on each link so far, ``{(a, b): (a to b, b to a)}``."""
         ...
 
-    def wire_bytes(
-        self,
-    ) -> tuple[dict[tuple[int, int], tuple[float, float]], dict[tuple[str, str], float]]:
-        """One reading of the routers: :meth:`link_bytes`, and the payload bytes of each
-        (message type, zenoh message) summed over every link so far."""
+    def type_bytes(self) -> dict[tuple[str, str], float]:
+        """The payload bytes of each (message type, zenoh message) summed over every link so
+        far; read while the links do not change."""
         ...
 
 

@@ -47,6 +47,7 @@ from swarmrec.deployments.base import SwarmSpec, SwarmStartError, config_flags
 from swarmrec.deployments.identities import Security, client_tls, retire_ca_key, run_pki, security_for
 from swarmrec.deployments.links import LinkEmulator, LinkSpec, Schedule, TimeUnit, read_schedule
 from swarmrec.deployments.mesh import (
+    KEYS_PAGE,
     MESH_PAGE,
     MeshLinks,
     MeshOperator,
@@ -607,7 +608,8 @@ class LocalDeployment:
         return events, self.mesh_links.wait_converged(t, operator, self._router_views)
 
     def _router_scrape(self, page: str = "") -> Scrape:
-        """Every router's metrics page, or (``page`` "/mesh") its cheap page of links alone."""
+        """Every router's metrics page, or (``page`` "/mesh") its cheap page of links alone,
+        or ("/keys") its page with the bytes by message type."""
         targets = {("router", sp.robot): sp.metrics_url + page for sp in self.routers if sp.metrics_url}
         return scrape(targets, parallel=8)
 
@@ -619,13 +621,11 @@ class LocalDeployment:
         (:func:`~swarmrec.deployments.mesh.link_bytes`)."""
         return link_bytes(self._router_scrape(), self._spec().swarm)
 
-    def wire_bytes(
-        self,
-    ) -> tuple[dict[tuple[int, int], tuple[float, float]], dict[tuple[str, str], float]]:
-        """One scrape of the routers: bytes on each link, and payload bytes by message type
-        summed over the links (:func:`~swarmrec.deployments.mesh.key_bytes`)."""
-        routers, swarm = self._router_scrape(), self._spec().swarm
-        return link_bytes(routers, swarm), key_bytes(routers, swarm)
+    def type_bytes(self) -> dict[tuple[str, str], float]:
+        """Payload bytes by message type summed over the links so far, from every router's
+        ``/keys`` page (:func:`~swarmrec.deployments.mesh.key_bytes`); read it while the
+        links do not change (before and after a replay)."""
+        return key_bytes(self._router_scrape(KEYS_PAGE), self._spec().swarm)
 
     def robot_endpoint(self, robot: int) -> str:
         """Where ``robot``'s services connect: its own router (a mesh), its link's proxy, or

@@ -58,6 +58,10 @@ GRAPH_LINKS = "swarmrec_router_graph_links"
 #: The compiled router's page of its links, link state and zenoh id alone, beside its
 #: metrics page (which also reads zenoh's counters: too costly to poll every 50 ms).
 MESH_PAGE = "/mesh"
+#: Its page with the bytes by message type too (zenoh's per-key counts), read while the
+#: links do not change: read during link changes, a 10-robot mesh's routers stopped
+#: answering their own admin space.
+KEYS_PAGE = "/keys"
 #: How often the routers are asked whether they follow a step's radio graph (each asking
 #: reads every router's admin space once).
 CONVERGE_POLL_S = 0.05
@@ -67,6 +71,7 @@ ZENOH_TREES_DELAY_S = 0.15
 ZID = "swarmrec_router_zid"
 
 __all__ = [
+    "KEYS_PAGE",
     "KEY_BYTES",
     "LINK_BYTES",
     "MESH_PAGE",

@@ -42,9 +42,8 @@ class MeshRun:
     before: dict[Pair, tuple[float, float]] = field(default_factory=dict)
     #: Bytes each link carried while the links changed (the harness's), left out of the report.
     harness: dict[Pair, tuple[float, float]] = field(default_factory=dict)
-    #: The same by (message type, zenoh message), summed over the links.
+    #: Payload bytes by (message type, zenoh message) summed over the links, as the replay starts.
     before_types: dict[tuple[str, str], float] = field(default_factory=dict)
-    harness_types: dict[tuple[str, str], float] = field(default_factory=dict)
     #: Seconds each link change waited for the pending stores' pass.
     deliver_s: list[float] = field(default_factory=list)
     #: (step, placement) every part of the split team followed from that step.
@@ -60,7 +59,7 @@ class MeshRun:
                 return
             # What crosses the links while they change is the harness's (closing links, the
             # convergence checks' asks): measured and left out of the replay's link bytes.
-            before, before_types = self.mesh.wire_bytes()
+            before = self.mesh.link_bytes()
             changed, waited = self.mesh.step_links(t, operator)
             if waited is not None:
                 self.converge_s.append(waited)
@@ -70,10 +69,7 @@ class MeshRun:
                 assert self.mesh.radio is not None
                 if len(self.mesh.radio.components_at(t)) > 1:
                     self._hold(operator, t)
-            after, after_types = self.mesh.wire_bytes()
-            _add(self.harness, before, after)
-            for k, v in after_types.items():
-                self.harness_types[k] = self.harness_types.get(k, 0.0) + v - before_types.get(k, 0.0)
+            _add(self.harness, before, self.mesh.link_bytes())
             self.events.extend((t, e) for e in changed)
 
         return hook
@@ -138,21 +134,19 @@ class MeshRun:
 
     def start_counting(self) -> None:
         """The links' byte counters as the replay starts."""
-        self.before, self.before_types = self.mesh.wire_bytes()
+        self.before, self.before_types = self.mesh.link_bytes(), self.mesh.type_bytes()
 
     def report(self, queries: int) -> MeshReport:
         """What the links carried since :meth:`start_counting`, over ``queries``."""
         assert self.mesh.radio is not None  # planned before the start
-        after, after_types = self.mesh.wire_bytes()
+        after, after_types = self.mesh.link_bytes(), self.mesh.type_bytes()
         # The replay's own traffic: the links' bytes since the start, less the harness's.
         for pair, (ab, ba) in self.harness.items():
             a, b = after.get(pair, (0.0, 0.0))
             after[pair] = (a - ab, b - ba)
+        # (These include what the harness asked of the index while the team was split.)
         types = {
-            f"{name} {message}": (
-                v - self.before_types.get((name, message), 0.0) - self.harness_types.get((name, message), 0.0)
-            )
-            / queries
+            f"{name} {message}": (v - self.before_types.get((name, message), 0.0)) / queries
             for (name, message), v in after_types.items()
             if queries
         }
